@@ -1,0 +1,41 @@
+# Two commands on a fresh machine: `make run SEQ=taekwondo` and `make test`.
+# Every target that runs Python first brings the machine up (scripts/bootstrap.sh),
+# which is quick when nothing is missing.
+SHELL := /bin/bash
+PY := .venv/bin/python
+SEQ ?= taekwondo
+STAGE ?=
+WORKERS ?= 2
+ARGS ?=
+
+.PHONY: setup run stage test bench lint clean check-seq
+
+.venv/.installed: pyproject.toml requirements.lock scripts/bootstrap.sh
+	@bash scripts/bootstrap.sh
+
+setup: .venv/.installed
+	@bash scripts/bootstrap.sh
+
+# SEQ names a folder of data_samples/ and nothing else.
+check-seq:
+	@case "$(SEQ)" in ""|*/*|*..*) echo "make: SEQ must be the name of a folder in data_samples/ (got '$(SEQ)')"; exit 2;; esac
+	@test -d "data_samples/$(SEQ)" || { echo "make: no sample 'data_samples/$(SEQ)'; available: $$(ls data_samples | tr '\n' ' ')"; exit 2; }
+
+run: setup check-seq
+	$(PY) -m pipeline run data_samples/$(SEQ) --out runs/$(SEQ) --workers $(WORKERS) $(ARGS)
+
+stage: setup check-seq
+	@test -n "$(STAGE)" || { echo "make: say which stage, e.g. make stage STAGE=tracking SEQ=$(SEQ)"; exit 2; }
+	$(PY) -m pipeline run data_samples/$(SEQ) --out runs/$(SEQ) --only $(STAGE) --workers $(WORKERS) $(ARGS)
+
+test: setup
+	$(PY) -m pytest
+
+bench: setup
+	$(PY) -m pipeline bench --out runs/bench $(ARGS)
+
+lint: setup
+	.venv/bin/ruff check .
+
+clean: check-seq
+	rm -rf "runs/$(SEQ)"

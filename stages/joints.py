@@ -1,0 +1,13 @@
+"""The joint vocabulary of joints.csv (CAPTURE_FORMAT.md), shared by every stage.
+
+The order is fixed so that arrays of joint positions can be indexed by position;
+the first 15 joints are the ones scored by evaluation, the toes are optional.
+"""
+
+JOINT_NAMES: tuple[str, ...] = (
+    "pelvis", "neck", "head",
+    "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist",
+    "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle",
+    "l_toe", "r_toe",
+)
+SCORED_JOINTS: tuple[str, ...] = JOINT_NAMES[:15]
