@@ -1,0 +1,70 @@
+"""Command-line entry point: ``python -m pipeline <subcommand> ...``.
+
+Each subcommand is a module with two functions::
+
+    def add_arguments(parser: argparse.ArgumentParser) -> None: ...
+    def main(args: argparse.Namespace) -> int: ...
+
+and one line in :data:`SUBCOMMANDS` below, mapping the subcommand's name to that module's import
+path. Modules are imported only when their subcommand runs (and for ``--help``), so a heavy import
+(open3d, Dask) in one subcommand does not slow down the others. The module's docstring's first line
+is the subcommand's one-line help.
+
+Errors: a user mistake anywhere is raised as :class:`calib.errors.InputError`; :func:`main` prints it
+as one line ``error: <message>`` on stderr and returns 2, without a traceback. Anything else is a bug
+and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from calib.errors import InputError
+
+#: Subcommand name -> import path of its module (see the module docstring). Add yours here.
+SUBCOMMANDS: dict[str, str] = {
+    "run": "pipeline.commands.run",
+    "stages": "pipeline.commands.stages",
+}
+
+#: Exit status for a user error (as argparse uses for a bad command line).
+USAGE_ERROR = 2
+
+
+def _first_line(text: str | None) -> str:
+    return (text or "").strip().splitlines()[0] if text and text.strip() else ""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full parser, with one sub-parser per entry of :data:`SUBCOMMANDS`."""
+    parser = argparse.ArgumentParser(
+        prog="python -m pipeline",
+        description="Markerless motion capture: silhouettes -> visual shape -> articulated EM tracker.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    subparsers = parser.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=True)
+    for name, module_path in SUBCOMMANDS.items():
+        module = importlib.import_module(module_path)
+        summary = _first_line(module.__doc__)
+        sub = subparsers.add_parser(name, help=summary, description=module.__doc__,
+                                    formatter_class=argparse.RawDescriptionHelpFormatter)
+        module.add_arguments(sub)
+        sub.set_defaults(_module=module)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Parse ``argv`` (default: ``sys.argv[1:]``), run the subcommand and return its exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr, force=True)
+    try:
+        return args._module.main(args)
+    except InputError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return USAGE_ERROR
