@@ -1,0 +1,150 @@
+"""COLMAP sparse models (``cameras`` + ``images``, text or binary), read and written with pycolmap.
+
+Camera name = image name stem. COLMAP puts the centre of the top-left pixel at (0.5, 0.5) where
+we put it at (0, 0), so ``cx_ours = cx_colmap - 0.5`` (same for cy). COLMAP's OPENCV-family
+distortion is OpenCV's, so the lens models below map onto ``(k1, k2, p1, p2, k3)`` exactly.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from calib.camera import Camera, Rig
+from calib.errors import InputError
+
+# COLMAP's pixel-centre convention minus ours (pixels).
+PIXEL_CENTRE_SHIFT = 0.5
+
+# Image file extension the writer appends to a camera name, so names containing dots keep their stem.
+IMAGE_SUFFIX = ".png"
+
+# Parameter layout of each supported COLMAP model: which entries are fx, fy, cx, cy and which are
+# the distortion terms k1, k2, p1, p2, k3 (None = not in the model, zero).
+_MODELS = {
+    "SIMPLE_PINHOLE": ((0, 0, 1, 2), (None, None, None, None, None)),
+    "PINHOLE": ((0, 1, 2, 3), (None, None, None, None, None)),
+    "SIMPLE_RADIAL": ((0, 0, 1, 2), (3, None, None, None, None)),
+    "RADIAL": ((0, 0, 1, 2), (3, 4, None, None, None)),
+    "OPENCV": ((0, 1, 2, 3), (4, 5, 6, 7, None)),
+    "FULL_OPENCV": ((0, 1, 2, 3), (4, 5, 6, 7, 8)),
+}
+# FULL_OPENCV's rational terms k4, k5, k6 (parameters 9..11) must be zero for OpenCV's 5-term model.
+_FULL_OPENCV_RATIONAL = slice(9, 12)
+
+
+def _intrinsics(model: str, params: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(K (3,3), dist (5,))`` in our pixel convention from a COLMAP camera model and its parameters."""
+    if model not in _MODELS:
+        supported = ", ".join(_MODELS)
+        raise InputError(f"{where}: camera model {model} is not supported, expected one of {supported}")
+    if model == "FULL_OPENCV" and np.any(params[_FULL_OPENCV_RATIONAL] != 0):
+        raise InputError(f"{where}: FULL_OPENCV with nonzero k4, k5, k6 is not supported, expected them zero")
+    (fx, fy, cx, cy), distortion = _MODELS[model]
+    K = np.array(
+        [
+            [params[fx], 0.0, params[cx] - PIXEL_CENTRE_SHIFT],
+            [0.0, params[fy], params[cy] - PIXEL_CENTRE_SHIFT],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+    dist = np.array([0.0 if index is None else params[index] for index in distortion])
+    return K, dist
+
+
+def _model_files(path: Path) -> tuple[str, list[str]]:
+    """``("bin" | "txt", names of the model files present)``; binary wins when both are complete."""
+    for extension in ("bin", "txt"):
+        if (path / f"cameras.{extension}").is_file() and (path / f"images.{extension}").is_file():
+            present = [
+                f"{stem}.{extension}"
+                for stem in ("cameras", "images", "points3D", "rigs", "frames")
+                if (path / f"{stem}.{extension}").is_file()
+            ]
+            return extension, present
+    raise InputError(f"{path}: no COLMAP model, expected cameras + images .txt (or .bin) files")
+
+
+def _read_reconstruction(path: Path) -> pycolmap.Reconstruction:
+    """pycolmap's model at ``path``; a calibration often comes without ``points3D``, which pycolmap requires,
+    so such a model is read from a temporary copy with an empty point list."""
+    extension, present = _model_files(path)
+    reconstruction = pycolmap.Reconstruction()
+    read = reconstruction.read_binary if extension == "bin" else reconstruction.read_text
+    try:
+        if f"points3D.{extension}" in present:
+            read(str(path))
+        else:
+            with tempfile.TemporaryDirectory() as copy:
+                for name in present:
+                    shutil.copyfile(path / name, Path(copy) / name)
+                empty_points = np.zeros(1, np.uint64).tobytes() if extension == "bin" else b""
+                (Path(copy) / f"points3D.{extension}").write_bytes(empty_points)
+                read(copy)
+    except (ValueError, RuntimeError, IndexError) as error:
+        message = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
+        raise InputError(f"{path}: not a readable COLMAP {extension} model ({message})") from None
+    return reconstruction
+
+
+def load(path: Path) -> Rig:
+    """The rig in the COLMAP model directory ``path``, cameras in image-id order."""
+    if not path.is_dir():
+        raise InputError(f"{path}: no such directory, expected a COLMAP model directory")
+    reconstruction = _read_reconstruction(path)
+    cameras = []
+    for image_id in sorted(reconstruction.images):
+        image = reconstruction.images[image_id]
+        where = f"{path} image {image.name!r}"
+        if not image.has_pose:
+            raise InputError(f"{where}: has no pose (not registered), expected every camera posed")
+        colmap_camera = reconstruction.cameras[image.camera_id]
+        K, dist = _intrinsics(colmap_camera.model_name, np.asarray(colmap_camera.params, np.float64), where)
+        cam_from_world = image.cam_from_world()
+        cameras.append(
+            Camera(
+                name=Path(image.name).stem,
+                K=K,
+                dist=dist,
+                R=cam_from_world.rotation.matrix(),
+                t=np.asarray(cam_from_world.translation).reshape(3),
+                size=(int(colmap_camera.width), int(colmap_camera.height)),
+            )
+        )
+    if not cameras:
+        raise InputError(f"{path}: the COLMAP model has no images, expected one image per camera")
+    return Rig(tuple(cameras))
+
+
+def _colmap_camera(camera: Camera, camera_id: int) -> pycolmap.Camera:
+    """The smallest COLMAP model holding ``camera``'s lens: PINHOLE, OPENCV, or FULL_OPENCV when k3 != 0."""
+    fx, fy = camera.K[0, 0], camera.K[1, 1]
+    cx, cy = camera.K[:2, 2] + PIXEL_CENTRE_SHIFT
+    k1, k2, p1, p2, k3 = camera.dist
+    if not np.any(camera.dist):
+        model, params = "PINHOLE", [fx, fy, cx, cy]
+    elif k3 == 0:
+        model, params = "OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2]
+    else:
+        model, params = "FULL_OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]
+    width, height = camera.size
+    return pycolmap.Camera(model=model, width=width, height=height, params=params, camera_id=camera_id)
+
+
+def save(rig: Rig, path: Path, *, binary: bool = False) -> None:
+    """Write ``rig`` as a COLMAP model (text, or binary) into the directory ``path``; ids follow rig order."""
+    reconstruction = pycolmap.Reconstruction()
+    for index, camera in enumerate(rig, start=1):
+        reconstruction.add_camera_with_trivial_rig(_colmap_camera(camera, index))
+        image = pycolmap.Image(name=f"{camera.name}{IMAGE_SUFFIX}", camera_id=index, image_id=index)
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(camera.R), camera.t)
+        reconstruction.add_image_with_trivial_frame(image, pose)
+    path.mkdir(parents=True, exist_ok=True)
+    if binary:
+        reconstruction.write_binary(str(path))
+    else:
+        reconstruction.write_text(str(path))

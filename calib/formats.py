@@ -1,0 +1,66 @@
+"""Read and write a rig in the calibration formats of CAPTURE_FORMAT.md: colmap, opencv, anipose.
+
+Readers return the rig exactly as the file states it (file units, file up axis); ``calib.world``
+converts it to the pipeline's world frame. Every problem with a file raises ``InputError`` naming
+the file and the key.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+from calib import _anipose, _colmap, _opencv
+from calib.camera import Rig
+from calib.errors import InputError
+
+FORMATS = ("colmap", "opencv", "anipose")
+
+
+def _check_format(fmt: str) -> None:
+    if fmt not in FORMATS:
+        raise InputError(f"calibration format {fmt!r} is unknown, expected one of {', '.join(FORMATS)}")
+
+
+def load_rig(fmt: str, path: str | Path, *, image_sizes: Mapping[str, tuple[int, int]] | None = None) -> Rig:
+    """The rig stored at ``path`` in format ``fmt``, cameras in the file's order.
+
+    Parameters
+    ----------
+    fmt : {"colmap", "opencv", "anipose"}
+    path : str or Path
+        colmap: the model directory; opencv: the directory holding ``intri.yml`` and ``extri.yml``
+        (or ``intri.yml`` itself); anipose: ``calibration.toml`` or the directory holding it.
+    image_sizes : mapping of camera name to (width, height), optional
+        Sizes read from the media. opencv files do not store sizes (EasyMocap's ``W_``/``H_`` keys
+        aside), so they come from here. Formats that store sizes must agree with the given ones:
+        intrinsics calibrated at another resolution would silently misproject.
+    """
+    _check_format(fmt)
+    path = Path(path)
+    sizes = dict(image_sizes or {})
+    if fmt == "opencv":
+        return _opencv.load(path, sizes)
+    rig = _colmap.load(path) if fmt == "colmap" else _anipose.load(path)
+    for camera in rig:
+        if camera.name in sizes and tuple(sizes[camera.name]) != camera.size:
+            raise InputError(
+                f"{path}: camera {camera.name!r} is calibrated for {camera.size[0]}x{camera.size[1]} images,"
+                f" but its media are {sizes[camera.name][0]}x{sizes[camera.name][1]}; expected the same size"
+            )
+    return rig
+
+
+def save_rig(rig: Rig, fmt: str, path: str | Path) -> None:
+    """Write ``rig`` to ``path`` in format ``fmt`` (COLMAP as text); ``load_rig`` reads it back.
+
+    ``path`` is a directory (created if needed); for anipose it may also be the ``.toml`` file.
+    """
+    _check_format(fmt)
+    path = Path(path)
+    if fmt == "colmap":
+        _colmap.save(rig, path)
+    elif fmt == "opencv":
+        _opencv.save(rig, path)
+    else:
+        _anipose.save(rig, path)
