@@ -1,0 +1,373 @@
+"""The articulated ellipsoid body: kinematic tree, forward kinematics and its derivatives.
+
+A body is a tree of rigid segments joined by revolute degrees of freedom (DOF); each segment carries
+ellipsoids (Horaud et al. 2009, Sec. 2.2) and some of the 17 joint centres of `stages.joints`. The
+geometry lives in YAML files (`bodies/<name>.yaml`) as fractions of standing height, so a user edits a
+body without touching code and one number scales it.
+
+Pose vector Λ (D,): the root's translation (3, metres, world), the root's rotation as yaw about world
+z, pitch and roll (3, radians), then every joint DOF in segment order (radians). Pose zero is the
+body standing upright at the origin facing +y, x to its right.
+
+Derivatives follow from the chain structure: a revolute DOF with world axis w through the point o
+moves every point x of the segments below it by dx/dθ = w × (x − o) and turns their rotations by
+dR/dθ = [w]× R; a translational DOF moves them by dx/dθ = w.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from importlib import resources
+
+import numpy as np
+import yaml
+
+from calib.errors import InputError
+from stages.joints import JOINT_NAMES
+
+ROOT_DOF_NAMES = ("tx", "ty", "tz", "yaw", "pitch", "roll")
+# Root rotation order: yaw about world z, then pitch about the body's (negative) right axis so that a
+# positive pitch leans forward, then roll about the forward axis. Its gimbal lock (pitch = ±90°, body
+# lying face down) is far from the upright motions tracked here.
+_ROOT_AXES = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 1], [-1, 0, 0], [0, 1, 0]], dtype=float)
+_AXIS_WORDS = {"x": (1, 0, 0), "y": (0, 1, 0), "z": (0, 0, 1),
+               "-x": (-1, 0, 0), "-y": (0, -1, 0), "-z": (0, 0, -1)}
+
+
+@dataclass(frozen=True)
+class Kinematics:
+    """Forward kinematics of one pose.
+
+    Attributes
+    ----------
+    R : (S, 3, 3) float
+        World rotation of every segment frame (identity in the zero pose).
+    t : (S, 3) float
+        World position of every segment's joint centre, metres.
+    axis : (D, 3) float
+        World direction of every DOF (unit; for translations the direction moved along).
+    origin : (D, 3) float
+        A world point on every revolute DOF's axis (its joint centre), metres.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    axis: np.ndarray
+    origin: np.ndarray
+
+
+@dataclass(frozen=True)
+class Ellipsoids:
+    """Posed ellipsoids: x is on ellipsoid p when (x − t_p)ᵀ R_p D_p R_pᵀ (x − t_p) = 1.
+
+    Attributes
+    ----------
+    R : (E, 3, 3) float
+        World rotation R_p; its columns are the directions of the semi-axes.
+    t : (E, 3) float
+        World centre t_p, metres.
+    semi_axes : (E, 3) float
+        Semi-axes (a, b, c), metres; D_p = diag(a⁻², b⁻², c⁻²).
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    semi_axes: np.ndarray
+
+
+@dataclass(frozen=True)
+class BodyModel:
+    """An articulated body of ellipsoids, in metres (see the module docstring for the pose vector).
+
+    Attributes
+    ----------
+    name : str
+        Configuration name (the YAML file stem).
+    height_m : float
+        Standing height the lengths are scaled to, metres.
+    segment_names : tuple of str
+        Segments in topological order (every parent before its children); segment 0 is the root.
+    parent : (S,) int
+        Parent segment index, −1 for the root.
+    offset : (S, 3) float
+        Joint centre of each segment in its parent's frame (root: 0), metres.
+    dof_names : tuple of str
+        "<segment>.<dof>" for every entry of the pose vector.
+    dof_segment : (D,) int
+        Segment whose joint each DOF belongs to.
+    dof_axis : (D, 3) float
+        Unit axis of each DOF in its joint frame.
+    dof_revolute : (D,) bool
+        True for rotations (radians), False for the root translations (metres).
+    lower, upper : (D,) float
+        Joint limits (±inf where free).
+    prior_weight : (D,) float
+        Weight of a soft pull towards the predicted value, for DOFs the data barely constrain (twist).
+    moves : (D, S) bool
+        moves[d, s]: DOF d moves segment s (s is d's segment or one of its descendants).
+    ellipsoid_segment : (E,) int
+        Segment carrying each ellipsoid.
+    ellipsoid_rotation : (E, 3, 3) float
+        Ellipsoid axes in its segment's frame.
+    ellipsoid_centre : (E, 3) float
+        Ellipsoid centre in its segment's frame, metres (relative to the segment's joint centre).
+    semi_axes : (E, 3) float
+        Semi-axes (a, b, c), metres.
+    standing_root : (3,) float
+        World position of the root's joint centre when standing on the floor at the origin, metres.
+    joint_segment : (17,) int
+        Segment carrying each joint of `JOINT_NAMES`.
+    joint_offset : (17, 3) float
+        Joint centre in its segment's frame, metres.
+    """
+
+    name: str
+    height_m: float
+    segment_names: tuple[str, ...]
+    parent: np.ndarray
+    offset: np.ndarray
+    dof_names: tuple[str, ...]
+    dof_segment: np.ndarray
+    dof_axis: np.ndarray
+    dof_revolute: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    prior_weight: np.ndarray
+    moves: np.ndarray
+    ellipsoid_segment: np.ndarray
+    ellipsoid_rotation: np.ndarray
+    ellipsoid_centre: np.ndarray
+    semi_axes: np.ndarray
+    standing_root: np.ndarray
+    joint_segment: np.ndarray
+    joint_offset: np.ndarray
+
+    @property
+    def pose_size(self) -> int:
+        """Number of pose parameters D."""
+        return len(self.dof_names)
+
+    @property
+    def n_ellipsoids(self) -> int:
+        return len(self.ellipsoid_segment)
+
+    def zero_pose(self) -> np.ndarray:
+        """The pose standing upright on the floor at the origin, facing +y, (D,)."""
+        pose = np.zeros(self.pose_size)
+        pose[:3] = self.standing_root
+        return pose
+
+    def clip(self, pose: np.ndarray) -> np.ndarray:
+        """The pose with every DOF inside its joint limits."""
+        return np.clip(pose, self.lower, self.upper)
+
+    def fk(self, pose: np.ndarray) -> Kinematics:
+        """Forward kinematics: segment frames and world DOF axes of `pose` (D,)."""
+        return _forward_kinematics(self, np.asarray(pose, dtype=float))
+
+    def ellipsoids(self, pose_or_kin: np.ndarray | Kinematics) -> Ellipsoids:
+        """World ellipsoids (R_p, t_p, semi-axes) of a pose (D,) or of its kinematics."""
+        kin = self._kinematics(pose_or_kin)
+        R_seg = kin.R[self.ellipsoid_segment]  # (E,3,3)
+        R = R_seg @ self.ellipsoid_rotation
+        t = kin.t[self.ellipsoid_segment] + np.einsum("eab,eb->ea", R_seg, self.ellipsoid_centre)
+        return Ellipsoids(R=R, t=t, semi_axes=self.semi_axes)
+
+    def joint_positions(self, pose_or_kin: np.ndarray | Kinematics) -> np.ndarray:
+        """World joint centres (17, 3) in `JOINT_NAMES` order, metres."""
+        kin = self._kinematics(pose_or_kin)
+        R_seg = kin.R[self.joint_segment]
+        return kin.t[self.joint_segment] + np.einsum("jab,jb->ja", R_seg, self.joint_offset)
+
+    def point_jacobian(self, kin: Kinematics, x: np.ndarray, segment: np.ndarray) -> np.ndarray:
+        """Derivatives (N, 3, D) of body-fixed world points x (N, 3) riding on `segment` (N,).
+
+        dx/dθ_d = w_d × (x − o_d) for revolute DOFs, w_d for translations, zero for DOFs that do not
+        move the point's segment.
+        """
+        J = np.cross(kin.axis[None, :, :], x[:, None, :] - kin.origin[None, :, :])  # (N,D,3)
+        J[:, ~self.dof_revolute, :] = kin.axis[~self.dof_revolute]
+        J *= self.moves[:, segment].T[:, :, None]
+        return J.transpose(0, 2, 1)
+
+    def joint_jacobian(self, pose_or_kin: np.ndarray | Kinematics) -> np.ndarray:
+        """Derivatives (17, 3, D) of `joint_positions` with respect to the pose."""
+        kin = self._kinematics(pose_or_kin)
+        return self.point_jacobian(kin, self.joint_positions(kin), self.joint_segment)
+
+    def scaled(self, height_m: float) -> BodyModel:
+        """The same body scaled to another standing height (metres)."""
+        if not np.isfinite(height_m) or height_m <= 0:
+            raise InputError(f"height_m: got {height_m!r}, expected a positive number of metres")
+        s = height_m / self.height_m
+        return replace(self, height_m=float(height_m), offset=self.offset * s,
+                       ellipsoid_centre=self.ellipsoid_centre * s, semi_axes=self.semi_axes * s,
+                       standing_root=self.standing_root * s, joint_offset=self.joint_offset * s)
+
+    def with_segment_scale(self, factors: np.ndarray) -> BodyModel:
+        """The body with every segment's geometry scaled by its own factor (S,) about its joint.
+
+        A factor scales the segment's child joint offsets, its ellipsoids and its joint centres, so a
+        factor 1.1 on a thigh makes the thigh 10 % longer and thicker and moves the knee down.
+        """
+        factors = np.asarray(factors, dtype=float)
+        off = self.offset * np.where(self.parent >= 0, factors[np.maximum(self.parent, 0)], 1.0)[:, None]
+        f_e = factors[self.ellipsoid_segment][:, None]
+        return replace(self, offset=off, ellipsoid_centre=self.ellipsoid_centre * f_e,
+                       semi_axes=self.semi_axes * f_e,
+                       joint_offset=self.joint_offset * factors[self.joint_segment][:, None])
+
+    def _kinematics(self, pose_or_kin: np.ndarray | Kinematics) -> Kinematics:
+        return pose_or_kin if isinstance(pose_or_kin, Kinematics) else self.fk(pose_or_kin)
+
+
+def rotation_about(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) about unit axes (..., 3) by angles (...) (Rodrigues' formula)."""
+    K = skew(axis)
+    s = np.sin(angle)[..., None, None]
+    c = np.cos(angle)[..., None, None]
+    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices [v]× (..., 3, 3) of vectors v (..., 3)."""
+    v = np.asarray(v, dtype=float)
+    K = np.zeros(v.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
+    return K
+
+
+def _forward_kinematics(body: BodyModel, pose: np.ndarray) -> Kinematics:
+    if pose.shape != (body.pose_size,):
+        raise ValueError(f"pose has shape {pose.shape}, expected ({body.pose_size},)")
+    n_seg = len(body.segment_names)
+    local = rotation_about(body.dof_axis, np.where(body.dof_revolute, pose, 0.0))  # (D,3,3)
+    R = np.empty((n_seg, 3, 3))
+    t = np.empty((n_seg, 3))
+    axis = np.empty((body.pose_size, 3))
+    origin = np.empty((body.pose_size, 3))
+    dof_start = np.searchsorted(body.dof_segment, np.arange(n_seg + 1))
+    for s in range(n_seg):
+        p = body.parent[s]
+        R_s = np.eye(3) if p < 0 else R[p]
+        t_s = np.zeros(3) if p < 0 else t[p] + R[p] @ body.offset[s]
+        for d in range(dof_start[s], dof_start[s + 1]):
+            axis[d] = R_s @ body.dof_axis[d]
+            if body.dof_revolute[d]:
+                origin[d] = t_s
+                R_s = R_s @ local[d]
+            else:
+                t_s = t_s + axis[d] * pose[d]
+                origin[d] = t_s
+        R[s], t[s] = R_s, t_s
+    return Kinematics(R=R, t=t, axis=axis, origin=origin)
+
+
+def load_body(name: str = "default", *, height_m: float | None = None) -> BodyModel:
+    """Load the body configuration `bodies/<name>.yaml`, scaled to `height_m` if given.
+
+    Raises
+    ------
+    InputError
+        If there is no such configuration or the file is malformed.
+    """
+    files = resources.files("stages.tracking") / "bodies"
+    path = files / f"{name}.yaml"
+    if not path.is_file():
+        known = sorted(p.name[:-5] for p in files.iterdir() if p.name.endswith(".yaml"))
+        raise InputError(f"body {name!r}: no such body configuration, expected one of {known}")
+    body = body_from_dict(yaml.safe_load(path.read_text()), source=f"bodies/{name}.yaml")
+    return body if height_m is None else body.scaled(height_m)
+
+
+def body_from_dict(spec: dict, *, source: str = "body") -> BodyModel:
+    """Build a BodyModel from the YAML structure described in `bodies/default.yaml`."""
+    try:
+        return _body_from_dict(spec)
+    except (KeyError, TypeError, ValueError, IndexError) as err:
+        if isinstance(err, InputError):
+            raise
+        raise InputError(f"{source}: malformed body description ({err!r}), expected the layout of "
+                         "bodies/default.yaml") from err
+
+
+def _body_from_dict(spec: dict) -> BodyModel:
+    H = float(spec["height_m"])
+    segments = spec["segments"]
+    names = tuple(s["name"] for s in segments)
+    index = {n: i for i, n in enumerate(names)}
+    parent = np.array([-1 if s["parent"] is None else index[s["parent"]] for s in segments])
+    if parent[0] != -1 or np.any(parent[1:] < 0) or np.any(parent[1:] >= np.arange(1, len(names))):
+        raise ValueError("segments must start with the root and list every parent before its children")
+    joint = np.array([s["joint"] for s in segments], dtype=float) * H  # zero-pose world positions
+    offset = joint - np.where(parent[:, None] >= 0, joint[np.maximum(parent, 0)], joint)
+    offset[0] = 0.0
+
+    dof_names, dof_seg, axes, revolute, lo, hi, prior = [], [], [], [], [], [], []
+    for s, seg in enumerate(segments):
+        if seg["dofs"] == "root":
+            for k, dof in enumerate(ROOT_DOF_NAMES):
+                dof_names.append(f"{seg['name']}.{dof}")
+                dof_seg.append(s)
+                axes.append(_ROOT_AXES[k])
+                revolute.append(k >= 3)
+                lo.append(-np.inf)
+                hi.append(np.inf)
+                prior.append(0.0)
+            continue
+        for dof in seg["dofs"]:
+            dof_names.append(f"{seg['name']}.{dof['name']}")
+            dof_seg.append(s)
+            axes.append(_AXIS_WORDS[dof["axis"]])
+            revolute.append(True)
+            lo.append(np.radians(float(dof["min"])))
+            hi.append(np.radians(float(dof["max"])))
+            prior.append(float(dof.get("prior", 0.0)))
+    dof_seg = np.array(dof_seg)
+    moves = np.zeros((len(dof_seg), len(names)), dtype=bool)
+    for s in range(len(names)):
+        a = s
+        while a >= 0:  # every DOF of s and of its ancestors moves s
+            moves[dof_seg == a, s] = True
+            a = parent[a]
+
+    e_seg, e_rot, e_centre, e_axes = [], [], [], []
+    for e in spec["ellipsoids"]:
+        s = index[e["segment"]]
+        start, end = np.array(e["from"], float) * H, np.array(e["to"], float) * H
+        R, semi = _ellipsoid_frame(end - start, np.array(e["radii"], float) * H)
+        e_seg.append(s)
+        e_rot.append(R)
+        e_centre.append(0.5 * (start + end) - joint[s])
+        e_axes.append(semi)
+
+    j_seg, j_off = [], []
+    for name in JOINT_NAMES:
+        j = spec["joints"][name]
+        s = index[j["segment"]]
+        j_seg.append(s)
+        j_off.append(np.array(j["at"], float) * H - joint[s])
+
+    return BodyModel(
+        name=str(spec["name"]), height_m=H, segment_names=names, parent=parent, offset=offset,
+        dof_names=tuple(dof_names), dof_segment=dof_seg, dof_axis=np.array(axes, dtype=float),
+        dof_revolute=np.array(revolute), lower=np.array(lo), upper=np.array(hi),
+        prior_weight=np.array(prior), moves=moves, ellipsoid_segment=np.array(e_seg),
+        ellipsoid_rotation=np.array(e_rot), ellipsoid_centre=np.array(e_centre),
+        semi_axes=np.array(e_axes), standing_root=joint[0], joint_segment=np.array(j_seg),
+        joint_offset=np.array(j_off))
+
+
+def _ellipsoid_frame(long_axis: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Axes (3, 3) (columns a, b, c) and semi-axes (3,) of an ellipsoid given by its long-axis chord."""
+    length = np.linalg.norm(long_axis)
+    if length <= 0 or np.any(radii <= 0):
+        raise ValueError("an ellipsoid needs distinct tips and positive radii")
+    a_dir = long_axis / length
+    ref = np.array([0.0, 1.0, 0.0]) if abs(a_dir[0]) > 0.9 else np.array([1.0, 0.0, 0.0])
+    b_dir = ref - a_dir * (ref @ a_dir)
+    b_dir /= np.linalg.norm(b_dir)
+    c_dir = np.cross(a_dir, b_dir)
+    return np.column_stack([a_dir, b_dir, c_dir]), np.array([0.5 * length, radii[0], radii[1]])

@@ -1,0 +1,157 @@
+"""Residuals between observations and posed ellipsoids, with their derivatives w.r.t. the pose.
+
+Three ways to measure how far datum i (point y_i, unit outward normal n_i) is from ellipsoid p:
+
+- ``"normals"`` (the paper's, Horaud et al. 2009 eq. 4): the ellipsoid point whose outward normal is
+  parallel to n_i, x_ip = λ R_p D⁻¹ R_pᵀ n_i + t_p with λ = (n_iᵀ R_p D⁻¹ R_pᵀ n_i)^(-1/2); the residual
+  is y_i − x_ip (3-D, metres).
+- ``"points"`` (no normals): the ellipsoid point whose normal is parallel to the ellipsoid's own
+  gradient at y_i, which is the radial projection x_ip = t_p + (y_i − t_p) / sqrt(q_p(y_i)) (the
+  pseudo-Euclidean point of Dewaele et al.); residual y_i − x_ip.
+- ``"algebraic"`` (Plänkers & Fua 2003): the scalar q_p(y) = Yᵀ Q_p Y = (y − t)ᵀ R D Rᵀ (y − t) − 1
+  (eq. 1), times ρ_p / 2 with ρ_p the ellipsoid's smallest semi-axis, so that it is about the distance
+  to the surface near a limb's side; residual 1-D, metres.
+
+The pose derivatives come from one identity: moving ellipsoid p rigidly is the same as moving the
+datum the opposite way in the ellipsoid's frame. For a revolute DOF with world axis w through o,
+
+    dx/dθ = w × (x − o) − (∂x/∂y) (w × (y − o)) − (∂x/∂n) (w × n),
+
+and for a translation along w, dx/dθ = w − (∂x/∂y) w; DOFs that do not move p's segment give zero.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.tracking.body import BodyModel, Ellipsoids, Kinematics
+
+DISTANCES = ("normals", "points", "algebraic")
+# q_p(y) is the squared "ellipsoidal radius" of y; at the ellipsoid's centre the radial projection is
+# undefined. Data that deep inside a limb are noise; clamping keeps x finite and lets EM push them out.
+_Q_MIN = 1e-6
+
+
+@dataclass(frozen=True)
+class Residuals:
+    """Residuals of observation-ellipsoid pairs.
+
+    Attributes
+    ----------
+    e : (K, k) float
+        Residual of each pair (k = 3 for point distances, 1 for the algebraic one), metres.
+    J : (K, k, D) float or None
+        de/dΛ, or None when not asked for.
+    """
+
+    e: np.ndarray
+    J: np.ndarray | None
+
+
+def residual_size(distance: str) -> int:
+    """Dimension k of one residual for a distance name."""
+    return 1 if distance == "algebraic" else 3
+
+
+def residuals(y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, body: BodyModel,
+              kin: Kinematics, ellipsoids: Ellipsoids, *, distance: str = "normals",
+              jacobian: bool = False) -> Residuals:
+    """Residuals (and optionally their pose Jacobians) of the pairs (i[k], p[k]).
+
+    Parameters
+    ----------
+    y, n : (I, 3) float
+        Observed points (metres) and unit outward normals.
+    i, p : (K,) int
+        Observation and ellipsoid index of every pair.
+    body, kin, ellipsoids
+        The body, its kinematics and posed ellipsoids at the current pose.
+    distance : {"normals", "points", "algebraic"}
+    jacobian : bool
+        Also return de/dΛ (K, k, D).
+    """
+    if distance not in DISTANCES:
+        raise ValueError(f"distance={distance!r}, expected one of {DISTANCES}")
+    y_k, n_k = y[i], n[i]
+    R, t, semi = ellipsoids.R[p], ellipsoids.t[p], ellipsoids.semi_axes[p]
+    if distance == "algebraic":
+        return _algebraic(y_k, R, t, semi, body, kin, p, jacobian)
+    if distance == "normals":
+        x, A_y, A_n = _normal_point(n_k, R, t, semi)
+    else:
+        x, A_y, A_n = _radial_point(y_k, R, t, semi)
+    e = y_k - x
+    if not jacobian:
+        return Residuals(e=e, J=None)
+    J_x = _point_jacobian(x, y_k, n_k, A_y, A_n, body, kin, body.ellipsoid_segment[p])
+    return Residuals(e=e, J=-J_x)
+
+
+def ellipsoid_point(n: np.ndarray, R: np.ndarray, t: np.ndarray, semi_axes: np.ndarray) -> np.ndarray:
+    """The ellipsoid point whose outward normal is parallel to n, Horaud et al. 2009 eq. (4).
+
+    Parameters
+    ----------
+    n : (K, 3) float
+        Unit directions.
+    R, t, semi_axes : (K, 3, 3), (K, 3), (K, 3) float
+        Ellipsoid of each row.
+    """
+    return _normal_point(n, R, t, semi_axes)[0]
+
+
+def _normal_point(n, R, t, semi):
+    """x = λ M n + t with M = R D⁻¹ Rᵀ, and ∂x/∂y = 0, ∂x/∂n = λ (M − λ² (Mn)(Mn)ᵀ)."""
+    M = np.einsum("kab,kb,kcb->kac", R, semi**2, R)  # R D⁻¹ Rᵀ, (K,3,3)
+    u = np.einsum("kab,kb->ka", M, n)  # (K,3)
+    lam = 1.0 / np.sqrt(np.einsum("ka,ka->k", n, u))  # eq. (4); n·Mn >= min(semi)² > 0 for unit n
+    x = lam[:, None] * u + t
+    A_n = lam[:, None, None] * (M - (lam**2)[:, None, None] * u[:, :, None] * u[:, None, :])
+    return x, None, A_n
+
+
+def _radial_point(y, R, t, semi):
+    """x = t + v / sqrt(q), v = y − t, q = vᵀ R D Rᵀ v, and ∂x/∂y = (I − v (R D Rᵀ v)ᵀ / q) / sqrt(q)."""
+    v = y - t
+    g = np.einsum("kab,kb,kcb,kc->ka", R, semi**-2.0, R, v)  # R D Rᵀ v, half the gradient of q
+    q = np.maximum(np.einsum("ka,ka->k", v, g), _Q_MIN)
+    s = 1.0 / np.sqrt(q)
+    x = t + s[:, None] * v
+    A_y = s[:, None, None] * (np.eye(3) - v[:, :, None] * g[:, None, :] / q[:, None, None])
+    return x, A_y, None
+
+
+def _point_jacobian(x, y, n, A_y, A_n, body, kin, segment):
+    """dx/dΛ (K, 3, D) from the rigid-motion identity in the module docstring."""
+    w, o = kin.axis[None, :, :], kin.origin[None, :, :]  # (1,D,3)
+    J = np.cross(w, x[:, None, :] - o)  # (K,D,3)
+    if A_y is not None:
+        J -= np.einsum("kab,kdb->kda", A_y, np.cross(w, y[:, None, :] - o))
+    if A_n is not None:
+        J -= np.einsum("kab,kdb->kda", A_n, np.cross(w, n[:, None, :]))
+    translation = ~body.dof_revolute
+    if np.any(translation):
+        w_t = kin.axis[translation]  # (T,3)
+        J[:, translation, :] = w_t[None] if A_y is None else w_t[None] - np.einsum("kab,tb->kta", A_y, w_t)
+    J *= body.moves[:, segment].T[:, :, None]
+    return J.transpose(0, 2, 1)
+
+
+def _algebraic(y, R, t, semi, body, kin, p, jacobian):
+    """Plänkers & Fua's algebraic distance q(Y) = YᵀQY (eq. 1) in metres: r = (ρ/2) q."""
+    v = y - t
+    g = np.einsum("kab,kb,kcb,kc->ka", R, semi**-2.0, R, v)  # R D Rᵀ v
+    rho = semi.min(axis=1)
+    r = 0.5 * rho * (np.einsum("ka,ka->k", v, g) - 1.0)
+    if not jacobian:
+        return Residuals(e=r[:, None], J=None)
+    # Moving the ellipsoid by δ is moving y by −δ in its frame: dr = ρ gᵀ (−dy_equiv).
+    w, o = kin.axis[None, :, :], kin.origin[None, :, :]
+    dy = np.cross(w, y[:, None, :] - o)  # (K,D,3)
+    translation = ~body.dof_revolute
+    dy[:, translation, :] = kin.axis[translation][None]
+    J = -rho[:, None] * np.einsum("ka,kda->kd", g, dy)
+    J *= body.moves[:, body.ellipsoid_segment[p]].T
+    return Residuals(e=r[:, None], J=J[:, None, :])

@@ -1,0 +1,126 @@
+"""Body model: loading, forward kinematics, and analytic derivatives against finite differences."""
+
+import numpy as np
+import pytest
+
+from calib.errors import InputError
+from stages.joints import JOINT_NAMES
+from stages.tracking.body import load_body, rotation_about
+from stages.tracking.distances import DISTANCES, ellipsoid_point, residuals
+
+STEP = 1e-6  # central differences: truncation ~STEP², round-off ~1e-16/STEP
+
+
+def _random_pose(body, seed):
+    rng = np.random.default_rng(seed)
+    return body.clip(body.zero_pose() + rng.normal(0.0, 0.5, body.pose_size))
+
+
+def _numeric_jacobian(f, pose):
+    cols = []
+    for d in range(pose.size):
+        step = np.zeros_like(pose)
+        step[d] = STEP
+        cols.append((f(pose + step) - f(pose - step)) / (2 * STEP))
+    return np.stack(cols, axis=-1)
+
+
+@pytest.mark.parametrize("name, n_dofs", [("paper", 28), ("default", 31)])
+def test_bodies_have_the_papers_counts(name, n_dofs):
+    body = load_body(name)
+    assert body.n_ellipsoids == 21
+    assert body.pose_size == n_dofs
+    assert body.joint_positions(body.zero_pose()).shape == (len(JOINT_NAMES), 3)
+
+
+def test_paper_body_has_eleven_two_dof_joints():
+    body = load_body("paper")
+    joint_dofs = np.bincount(body.dof_segment)[1:]
+    assert len(joint_dofs) == 11 and np.all(joint_dofs == 2)
+
+
+def test_zero_pose_stands_on_the_floor_facing_forward():
+    body = load_body("default", height_m=1.80)
+    joints = dict(zip(JOINT_NAMES, body.joint_positions(body.zero_pose()), strict=True))
+    assert 0.0 < joints["l_ankle"][2] < 0.1
+    assert joints["l_hip"][0] < 0 < joints["r_hip"][0]  # x points to the subject's right
+    assert joints["l_toe"][1] > joints["l_ankle"][1]  # facing +y
+    ell = body.ellipsoids(body.zero_pose())
+    z_extent = np.sqrt(np.sum((ell.R[:, 2, :] * ell.semi_axes) ** 2, axis=1))  # half-height of each
+    top = np.max(ell.t[:, 2] + z_extent)
+    assert top == pytest.approx(1.80, abs=0.02)
+
+
+def test_scaling_scales_every_length():
+    small, large = load_body("default", height_m=1.5), load_body("default", height_m=1.8)
+    np.testing.assert_allclose(large.joint_positions(large.zero_pose()),
+                               small.joint_positions(small.zero_pose()) * 1.8 / 1.5, atol=1e-12)
+
+
+def test_unknown_body_and_bad_height_are_input_errors():
+    with pytest.raises(InputError, match="no such body"):
+        load_body("centaur")
+    with pytest.raises(InputError, match="height_m"):
+        load_body("default", height_m=-1.0)
+
+
+def test_rotation_about_is_a_rotation():
+    R = rotation_about(np.array([[0.0, 0.0, 1.0]]), np.array([np.pi / 2]))[0]
+    np.testing.assert_allclose(R @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-15)
+
+
+@pytest.mark.parametrize("name", ["paper", "default"])
+def test_joint_jacobian_matches_finite_differences(name):
+    body = load_body(name)
+    pose = _random_pose(body, 0)
+    J = body.joint_jacobian(pose)
+    np.testing.assert_allclose(J, _numeric_jacobian(body.joint_positions, pose), atol=1e-7)
+
+
+def test_ellipsoid_rotation_derivative_is_skew_times_rotation():
+    body = load_body("default")
+    pose = _random_pose(body, 1)
+    kin = body.fk(pose)
+    d = body.dof_names.index("l_upperarm.flex")
+    numeric = _numeric_jacobian(lambda q: body.ellipsoids(q).R, pose)[..., d]
+    w = kin.axis[d]
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    moved = body.moves[d, body.ellipsoid_segment]
+    expected = np.where(moved[:, None, None], K @ body.ellipsoids(kin).R, 0.0)
+    np.testing.assert_allclose(numeric, expected, atol=1e-7)
+
+
+@pytest.mark.parametrize("distance", DISTANCES)
+def test_residual_jacobian_matches_finite_differences(distance):
+    body = load_body("default")
+    rng = np.random.default_rng(2)
+    y = rng.normal(0.0, 0.3, (20, 3)) + [0.0, 0.0, 1.0]
+    n = rng.normal(size=(20, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    i = np.repeat(np.arange(20), body.n_ellipsoids)
+    p = np.tile(np.arange(body.n_ellipsoids), 20)
+
+    def e(q):
+        kin = body.fk(q)
+        return residuals(y, n, i, p, body, kin, body.ellipsoids(kin), distance=distance).e
+
+    pose = _random_pose(body, 3)
+    kin = body.fk(pose)
+    J = residuals(y, n, i, p, body, kin, body.ellipsoids(kin), distance=distance, jacobian=True).J
+    numeric = _numeric_jacobian(e, pose)
+    np.testing.assert_allclose(J, numeric, atol=1e-6 * max(1.0, np.abs(numeric).max()))
+
+
+def test_normal_point_lies_on_the_ellipsoid_with_the_given_normal():
+    rng = np.random.default_rng(4)
+    R = rotation_about(np.array([[0.6, 0.0, 0.8]] * 50), rng.uniform(0, 3, 50))
+    t = rng.normal(size=(50, 3))
+    semi = rng.uniform(0.05, 0.3, (50, 3))
+    n = rng.normal(size=(50, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    x = ellipsoid_point(n, R, t, semi)
+    local = np.einsum("kba,kb->ka", R, x - t)  # Rᵀ (x − t)
+    np.testing.assert_allclose(np.sum((local / semi) ** 2, axis=1), 1.0, atol=1e-12)
+    gradient = np.einsum("kab,kb->ka", R, local / semi**2)  # outward normal direction at x
+    gradient /= np.linalg.norm(gradient, axis=1, keepdims=True)
+    np.testing.assert_allclose(gradient, n, atol=1e-12)
