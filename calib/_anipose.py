@@ -44,7 +44,7 @@ def load(path: Path) -> Rig:
     )
     if not tables:
         raise InputError(f"{toml_path}: no [cam_N] camera tables, expected one per camera")
-    return Rig(tuple(_camera(document[key], f"{toml_path} [{key}]") for _, key in tables))
+    return _parse.rig(str(toml_path), [_camera(document[key], f"{toml_path} [{key}]") for _, key in tables])
 
 
 def _camera(table: dict, where: str) -> Camera:
@@ -59,7 +59,8 @@ def _camera(table: dict, where: str) -> Camera:
         raise InputError(f"{where} name: expected a string, got {name!r}")
     rotation = _parse.numbers(table["rotation"], (3,), f"{where} rotation")
     R, _ = cv2.Rodrigues(rotation)
-    return Camera(
+    return _parse.camera(
+        where,
         name=name,
         K=_parse.numbers(table["matrix"], (3, 3), f"{where} matrix"),
         dist=_parse.distortion(table.get("distortions", [0.0]), f"{where} distortions"),
@@ -70,21 +71,31 @@ def _camera(table: dict, where: str) -> Camera:
 
 
 def save(rig: Rig, path: Path) -> None:
-    """Write ``rig`` to ``path`` (a ``.toml`` file, or a directory that gets ``calibration.toml``)."""
+    """Write ``rig`` to ``path`` (a ``.toml`` file, or a directory that gets ``calibration.toml``).
+
+    The layout is aniposelib's, one line per key and one table per camera, so a calibration diffs
+    line by line (tomli_w would spread every array over one line per number).
+    """
     toml_path = path if path.suffix == ".toml" else path / FILE_NAME
     toml_path.parent.mkdir(parents=True, exist_ok=True)
-    document = {f"cam_{index}": _table(camera) for index, camera in enumerate(rig)}
-    toml_path.write_text(tomli_w.dumps(document), encoding="utf-8")
+    tables = [_table(f"cam_{index}", camera) for index, camera in enumerate(rig)]
+    toml_path.write_text("\n".join(tables), encoding="utf-8")
 
 
-def _table(camera: Camera) -> dict:
+def _array(values) -> str:
+    """A TOML array literal on one line; ``repr`` of a finite float or int is valid TOML."""
+    items = (_array(value) if isinstance(value, list) else repr(value) for value in values)
+    return "[" + ", ".join(items) + "]"
+
+
+def _table(key: str, camera: Camera) -> str:
     rotation, _ = cv2.Rodrigues(camera.R)
-    return {
-        "name": camera.name,
-        "size": list(camera.size),
-        "matrix": camera.K.tolist(),
-        "distortions": camera.dist.tolist(),
-        "rotation": rotation.reshape(3).tolist(),
-        "translation": camera.t.tolist(),
-    }
-
+    return (
+        f"[{key}]\n"
+        + tomli_w.dumps({"name": camera.name})  # string quoting and escapes
+        + f"size = {_array(list(camera.size))}\n"
+        + f"matrix = {_array(camera.K.tolist())}\n"
+        + f"distortions = {_array(camera.dist.tolist())}\n"
+        + f"rotation = {_array(rotation.reshape(3).tolist())}\n"
+        + f"translation = {_array(camera.t.tolist())}\n"
+    )

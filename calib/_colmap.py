@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from calib import _parse
 from calib.camera import Camera, Rig
 from calib.errors import InputError
 
@@ -106,7 +107,8 @@ def load(path: Path) -> Rig:
         K, dist = _intrinsics(colmap_camera.model_name, np.asarray(colmap_camera.params, np.float64), where)
         cam_from_world = image.cam_from_world()
         cameras.append(
-            Camera(
+            _parse.camera(
+                where,
                 name=Path(image.name).stem,
                 K=K,
                 dist=dist,
@@ -117,7 +119,7 @@ def load(path: Path) -> Rig:
         )
     if not cameras:
         raise InputError(f"{path}: the COLMAP model has no images, expected one image per camera")
-    return Rig(tuple(cameras))
+    return _parse.rig(str(path), cameras)
 
 
 def _colmap_camera(camera: Camera, camera_id: int) -> pycolmap.Camera:

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from calib import _parse
-from calib.camera import Camera, Rig
+from calib.camera import Rig
 from calib.errors import InputError
 
 INTRINSICS = "intri.yml"
@@ -118,7 +118,8 @@ def load(path: Path, image_sizes: dict[str, tuple[int, int]] | None) -> Rig:
                 " expected it from the camera's video or images"
             )
         cameras.append(
-            Camera(
+            _parse.camera(
+                f"{intri_path} + {extri_path.name}",
                 name=name,
                 K=intri.matrix(f"K_{name}", (3, 3)),
                 dist=_parse.distortion(intri.matrix(f"dist_{name}", None), f"{intri_path} dist_{name}"),
@@ -127,7 +128,7 @@ def load(path: Path, image_sizes: dict[str, tuple[int, int]] | None) -> Rig:
                 size=size,
             )
         )
-    return Rig(tuple(cameras))
+    return _parse.rig(str(intri_path), cameras)
 
 
 def _rotation(extri: _YamlFile, name: str) -> np.ndarray:

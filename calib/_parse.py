@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.camera import Camera, Rig
 from calib.errors import InputError
 
 
@@ -40,3 +41,19 @@ def image_size(value, where: str) -> tuple[int, int]:
     if np.any(array != np.round(array)) or np.any(array <= 0):
         raise InputError(f"{where}: expected two positive integers (width, height), got {array.tolist()}")
     return int(array[0]), int(array[1])
+
+
+def camera(where: str, **fields) -> Camera:
+    """``Camera(**fields)``, with a validation error prefixed by ``where`` (the file and key it came from)."""
+    try:
+        return Camera(**fields)
+    except InputError as error:
+        raise InputError(f"{where}: {error}") from None
+
+
+def rig(where: str, cameras: list[Camera]) -> Rig:
+    """``Rig(cameras)``, with a validation error (duplicate names) prefixed by ``where`` (the file)."""
+    try:
+        return Rig(tuple(cameras))
+    except InputError as error:
+        raise InputError(f"{where}: {error}") from None
