@@ -1,0 +1,117 @@
+import cv2
+import numpy as np
+import pytest
+
+from calib.errors import InputError
+from stages.silhouettes import SilhouetteParams, extract_silhouette, median_background
+
+HEIGHT, WIDTH = 290, 390
+
+
+def _textured_background(rng: np.random.Generator) -> np.ndarray:
+    """(H, W, 3) uint8 smooth random colours, like a cluttered room out of focus."""
+    coarse = rng.uniform(40, 210, (HEIGHT // 15 + 1, WIDTH // 15 + 1, 3)).astype(np.uint8)
+    return cv2.resize(coarse, (WIDTH, HEIGHT), interpolation=cv2.INTER_LINEAR)
+
+
+def _person_mask() -> np.ndarray:
+    """(H, W) uint8 a body, an outstretched arm, and an arm with the hand on the hip enclosing a gap."""
+    mask = np.zeros((HEIGHT, WIDTH), np.uint8)
+    cv2.ellipse(mask, (190, 150), (32, 105), 0, 0, 360, 255, -1)
+    cv2.ellipse(mask, (140, 110), (45, 8), -25, 0, 360, 255, -1)
+    cv2.ellipse(mask, (215, 150), (40, 45), 0, -90, 90, 255, 12)
+    return mask
+
+
+def _scene(rng, *, shadow_factor=0.6, noise_sigma=6.0, jpeg_quality=60):
+    """(image, background, true mask, shadow region): a person with a cast shadow, noise and JPEG loss."""
+    background = _textured_background(rng)
+    truth = _person_mask()
+    image = background.copy()
+    image[truth > 0] = (60, 80, 200)  # clothing: a colour unlike the shadowed background
+    shadow = np.zeros((HEIGHT, WIDTH), bool)
+    shadow[250:280, 120:300] = True
+    shadow &= truth == 0
+    image[shadow] = (image[shadow] * shadow_factor).astype(np.uint8)
+    image = np.clip(image + rng.normal(0.0, noise_sigma, image.shape), 0, 255).astype(np.uint8)
+    _, encoded = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+    return cv2.imdecode(encoded, cv2.IMREAD_COLOR), background, truth, shadow
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return ((a > 0) & (b > 0)).sum() / max(((a > 0) | (b > 0)).sum(), 1)
+
+
+@pytest.mark.parametrize("downsample", [1, 2])
+def test_silhouette_of_noisy_compressed_frame_with_shadow_matches_truth(downsample):
+    image, background, truth, shadow = _scene(np.random.default_rng(1))
+    mask = extract_silhouette(image, background, SilhouetteParams(downsample=downsample))
+    assert mask.dtype == np.uint8 and mask.shape == truth.shape
+    assert set(np.unique(mask)) <= {0, 255}
+    assert _iou(mask, truth) > 0.96  # thin limbs on a small image: a 1 px rim is 2 % of the area
+    assert (mask[shadow] > 0).mean() < 0.01  # the shadow is not the person
+
+
+def test_gap_between_arm_and_body_stays_open_but_noise_holes_are_filled():
+    image, background, truth, _ = _scene(np.random.default_rng(2), noise_sigma=2.0)
+    holes = np.zeros_like(truth)
+    cv2.circle(holes, (190, 60), 3, 255, -1)
+    image[holes > 0] = background[holes > 0]  # clothing that matches the background
+    mask = extract_silhouette(image, background, SilhouetteParams(downsample=1))
+    assert (mask[holes > 0] > 0).all()
+    _, labels = cv2.connectedComponents(255 - truth, connectivity=4)
+    gap = (labels > 0) & (labels != labels[0, 0])  # the background enclosed by arm and body
+    assert gap.sum() > 50 and (mask[gap] == 0).mean() > 0.8
+
+
+def test_speckle_noise_far_from_person_is_removed():
+    image, background, truth, _ = _scene(np.random.default_rng(3))
+    image[20:23, 20:23] = (255, 255, 255)
+    mask = extract_silhouette(image, background, SilhouetteParams())
+    assert (mask[10:35, 10:35] == 0).all()
+
+
+def test_frame_equal_to_background_gives_empty_mask():
+    background = _textured_background(np.random.default_rng(4))
+    mask = extract_silhouette(background, background, SilhouetteParams())
+    assert mask.shape == (HEIGHT, WIDTH) and not mask.any()
+
+
+def test_frame_entirely_different_from_background_gives_full_mask():
+    background = np.full((HEIGHT, WIDTH, 3), 200, np.uint8)
+    image = np.zeros_like(background)
+    image[:] = (200, 20, 20)
+    mask = extract_silhouette(image, background, SilhouetteParams())
+    assert (mask == 255).all()
+
+
+def test_median_background_removes_a_moving_person():
+    rng = np.random.default_rng(5)
+    background = _textured_background(rng)
+    frames = []
+    for shift in range(0, 200, 20):
+        frame = background.copy()
+        frame[100:200, shift:shift + 30] = (0, 0, 255)
+        frames.append(frame)
+    estimate = median_background(frames)
+    assert estimate.dtype == np.uint8 and np.abs(estimate.astype(int) - background).max() <= 1
+
+
+def test_median_background_rejects_no_images_and_mixed_sizes():
+    with pytest.raises(InputError, match="at least one"):
+        median_background([])
+    with pytest.raises(InputError, match="different shapes"):
+        median_background([np.zeros((4, 4, 3), np.uint8), np.zeros((5, 4, 3), np.uint8)])
+
+
+def test_extract_silhouette_rejects_mismatched_background():
+    image = np.zeros((10, 10, 3), np.uint8)
+    with pytest.raises(InputError, match="background"):
+        extract_silhouette(image, np.zeros((10, 12, 3), np.uint8), SilhouetteParams())
+    with pytest.raises(InputError, match="image"):
+        extract_silhouette(image[..., 0], image, SilhouetteParams())
+
+
+def test_params_reject_inverted_brightness_band():
+    with pytest.raises(InputError, match="brightness_min"):
+        SilhouetteParams(brightness_min=1.2)
