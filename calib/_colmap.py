@@ -86,7 +86,7 @@ def _read_reconstruction(path: Path) -> pycolmap.Reconstruction:
                 empty_points = np.zeros(1, np.uint64).tobytes() if extension == "bin" else b""
                 (Path(copy) / f"points3D.{extension}").write_bytes(empty_points)
                 read(copy)
-    except (ValueError, RuntimeError, IndexError) as error:
+    except (ValueError, RuntimeError, IndexError, MemoryError) as error:
         message = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
         raise InputError(f"{path}: not a readable COLMAP {extension} model ({message})") from None
     return reconstruction

@@ -45,15 +45,21 @@ class _YamlFile:
         try:
             self._storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         except (cv2.error, SystemError) as error:  # the binding wraps parse errors in SystemError
-            raise InputError(f"{path}: not readable OpenCV YAML ({_first_line(error)})") from None
+            raise InputError(f"{path}: not readable OpenCV YAML ({_opencv_message(error)})") from None
         if not self._storage.isOpened():
             raise InputError(f"{path}: could not be opened as OpenCV YAML")
 
+    def _get(self, key: str) -> cv2.FileNode:
+        try:
+            return self._storage.getNode(key)
+        except cv2.error:  # the top level is not a mapping
+            raise InputError(f"{self.path}: expected a mapping of keys (names, K_<name>, ...)") from None
+
     def has(self, key: str) -> bool:
-        return not self._storage.getNode(key).empty()
+        return not self._get(key).empty()
 
     def node(self, key: str) -> cv2.FileNode:
-        node = self._storage.getNode(key)
+        node = self._get(key)
         if node.empty():
             raise InputError(f"{self.path}: missing key {key!r}")
         return node
@@ -83,7 +89,7 @@ class _YamlFile:
         return [_name(node.at(index), f"{self.path} names[{index}]") for index in range(node.size())]
 
 
-def _first_line(error: Exception) -> str:
+def _opencv_message(error: Exception) -> str:
     """The last line of OpenCV's message (the parse error itself), from the cv2.error behind ``error``."""
     lines = str(error.__cause__ or error).strip().splitlines()
     return lines[-1] if lines else type(error).__name__
