@@ -196,3 +196,10 @@ def test_anipose_non_numeric_matrix_names_table_and_key(tmp_path):
     (tmp_path / "calibration.toml").write_text(broken)
     with pytest.raises(InputError, match=r"calibration.toml \[cam_1\] matrix"):
         load_rig("anipose", tmp_path)
+
+
+def test_opencv_yaml_that_is_not_a_mapping_names_the_file(tmp_path):
+    for name in ("intri.yml", "extri.yml"):
+        (tmp_path / name).write_text("%YAML:1.0\n---\n- K_01\n- dist_01\n")
+    with pytest.raises(InputError, match="intri.yml: expected a mapping of keys"):
+        load_rig("opencv", tmp_path)
