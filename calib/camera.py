@@ -47,6 +47,11 @@ def _as_rows(values, width: int, what: str) -> np.ndarray:
     return array
 
 
+def _is_positive_int(value) -> bool:
+    """An integer (Python or numpy, not bool) above zero."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value > 0
+
+
 def _distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """OpenCV's lens distortion of normalised image coordinates ``xy (N, 2)``.
 
@@ -112,8 +117,8 @@ class Camera:
                 f" det = {np.linalg.det(R):.6g}), expected orthonormal with det +1"
             )
         t = _readonly(self.t, (3,), f"{what} t")
-        size = tuple(self.size)
-        if len(size) != 2 or not all(isinstance(n, (int, np.integer)) and n > 0 for n in size):
+        size = tuple(self.size) if isinstance(self.size, (tuple, list, np.ndarray)) else ()
+        if len(size) != 2 or not all(_is_positive_int(n) for n in size):
             raise InputError(f"{what} size {self.size!r}: expected (width, height) as two positive integers")
         size = (int(size[0]), int(size[1]))
         for field, value in (("K", K), ("dist", dist), ("R", R), ("t", t), ("size", size)):
@@ -135,8 +140,8 @@ class Camera:
 
         The image's "up" (−y in pixels) points along the world ``up`` vector as seen by the camera,
         and the principal point is the image centre ``((w - 1) / 2, (h - 1) / 2)``, so ``target``
-        projects there (undistorted). ``f_px`` is the focal length in pixels; ``dist`` defaults to
-        no distortion.
+        projects there (distortion leaves the principal point in place). ``f_px`` is the focal
+        length in pixels; ``dist`` defaults to no distortion.
         """
         eye = np.asarray(eye, dtype=np.float64)
         forward = np.asarray(target, dtype=np.float64) - eye
@@ -145,7 +150,7 @@ class Camera:
         forward /= np.linalg.norm(forward)
         up = np.asarray(up, dtype=np.float64)
         down = -(up - (up @ forward) * forward)
-        if np.linalg.norm(down) < 1e-9 * np.linalg.norm(up):
+        if np.linalg.norm(down) < 1e-9 * np.linalg.norm(up):  # up (anti)parallel to the view: roll undefined
             raise InputError(f"Camera.look_at({name!r}): up {up.tolist()} is parallel to the view direction")
         down /= np.linalg.norm(down)
         right = np.cross(down, forward)
