@@ -74,19 +74,42 @@ def residuals(y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, body: 
     """
     if distance not in DISTANCES:
         raise ValueError(f"distance={distance!r}, expected one of {DISTANCES}")
-    y_k, n_k = y[i], n[i]
-    R, t, semi = ellipsoids.R[p], ellipsoids.t[p], ellipsoids.semi_axes[p]
+    y_k, n_k, t = y[i], n[i], ellipsoids.t[p]
     if distance == "algebraic":
-        return _algebraic(y_k, R, t, semi, body, kin, p, jacobian)
+        Q = _shape(ellipsoids, -2.0)[p]
+        return _algebraic(y_k, Q, t, ellipsoids.semi_axes[p], body, kin, p, jacobian)
     if distance == "normals":
-        x, A_y, A_n = _normal_point(n_k, R, t, semi)
+        x, A_y, A_n = _normal_point(n_k, _shape(ellipsoids, 2.0)[p], t, jacobian)
     else:
-        x, A_y, A_n = _radial_point(y_k, R, t, semi)
+        x, A_y, A_n = _radial_point(y_k, _shape(ellipsoids, -2.0)[p], t)
     e = y_k - x
     if not jacobian:
         return Residuals(e=e, J=None)
     J_x = _point_jacobian(x, y_k, n_k, A_y, A_n, body, kin, body.ellipsoid_segment[p])
     return Residuals(e=e, J=-J_x)
+
+
+def all_residuals(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
+                  distance: str = "normals") -> np.ndarray:
+    """Residuals (I, P, k) of every observation against every ellipsoid (the E-step's dense case).
+
+    Same values as `residuals` on all pairs, computed by broadcasting instead of gathering.
+    """
+    if distance not in DISTANCES:
+        raise ValueError(f"distance={distance!r}, expected one of {DISTANCES}")
+    t = ellipsoids.t[:, None, :]  # (P,1,3)
+    if distance == "normals":
+        u = np.matmul(n[None], _shape(ellipsoids, 2.0))  # (P,I,3): nᵀM = (Mn)ᵀ, M symmetric
+        lam = 1.0 / np.sqrt(np.einsum("ia,pia->pi", n, u))  # eq. (4)
+        e = y[None] - (lam[:, :, None] * u + t)
+    else:
+        v = y[None] - t  # (P,I,3)
+        q = np.einsum("pia,pia->pi", v, np.matmul(v, _shape(ellipsoids, -2.0)))
+        if distance == "points":
+            e = v * (1.0 - 1.0 / np.sqrt(np.maximum(q, _Q_MIN)))[:, :, None]  # y − (t + v/√q)
+        else:
+            e = (0.5 * ellipsoids.semi_axes.min(axis=1)[:, None] * (q - 1.0))[:, :, None]
+    return e.transpose(1, 0, 2)
 
 
 def ellipsoid_point(n: np.ndarray, R: np.ndarray, t: np.ndarray, semi_axes: np.ndarray) -> np.ndarray:
@@ -99,23 +122,30 @@ def ellipsoid_point(n: np.ndarray, R: np.ndarray, t: np.ndarray, semi_axes: np.n
     R, t, semi_axes : (K, 3, 3), (K, 3), (K, 3) float
         Ellipsoid of each row.
     """
-    return _normal_point(n, R, t, semi_axes)[0]
+    return _normal_point(n, _shape(Ellipsoids(R=R, t=t, semi_axes=semi_axes), 2.0), t, False)[0]
 
 
-def _normal_point(n, R, t, semi):
-    """x = λ M n + t with M = R D⁻¹ Rᵀ, and ∂x/∂y = 0, ∂x/∂n = λ (M − λ² (Mn)(Mn)ᵀ)."""
-    M = np.einsum("kab,kb,kcb->kac", R, semi**2, R)  # R D⁻¹ Rᵀ, (K,3,3)
+def _shape(ellipsoids: Ellipsoids, power: float) -> np.ndarray:
+    """R diag(semi_axes**power) Rᵀ (E, 3, 3): D⁻¹ for power 2, D for power −2."""
+    R = ellipsoids.R
+    return np.einsum("eab,eb,ecb->eac", R, ellipsoids.semi_axes**power, R)
+
+
+def _normal_point(n, M, t, jacobian):
+    """x = λ M n + t with M = R D⁻¹ Rᵀ, and ∂x/∂y = 0, ∂x/∂n = λ (M − λ² (Mn)(Mn)ᵀ) if `jacobian`."""
     u = np.einsum("kab,kb->ka", M, n)  # (K,3)
     lam = 1.0 / np.sqrt(np.einsum("ka,ka->k", n, u))  # eq. (4); n·Mn >= min(semi)² > 0 for unit n
     x = lam[:, None] * u + t
+    if not jacobian:
+        return x, None, None
     A_n = lam[:, None, None] * (M - (lam**2)[:, None, None] * u[:, :, None] * u[:, None, :])
     return x, None, A_n
 
 
-def _radial_point(y, R, t, semi):
-    """x = t + v / sqrt(q), v = y − t, q = vᵀ R D Rᵀ v, and ∂x/∂y = (I − v (R D Rᵀ v)ᵀ / q) / sqrt(q)."""
+def _radial_point(y, Q, t):
+    """x = t + v / sqrt(q), v = y − t, q = vᵀ Q v with Q = R D Rᵀ, and ∂x/∂y = (I − v (Qv)ᵀ / q) / sqrt(q)."""
     v = y - t
-    g = np.einsum("kab,kb,kcb,kc->ka", R, semi**-2.0, R, v)  # R D Rᵀ v, half the gradient of q
+    g = np.einsum("kab,kb->ka", Q, v)  # half the gradient of q
     q = np.maximum(np.einsum("ka,ka->k", v, g), _Q_MIN)
     s = 1.0 / np.sqrt(q)
     x = t + s[:, None] * v
@@ -139,10 +169,10 @@ def _point_jacobian(x, y, n, A_y, A_n, body, kin, segment):
     return J.transpose(0, 2, 1)
 
 
-def _algebraic(y, R, t, semi, body, kin, p, jacobian):
-    """Plänkers & Fua's algebraic distance q(Y) = YᵀQY (eq. 1) in metres: r = (ρ/2) q."""
+def _algebraic(y, Q, t, semi, body, kin, p, jacobian):
+    """Plänkers & Fua's algebraic distance q(Y) = YᵀQY (eq. 1) in metres: r = (ρ/2) q, Q = R D Rᵀ."""
     v = y - t
-    g = np.einsum("kab,kb,kcb,kc->ka", R, semi**-2.0, R, v)  # R D Rᵀ v
+    g = np.einsum("kab,kb->ka", Q, v)
     rho = semi.min(axis=1)
     r = 0.5 * rho * (np.einsum("ka,ka->k", v, g) - 1.0)
     if not jacobian:

@@ -6,7 +6,7 @@ import pytest
 from calib.errors import InputError
 from stages.joints import JOINT_NAMES
 from stages.tracking.body import load_body, rotation_about
-from stages.tracking.distances import DISTANCES, ellipsoid_point, residuals
+from stages.tracking.distances import DISTANCES, all_residuals, ellipsoid_point, residuals
 
 STEP = 1e-6  # central differences: truncation ~STEP², round-off ~1e-16/STEP
 
@@ -124,3 +124,19 @@ def test_normal_point_lies_on_the_ellipsoid_with_the_given_normal():
     gradient = np.einsum("kab,kb->ka", R, local / semi**2)  # outward normal direction at x
     gradient /= np.linalg.norm(gradient, axis=1, keepdims=True)
     np.testing.assert_allclose(gradient, n, atol=1e-12)
+
+
+@pytest.mark.parametrize("distance", DISTANCES)
+def test_dense_residuals_equal_pairwise_ones(distance):
+    body = load_body("paper")
+    rng = np.random.default_rng(5)
+    y = rng.normal(0.0, 0.4, (30, 3)) + [0.0, 0.0, 1.0]
+    n = rng.normal(size=(30, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    kin = body.fk(_random_pose(body, 6))
+    ell = body.ellipsoids(kin)
+    i = np.repeat(np.arange(30), body.n_ellipsoids)
+    p = np.tile(np.arange(body.n_ellipsoids), 30)
+    pairwise = residuals(y, n, i, p, body, kin, ell, distance=distance).e
+    dense = all_residuals(y, n, ell, distance=distance)
+    np.testing.assert_allclose(dense.reshape(pairwise.shape), pairwise, atol=1e-12)

@@ -1,0 +1,73 @@
+"""EM fit (Horaud et al. 2009, Sec. 3) on data sampled from the model's own ellipsoids."""
+
+import numpy as np
+import pytest
+from tracking_testing import VOLUME, random_pose, sample_ellipsoids
+
+from stages.tracking.body import load_body
+from stages.tracking.em import EMParams, Mixture, e_step, fit, m_step, volume_size
+
+
+@pytest.fixture(scope="module")
+def body():
+    return load_body("default")
+
+
+@pytest.mark.parametrize("distance", ["normals", "points"])
+def test_em_recovers_a_known_pose_despite_outliers(body, distance):
+    rng = np.random.default_rng(10)
+    truth = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, truth, 1000, rng, outlier_fraction=0.2)
+    start = truth + rng.normal(0.0, 0.03, body.pose_size)
+    result = fit(y, n, body, start, VOLUME, EMParams(distance=distance, max_iterations=40))
+    error = np.linalg.norm(body.joint_positions(result.pose) - body.joint_positions(truth), axis=1)
+    assert result.converged
+    assert error.max() < 0.005  # metres
+    assert result.outlier_fraction == pytest.approx(0.2, abs=0.03)
+
+
+def test_log_likelihood_never_decreases(body):
+    rng = np.random.default_rng(11)
+    truth = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, truth, 600, rng, outlier_fraction=0.2)
+    result = fit(y, n, body, truth + rng.normal(0.0, 0.05, body.pose_size), VOLUME)
+    assert np.all(np.diff(result.log_likelihood) > -1e-6 * abs(result.log_likelihood[-1]))
+
+
+def test_e_step_posteriors_sum_to_one(body):
+    rng = np.random.default_rng(12)
+    pose = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, pose, 200, rng, outlier_fraction=0.2)
+    mixture = Mixture.initial(body.n_ellipsoids, 0.02)
+    estep = e_step(y, n, body, pose, mixture, volume_size(VOLUME))
+    np.testing.assert_allclose(estep.t.sum(axis=1) + estep.t_outlier, 1.0, atol=1e-12)
+    # far-away data (the outliers are the last 50) are outliers
+    assert np.median(estep.t_outlier[-50:]) > 0.99 and np.median(estep.t_outlier[:150]) < 0.01
+
+
+def test_m_step_priors_sum_to_one_and_covariance_is_positive(body):
+    rng = np.random.default_rng(13)
+    pose = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, pose, 200, rng, outlier_fraction=0.2)
+    mixture = Mixture.initial(body.n_ellipsoids, 0.02)
+    estep = e_step(y, n, body, pose, mixture, volume_size(VOLUME))
+    mstep = m_step(y, n, body, pose, mixture, estep)
+    assert mstep.mixture.pi.sum() == pytest.approx(1.0)
+    assert np.all(np.linalg.eigvalsh(mstep.mixture.Sigma) > 0)
+
+
+def test_fit_without_data_keeps_the_pose_and_stays_finite(body):
+    pose = body.zero_pose()
+    result = fit(np.zeros((0, 3)), np.zeros((0, 3)), body, pose, VOLUME)
+    np.testing.assert_array_equal(result.pose, pose)
+    assert result.iterations == 0 and np.isfinite(result.log_likelihood).all()
+
+
+def test_fit_on_a_single_datum_stays_finite(body):
+    result = fit(np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, 1.0, 0.0]]), body, body.zero_pose(), VOLUME)
+    assert np.all(np.isfinite(result.pose)) and np.all(np.isfinite(result.mixture.Sigma))
+
+
+def test_bad_volume_is_rejected():
+    with pytest.raises(ValueError, match="volume"):
+        volume_size(np.array([[0.0, 0.0, 0.0], [1.0, -1.0, 1.0]]))
