@@ -1,0 +1,148 @@
+"""Accuracy of estimated joints against ground truth, and of silhouettes against true masks.
+
+Definitions (the usual ones of the human-pose literature):
+
+- joint error: Euclidean distance between an estimated and a true joint centre of the same frame;
+- MPJPE (mean per-joint position error): the mean joint error over scored joints and matched frames,
+  reported in millimetres, overall, per joint and per frame;
+- PCK@t: the fraction of (frame, joint) pairs whose error is at most t;
+- angle error: mean absolute difference of an angle of :mod:`stages.export.angles` over matched frames;
+- fraction estimated: matched frames / ground-truth frames (a frame the tracker lost has no row and
+  counts as not estimated; it does not enter MPJPE);
+- silhouette IoU: |estimate AND truth| / |estimate OR truth| of binary masks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.errors import InputError
+from stages.export.angles import joint_angles
+from stages.joints import SCORED_JOINTS
+
+#: PCK thresholds reported by default, millimetres.
+PCK_THRESHOLDS_MM: tuple[float, ...] = (50.0, 100.0)
+
+
+@dataclass(frozen=True)
+class JointMetrics:
+    """Accuracy of one estimated sequence against ground truth (units in the field names).
+
+    ``frames``, ``per_frame_mm`` and ``errors_mm`` keep the per-frame detail for plots; :meth:`summary`
+    is the JSON-ready digest written to ``metrics.json``.
+    """
+
+    joints: tuple[str, ...]                 # scored joints present in both sequences
+    frames: np.ndarray                      # (M,) matched frame numbers
+    errors_mm: np.ndarray                   # (M, J) joint errors
+    truth_frame_count: int
+    pck_thresholds_mm: tuple[float, ...]
+    angle_errors_deg: dict[str, float]      # mean absolute error per angle
+
+    @property
+    def per_frame_mm(self) -> np.ndarray:
+        """(M,) MPJPE of each matched frame."""
+        return self.errors_mm.mean(axis=1)
+
+    @property
+    def per_joint_mm(self) -> dict[str, float]:
+        return {name: float(e) for name, e in zip(self.joints, self.errors_mm.mean(axis=0), strict=True)}
+
+    @property
+    def mpjpe_mm(self) -> float:
+        return float(self.errors_mm.mean())
+
+    def pck(self, threshold_mm: float) -> float:
+        """Fraction of (frame, joint) errors at most ``threshold_mm``."""
+        return float(np.mean(self.errors_mm <= threshold_mm))
+
+    @property
+    def fraction_estimated(self) -> float:
+        return len(self.frames) / self.truth_frame_count
+
+    def summary(self) -> dict:
+        """Plain-data digest: numbers, names and the worst frame."""
+        worst = int(np.argmax(self.per_frame_mm))
+        return {
+            "scored_joints": list(self.joints),
+            "frames_scored": len(self.frames),
+            "truth_frames": self.truth_frame_count,
+            "fraction_estimated": self.fraction_estimated,
+            "mpjpe_mm": self.mpjpe_mm,
+            "per_joint_mpjpe_mm": self.per_joint_mm,
+            "pck": {f"{threshold:g}mm": self.pck(threshold) for threshold in self.pck_thresholds_mm},
+            "worst_frame": {"frame": int(self.frames[worst]), "mpjpe_mm": float(self.per_frame_mm[worst])},
+            "angle_errors_deg": dict(self.angle_errors_deg),
+        }
+
+
+def joint_errors(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(F, J) Euclidean distances between ``estimate (F, J, 3)`` and ``truth (F, J, 3)`` (same units)."""
+    difference = np.asarray(estimate, dtype=np.float64) - np.asarray(truth, dtype=np.float64)
+    return np.linalg.norm(difference, axis=-1)
+
+
+def angle_errors(estimate: np.ndarray, truth: np.ndarray, names: Sequence[str]) -> dict[str, float]:
+    """Mean absolute angle error (degrees) per angle of :mod:`stages.export.angles` computable from ``names``.
+
+    Parameters
+    ----------
+    estimate, truth : (F, J, 3) float, matched frames, joints in the order of ``names``
+    """
+    angle_names, estimated = joint_angles(estimate, names)
+    _, true = joint_angles(truth, names)
+    return {name: float(np.mean(np.abs(estimated[:, k] - true[:, k]))) for k, name in enumerate(angle_names)}
+
+
+def evaluate_joints(
+    estimate_frames: np.ndarray, estimate_names: Sequence[str], estimate: np.ndarray,
+    truth_frames: np.ndarray, truth_names: Sequence[str], truth: np.ndarray,
+    *, scored: Sequence[str] = SCORED_JOINTS, pck_thresholds_mm: Sequence[float] = PCK_THRESHOLDS_MM,
+) -> JointMetrics:
+    """Score an estimated joint sequence against ground truth on their common frames.
+
+    Parameters
+    ----------
+    estimate_frames : (F,) int;  estimate_names : J names;  estimate : (F, J, 3) float, metres
+    truth_frames : (T,) int;  truth_names : K names;  truth : (T, K, 3) float, metres
+    scored : joint names to score (those present in both sequences are used)
+
+    Raises
+    ------
+    InputError
+        When the two sequences share no scored joint or no frame.
+    """
+    joints = tuple(name for name in scored if name in estimate_names and name in truth_names)
+    if not joints:
+        raise InputError(f"estimate joints {list(estimate_names)} and truth joints {list(truth_names)} share "
+                         f"no scored joint (expected some of {', '.join(scored)})")
+    common, in_estimate, in_truth = np.intersect1d(estimate_frames, truth_frames, return_indices=True)
+    if len(common) == 0:
+        raise InputError(f"estimate frames {_span(estimate_frames)} and truth frames {_span(truth_frames)} "
+                         "do not overlap (expected the same frame numbering)")
+    est = np.asarray(estimate)[in_estimate][:, [list(estimate_names).index(n) for n in joints]]
+    tru = np.asarray(truth)[in_truth][:, [list(truth_names).index(n) for n in joints]]
+    return JointMetrics(
+        joints=joints,
+        frames=common.astype(np.int64),
+        errors_mm=1000.0 * joint_errors(est, tru),
+        truth_frame_count=len(truth_frames),
+        pck_thresholds_mm=tuple(float(t) for t in pck_thresholds_mm),
+        angle_errors_deg=angle_errors(est, tru, joints),
+    )
+
+
+def _span(frames: np.ndarray) -> str:
+    return f"{int(np.min(frames))}..{int(np.max(frames))}" if len(frames) else "(none)"
+
+
+def mask_iou(estimate: np.ndarray, truth: np.ndarray) -> float:
+    """Intersection over union of two ``(H, W)`` masks (nonzero = person); 1.0 when both are empty."""
+    if estimate.shape != truth.shape:
+        raise ValueError(f"masks differ in shape: {estimate.shape} and {truth.shape}")
+    a, b = estimate > 0, truth > 0
+    union = np.count_nonzero(a | b)
+    return 1.0 if union == 0 else np.count_nonzero(a & b) / union
