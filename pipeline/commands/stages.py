@@ -1,0 +1,32 @@
+"""List the stages of an output directory with their status: up to date, stale (and why), not run.
+
+Example:
+  python -m pipeline stages runs/tiny
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from pipeline import graph
+from pipeline.capture import Capture
+from pipeline.params import apply_overrides, default_params
+from pipeline.runner import RUN_RECORD, graph_status, read_run_record
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("out", type=Path, help="output directory of a previous `run`")
+
+
+def main(args: argparse.Namespace) -> int:
+    record = read_run_record(args.out)
+    capture = Capture.open(record["capture"])
+    params = apply_overrides(default_params(graph.STAGES), record.get("params", {}),
+                             source=f"{args.out / RUN_RECORD}:")
+    statuses = graph_status(graph.STAGES, capture, params, args.out)
+    width = max(len(status.name) for status in statuses)
+    for status in statuses:
+        line = f"{status.name.ljust(width)}  {status.state}"
+        print(f"{line}: {status.reason}" if status.reason else line)
+    return 0

@@ -1,0 +1,104 @@
+"""Where per-frame work runs: in this process, in a local process pool, or on a Dask cluster.
+
+All three are ``concurrent.futures.Executor`` objects, so a stage submits chunks of frames the same
+way whatever runs them (see :func:`pipeline.runner.StageContext.map_frames`):
+
+- ``workers=1`` (default): :class:`InProcessExecutor`, calls run immediately in this process. No
+  pickling, easiest to debug, and exceptions carry their full traceback.
+- ``workers=N > 1``: ``ProcessPoolExecutor`` with the ``spawn`` start method (safe with the threads
+  that progress bars and OpenCV start; fork is not).
+- ``scheduler="local:N"``: a Dask ``LocalCluster(n_workers=N, threads_per_worker=1, processes=True)``
+  started for this run; ``scheduler="tcp://host:port"``: an existing Dask scheduler. Both go through
+  ``Client.get_executor(pure=False)`` (``pure=False``: a chunk re-submitted after a failure must run
+  again, not be served from Dask's memory of the failed key). Dask is imported only here, only when
+  asked for, so it stays an optional dependency.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import multiprocessing
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+from calib.errors import InputError
+
+#: Seconds to wait for a Dask scheduler to answer before giving up with a clear error.
+DASK_CONNECT_TIMEOUT_S = 10
+
+
+class InProcessExecutor(cf.Executor):
+    """An executor that runs each call immediately, in the calling thread (``--workers 1``)."""
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> cf.Future:
+        future: cf.Future = cf.Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except Exception as error:  # handed to the caller through the future, like a pool does
+            future.set_exception(error)
+        return future
+
+
+@dataclass(frozen=True)
+class Workers:
+    """An executor and how many calls it runs at once (to size chunks of frames)."""
+
+    executor: cf.Executor
+    count: int
+    description: str
+
+
+@contextlib.contextmanager
+def make_executor(workers: int = 1, scheduler: str | None = None) -> Iterator[Workers]:
+    """Start the executor asked for on the command line; shut it down when the block ends.
+
+    Parameters
+    ----------
+    workers : int
+        ``--workers``: 1 runs in this process, N > 1 in a pool of N processes. Ignored with a scheduler.
+    scheduler : str or None
+        ``--scheduler``: ``"local:N"`` for a Dask LocalCluster of N single-threaded worker processes,
+        or the address of a running Dask scheduler (``"tcp://10.0.0.5:8786"``).
+    """
+    if scheduler:
+        with _dask_executor(scheduler) as dask_workers:
+            yield dask_workers
+        return
+    if not isinstance(workers, int) or workers < 1:
+        raise InputError(f"--workers {workers!r}: expected a positive whole number of processes")
+    if workers == 1:
+        yield Workers(InProcessExecutor(), 1, "in-process")
+        return
+    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    try:
+        yield Workers(pool, workers, f"{workers} local processes")
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+@contextlib.contextmanager
+def _dask_executor(scheduler: str) -> Iterator[Workers]:
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise InputError(f"--scheduler {scheduler}: Dask is not installed "
+                         "(expected `pip install 'hnmocap[dask]'`)") from None
+    with contextlib.ExitStack() as stack:
+        if scheduler.startswith("local:"):
+            count = scheduler.removeprefix("local:")
+            if not count.isdigit() or int(count) < 1:
+                raise InputError(f"--scheduler {scheduler}: expected local:N with N a positive whole number")
+            cluster = stack.enter_context(LocalCluster(n_workers=int(count), threads_per_worker=1,
+                                                       processes=True, dashboard_address=None))
+            client = stack.enter_context(Client(cluster))
+        else:
+            try:
+                client = stack.enter_context(Client(scheduler, timeout=f"{DASK_CONNECT_TIMEOUT_S}s"))
+            except (OSError, ValueError, TypeError) as error:
+                raise InputError(f"--scheduler {scheduler}: cannot connect ({error}) "
+                                 "(expected the address of a running Dask scheduler, or local:N)") from None
+        threads = sum(worker["nthreads"] for worker in client.scheduler_info()["workers"].values())
+        executor = client.get_executor(pure=False)
+        yield Workers(executor, max(threads, 1), f"Dask at {client.scheduler.address} ({threads} threads)")

@@ -1,0 +1,159 @@
+"""Per-frame files: images and masks (PNG), oriented point clouds (PLY), results (JSON).
+
+Every writer is atomic (:mod:`pipeline.atomic`), so a frame's output file either exists complete or
+not at all; that is how stages record per-frame completion. Readers of user media raise
+:class:`calib.errors.InputError` naming the file; readers of the pipeline's own outputs raise the
+same, because a damaged output folder is something the user can fix (delete it or ``--force``).
+
+Conventions: images are ``(H, W, 3) uint8`` in OpenCV's BGR channel order, masks ``(H, W) uint8``
+with 0 = background and 255 = person, point clouds two ``(N, 3) float64`` arrays (points in metres,
+unit normals). File names of per-frame outputs are :func:`frame_name` (``<frame:06d><suffix>``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from calib.errors import InputError
+from pipeline import atomic
+
+#: Grey level above which a mask pixel counts as person (masks may be saved anti-aliased or as JPEG).
+MASK_THRESHOLD = 127
+
+_PLY_PROPERTIES = ("x", "y", "z", "nx", "ny", "nz")
+_PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
+
+
+def frame_name(frame: int, suffix: str = ".png") -> str:
+    """File name of a per-frame file: ``frame_name(7) == "000007.png"``."""
+    return f"{frame:06d}{suffix}"
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Read a colour image as ``(H, W, 3) uint8`` BGR; grey images are expanded to three channels."""
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise InputError(f"{path}: not a readable image (expected a PNG or JPEG file)")
+    return image
+
+
+def read_mask(path: str | os.PathLike) -> np.ndarray:
+    """Read a silhouette mask as ``(H, W) uint8`` with values exactly 0 or 255."""
+    grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if grey is None:
+        raise InputError(f"{path}: not a readable mask image (expected a PNG, 0 = background, 255 = person)")
+    return np.where(grey > MASK_THRESHOLD, 255, 0).astype(np.uint8)
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Atomically write an image (``(H, W)`` or ``(H, W, 3)`` uint8; PNG is lossless)."""
+    if image.dtype != np.uint8 or image.ndim not in (2, 3):
+        raise ValueError(f"write_image: expected a (H, W[, 3]) uint8 array, got {image.dtype} {image.shape}")
+    with atomic.atomic_output(path) as tmp:
+        if not cv2.imwrite(str(tmp), image):
+            raise OSError(f"{path}: OpenCV could not write the image")
+
+
+def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:
+    """Atomically write a ``(H, W) uint8`` mask as PNG (nonzero pixels are saved as 255)."""
+    if mask.dtype not in (np.uint8, np.bool_) or mask.ndim != 2:
+        raise ValueError(f"write_mask: expected a (H, W) uint8 or bool array, got {mask.dtype} {mask.shape}")
+    write_image(path, np.where(mask > 0, 255, 0).astype(np.uint8))
+
+
+def write_ply(path: str | os.PathLike, points: np.ndarray, normals: np.ndarray) -> None:
+    """Atomically write an oriented point cloud as binary little-endian PLY with double coordinates.
+
+    Written by hand rather than through open3d so that an empty cloud (N = 0, a legal reconstruction
+    result) is a valid file; open3d reads these files (``o3d.io.read_point_cloud``).
+
+    Parameters
+    ----------
+    points : (N, 3) float array, metres
+    normals : (N, 3) float array, unit vectors
+    """
+    points = np.asarray(points, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
+        raise ValueError(f"write_ply: expected points and normals of shape (N, 3), got {points.shape} "
+                         f"and {normals.shape}")
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
+    header += [f"property double {name}" for name in _PLY_PROPERTIES]
+    header += ["end_header", ""]
+    body = np.hstack([points, normals]).astype("<f8").tobytes()
+    atomic.write_bytes(path, "\n".join(header).encode("ascii") + body)
+
+
+def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a binary little-endian PLY point cloud with normals.
+
+    Returns
+    -------
+    points, normals : (N, 3) float64 arrays
+    """
+    data = Path(path).read_bytes()
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply\n") or end < 0:
+        raise InputError(f"{path}: not a PLY file (expected a 'ply' header ending in 'end_header')")
+    lines = data[:end].decode("ascii", errors="replace").splitlines()
+    if "format binary_little_endian 1.0" not in lines:
+        raise InputError(f"{path}: unsupported PLY encoding (expected binary_little_endian 1.0)")
+    count, fields, in_vertex = 0, [], False
+    for line in lines:
+        words = line.split()
+        if words[:1] == ["element"]:
+            in_vertex = words[1] == "vertex"
+            if in_vertex:
+                count = int(words[2])
+            elif count:
+                break  # vertex data comes first; later elements are not read
+        elif words[:1] == ["property"] and in_vertex:
+            if len(words) != 3 or words[1] not in _PLY_TYPES:
+                raise InputError(f"{path}: unsupported vertex property '{line}' (expected float or double)")
+            fields.append((words[2], _PLY_TYPES[words[1]]))
+    names = [name for name, _ in fields]
+    if any(name not in names for name in _PLY_PROPERTIES):
+        raise InputError(f"{path}: PLY vertices lack {set(_PLY_PROPERTIES) - set(names)} "
+                         "(expected x y z nx ny nz)")
+    dtype = np.dtype(fields)
+    body = data[end + len(b"end_header\n"):]
+    if len(body) < count * dtype.itemsize:
+        raise InputError(f"{path}: PLY file is truncated ({len(body)} bytes for {count} vertices)")
+    vertices = np.frombuffer(body, dtype=dtype, count=count)
+    points = np.stack([vertices[name] for name in _PLY_PROPERTIES[:3]], axis=1).astype(np.float64)
+    normals = np.stack([vertices[name] for name in _PLY_PROPERTIES[3:]], axis=1).astype(np.float64)
+    return points, normals
+
+
+def _to_json_value(value: Any) -> Any:
+    """``json.dumps`` hook for numpy arrays and scalars."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"cannot write {type(value).__name__} as JSON")
+
+
+def to_json(obj: Any) -> str:
+    """Deterministic JSON text (sorted keys, no NaN) of plain data with numpy values."""
+    return json.dumps(obj, indent=1, sort_keys=True, allow_nan=False, default=_to_json_value) + "\n"
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> None:
+    """Atomically write ``obj`` as JSON (see :func:`to_json`)."""
+    atomic.write_text(path, to_json(obj))
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """Read a JSON file; a malformed one is an :class:`InputError` naming it."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise InputError(f"{path}: not valid JSON ({error}) "
+                         "(expected a file written by the pipeline)") from None

@@ -1,0 +1,579 @@
+"""Stage runner with a disk cache: run what is out of date, skip the rest, resume interrupted work.
+
+A stage is a declaration (:class:`Stage`): a name, the upstream stages it reads, its parameter
+dataclass, the parts of the capture it reads, and a run function. Each stage writes only under
+``<out>/<stage>/``. When it finishes, the runner writes ``<out>/<stage>/manifest.json``::
+
+    stage, cache_key, code_version, package_version, params, inputs, outputs, timing, finished_at
+
+The **cache key** is the hash of: stage name, code version, the canonical JSON of the stage's own
+parameters (only its section, so a tracker parameter does not invalidate silhouettes), and its
+input hashes: each upstream stage's output digest (content hash of its files, so an upstream
+rerun that produces identical files does not ripple down) and a fingerprint of each capture part
+it reads (content for capture.yaml and the calibration, path + size + mtime for media files).
+The code version is the package version plus a hash of the run function's source and of the
+modules listed in ``Stage.code``.
+
+A stage is **up to date** when its manifest parses, its key equals the one computed now, and its
+output files still have the recorded paths and sizes. A corrupt manifest is a logged miss.
+
+**Interruptions.** The manifest is written last, so a stage folder without one is incomplete.
+Before any work, the runner deletes the old manifest and writes a ``params_hash`` marker holding
+the key; per-frame outputs are written atomically (temp file + ``os.replace``), so an existing
+frame file is a finished frame. On the next run, if the marker holds the same key, the folder is
+kept and the stage only computes the frames whose files are missing; otherwise the folder is
+emptied first. So a run never trusts a stale or half-written result.
+
+A lock (``fcntl.flock`` on ``<out>/.lock``) refuses a second concurrent run on the same folder.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import fcntl
+import hashlib
+import importlib.metadata
+import importlib.util
+import inspect
+import json
+import logging
+import math
+import re
+import shutil
+import sys
+import time
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from calib.errors import InputError
+from pipeline import atomic, frames_io
+from pipeline.capture import Capture
+from pipeline.executors import Workers
+from pipeline.params import params_to_dict
+
+log = logging.getLogger(__name__)
+
+MANIFEST = "manifest.json"
+MARKER = "params_hash"
+RUN_RECORD = "run.json"
+LOCK = ".lock"
+PACKAGE = "hnmocap"
+#: Largest chunk of consecutive frames given to one worker call. Bigger chunks decode video with
+#: fewer seeks; smaller ones balance load and update the progress bar more often.
+MAX_CHUNK_FRAMES = 25
+#: Chunks per worker to aim for, so that an uneven chunk does not leave workers idle at the end.
+CHUNKS_PER_WORKER = 4
+
+_STAGE_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
+_SOURCE_SUFFIXES = (".py", ".yaml", ".yml", ".toml", ".json")
+
+
+# ---------------------------------------------------------------------------------------------
+# Declarations
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage of the pipeline graph.
+
+    Parameters
+    ----------
+    name : str
+        Folder name under the output directory and section name in the configuration.
+    run : callable
+        ``run(ctx: StageContext) -> int | None``: does the work, writes files under ``ctx.out_dir``,
+        returns the number of frames it computed (``None`` if the stage is not per-frame).
+    inputs : tuple of str
+        Upstream stages whose results it reads (through ``ctx.input_dir(name)``).
+    params_type : type or None
+        Frozen dataclass of its parameters (every field with a default), or ``None``.
+    capture_parts : tuple of str
+        Parts of the capture it reads directly (see :meth:`Capture.fingerprint`).
+    code : tuple of str
+        Modules or packages (import names) whose source is part of its code version, in addition
+        to the run function's own source, e.g. ``("stages.silhouettes",)``.
+    """
+
+    name: str
+    run: Callable[[StageContext], int | None]
+    inputs: tuple[str, ...] = ()
+    params_type: type | None = None
+    capture_parts: tuple[str, ...] = ()
+    code: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not _STAGE_NAME.match(self.name):
+            raise ValueError(f"stage name {self.name!r}: expected lower_case letters, digits and _")
+
+
+def check_graph(stages: Sequence[Stage]) -> None:
+    """Raise ``ValueError`` unless names are unique and every input is declared before its user."""
+    seen: set[str] = set()
+    for stage in stages:
+        if stage.name in seen:
+            raise ValueError(f"stage {stage.name!r} is declared twice")
+        unknown = [name for name in stage.inputs if name not in seen]
+        if unknown:
+            raise ValueError(f"stage {stage.name!r} reads {unknown}, which are not declared before it")
+        seen.add(stage.name)
+
+
+def select_stages(stages: Sequence[Stage], *, only: str | None = None, start: str | None = None,
+                  end: str | None = None) -> list[str]:
+    """Names of the stages to run for ``--only``, ``--from`` and ``--to`` (all when none is given).
+
+    ``--from S`` selects S and every stage downstream of it; ``--to S`` selects S and every stage
+    upstream of it; both together select the stages in between.
+    """
+    names = [stage.name for stage in stages]
+    for option, value in (("--only", only), ("--from", start), ("--to", end)):
+        if value is not None and value not in names:
+            raise InputError(f"{option} {value}: unknown stage (expected one of {', '.join(names)})")
+    if only is not None:
+        return [only]
+    by_name = {stage.name: stage for stage in stages}
+    selected = set(names)
+    if start is not None:
+        downstream = {start}
+        for stage in stages:
+            if downstream.intersection(stage.inputs):
+                downstream.add(stage.name)
+        selected &= downstream
+    if end is not None:
+        upstream, todo = set(), [end]
+        while todo:
+            name = todo.pop()
+            if name not in upstream:
+                upstream.add(name)
+                todo.extend(by_name[name].inputs)
+        selected &= upstream
+    if not selected:
+        raise InputError(f"--from {start} --to {end}: no stage lies between them "
+                         "(expected --from upstream of --to)")
+    return [name for name in names if name in selected]
+
+
+# ---------------------------------------------------------------------------------------------
+# What a run function sees
+
+
+@dataclass(frozen=True)
+class StageContext:
+    """Everything a stage's run function may use. Stages write only under ``out_dir``."""
+
+    stage: str
+    capture: Capture
+    params: Any
+    out_dir: Path
+    output_root: Path
+    workers: Workers
+    show_progress: bool = False
+
+    def input_dir(self, stage: str) -> Path:
+        """Folder of an upstream stage's results."""
+        return self.output_root / stage
+
+    def progress(self, total: int, *, initial: int = 0) -> tqdm:
+        """A progress bar over frames on stderr (disabled when not wanted or not a terminal)."""
+        return tqdm(total=total, initial=initial, desc=self.stage, unit="frame", file=sys.stderr,
+                    disable=not self.show_progress, leave=False, dynamic_ncols=True)
+
+    def pending_frames(self, outputs_of: Callable[[int], Sequence[Path]],
+                       frames: Sequence[int] | None = None) -> list[int]:
+        """Frames (default: all of the capture's) for which some output file does not exist yet."""
+        frames = self.capture.frame_numbers if frames is None else frames
+        return [frame for frame in frames if not all(path.exists() for path in outputs_of(frame))]
+
+    def map_frames(self, task: Callable[[tuple[int, ...]], Any],
+                   outputs_of: Callable[[int], Sequence[Path]], *,
+                   frames: Sequence[int] | None = None, chunk_size: int | None = None) -> int:
+        """Run ``task(chunk)`` over chunks of consecutive pending frames with the executor.
+
+        ``task`` runs in a worker (another process, or another machine with Dask): it must be
+        picklable, e.g. ``functools.partial(module_level_function, capture=..., params=...,
+        out_dir=...)``, and it **writes each frame's outputs itself**, atomically (``frames_io``
+        writers), so that a frame's files exist only once complete and nothing large travels back
+        to this process. Its return value is ignored. ``outputs_of(frame)`` lists the files that
+        make a frame complete; frames whose files all exist are skipped (this is resuming).
+
+        Returns
+        -------
+        int
+            Number of frames computed now.
+        """
+        frames = self.capture.frame_numbers if frames is None else tuple(frames)
+        pending = self.pending_frames(outputs_of, frames)
+        if not pending:
+            return 0
+        size = chunk_size or min(MAX_CHUNK_FRAMES,
+                                 max(1, math.ceil(len(pending) / (CHUNKS_PER_WORKER * self.workers.count))))
+        chunks = consecutive_chunks(pending, frames, size)
+        executor = self.workers.executor
+        # Submitting a few chunks ahead keeps every worker busy without queueing the whole sequence;
+        # with one in-process worker it means "one chunk at a time", so a failure stops at once.
+        ahead = 1 if self.workers.count == 1 else 2 * self.workers.count
+        remaining = iter(chunks)
+        running: dict[cf.Future, tuple[int, ...]] = {}
+        with self.progress(len(frames), initial=len(frames) - len(pending)) as bar:
+            try:
+                while True:
+                    while len(running) < ahead and (chunk := next(remaining, None)) is not None:
+                        running[executor.submit(task, chunk)] = chunk
+                    if not running:
+                        break
+                    done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+                    for future in done:
+                        chunk = running.pop(future)
+                        future.result()
+                        bar.update(len(chunk))
+            finally:
+                for future in running:
+                    future.cancel()
+        return len(pending)
+
+
+def consecutive_chunks(pending: Sequence[int], frames: Sequence[int], size: int) -> list[tuple[int, ...]]:
+    """Split ``pending`` into chunks of at most ``size`` frames that are consecutive in ``frames``.
+
+    Consecutive (in the capture's frame order) so that a worker decodes a video sequentially.
+    """
+    position = {frame: index for index, frame in enumerate(frames)}
+    chunks: list[list[int]] = []
+    for frame in pending:
+        if chunks and len(chunks[-1]) < size and position[frame] == position[chunks[-1][-1]] + 1:
+            chunks[-1].append(frame)
+        else:
+            chunks.append([frame])
+    return [tuple(chunk) for chunk in chunks]
+
+
+# ---------------------------------------------------------------------------------------------
+# Cache keys and manifests
+
+
+def canonical_json(value: Any) -> str:
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def _hash(text: str) -> str:
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:32]
+
+
+def package_version() -> str:
+    try:
+        return importlib.metadata.version(PACKAGE)
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _source_files(module: str) -> list[Path]:
+    spec = importlib.util.find_spec(module)
+    if spec is None:
+        raise ValueError(f"Stage.code: no module named {module!r}")
+    if spec.submodule_search_locations:
+        return sorted(path for folder in spec.submodule_search_locations for path in Path(folder).rglob("*")
+                      if path.suffix in _SOURCE_SUFFIXES and "__pycache__" not in path.parts)
+    return [Path(spec.origin)]
+
+
+def code_version(stage: Stage) -> str:
+    """Package version + hash of the run function's source and of the modules in ``stage.code``."""
+    digest = hashlib.sha256(inspect.getsource(stage.run).encode("utf-8"))
+    for module in stage.code:
+        for path in _source_files(module):
+            digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return f"{package_version()}+{digest.hexdigest()[:16]}"
+
+
+@dataclass(frozen=True)
+class Expected:
+    """What a stage's manifest must say for it to be up to date (``missing``: upstreams not done)."""
+
+    record: dict
+    key: str
+    missing: tuple[str, ...] = ()
+
+
+def expected_record(stage: Stage, capture: Capture, params: Any, output_root: Path) -> Expected:
+    """The cache record and key of ``stage`` given the current inputs on disk."""
+    inputs: dict[str, str | None] = {}
+    missing = []
+    for upstream in stage.inputs:
+        manifest = read_manifest(output_root / upstream)
+        inputs[f"stage:{upstream}"] = manifest["outputs"]["digest"] if manifest else None
+        if manifest is None:
+            missing.append(upstream)
+    for part in stage.capture_parts:
+        inputs[f"capture:{part}"] = capture.fingerprint(part)
+    record = {"stage": stage.name, "code_version": code_version(stage), "params": params_to_dict(params),
+              "inputs": inputs}
+    return Expected(record, _hash(canonical_json(record)), tuple(missing))
+
+
+def read_manifest(folder: Path) -> dict | None:
+    """The stage's manifest, or ``None`` when missing or unreadable (a logged cache miss)."""
+    path = folder / MANIFEST
+    if not path.exists():
+        return None
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+        if not isinstance(manifest, dict) or not all(
+                key in manifest for key in ("cache_key", "params", "inputs", "code_version", "outputs")):
+            raise ValueError("missing keys")
+        if not isinstance(manifest["inputs"], dict) or not isinstance(manifest["outputs"], dict) or not all(
+                isinstance(manifest["outputs"].get(key), str) for key in ("digest", "fingerprint")):
+            raise ValueError("malformed inputs or outputs")
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        log.warning("%s: unreadable manifest (%s); the stage will run again", path, error)
+        return None
+    return manifest
+
+
+def _output_files(folder: Path) -> list[Path]:
+    """The stage's result files, sorted, without the manifest, the marker and temporary files."""
+    return sorted(path for path in folder.rglob("*") if path.is_file()
+                  and path.relative_to(folder).as_posix() not in (MANIFEST, MARKER)
+                  and not path.name.startswith(atomic.TEMP_PREFIX))
+
+
+def outputs_fingerprint(folder: Path) -> str:
+    """Cheap check that the output files are still there: hash of relative paths and sizes."""
+    return _hash("\n".join(f"{path.relative_to(folder).as_posix()}\0{path.stat().st_size}"
+                           for path in _output_files(folder)))
+
+
+def describe_outputs(folder: Path) -> dict:
+    """Count, bytes, content digest (for downstream keys) and fingerprint of the stage's files."""
+    files = _output_files(folder)
+    digest = hashlib.sha256()
+    for path in files:
+        digest.update(path.relative_to(folder).as_posix().encode() + b"\0")
+        with path.open("rb") as handle:
+            for block in iter(lambda handle=handle: handle.read(1 << 20), b""):
+                digest.update(block)
+    return {"files": len(files), "bytes": sum(path.stat().st_size for path in files),
+            "digest": digest.hexdigest()[:32], "fingerprint": outputs_fingerprint(folder)}
+
+
+# ---------------------------------------------------------------------------------------------
+# Status
+
+
+@dataclass(frozen=True)
+class StageStatus:
+    """``state`` is one of "up to date", "stale", "incomplete", "not run"; ``reason`` says why."""
+
+    name: str
+    state: str
+    reason: str = ""
+
+
+def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, dict):
+        flat = {}
+        for key, item in value.items():
+            flat.update(_flatten(item, f"{prefix}.{key}" if prefix else str(key)))
+        return flat
+    return {prefix: value}
+
+
+def stale_reasons(manifest: dict, expected: Expected) -> list[str]:
+    """Why a manifest does not match the expected record (empty when it does)."""
+    reasons = []
+    if manifest.get("code_version") != expected.record["code_version"]:
+        reasons.append("code changed")
+    old, new = _flatten(manifest.get("params")), _flatten(expected.record["params"])
+    for key in sorted(set(old) | set(new)):
+        if old.get(key) != new.get(key):
+            reasons.append(f"parameter {key}: {old.get(key)!r} -> {new.get(key)!r}")
+    for key, value in expected.record["inputs"].items():
+        if manifest["inputs"].get(key) != value:
+            kind, name = key.split(":", 1)
+            reasons.append(f"upstream {name} changed" if kind == "stage" else f"capture {name} changed")
+    if not reasons and manifest.get("cache_key") != expected.key:
+        reasons.append("cache key differs")
+    return reasons
+
+
+def stage_status(stage: Stage, capture: Capture, params: Any, output_root: Path) -> StageStatus:
+    """Whether ``stage``'s results on disk are up to date with the capture, parameters and code."""
+    folder = output_root / stage.name
+    manifest = read_manifest(folder)
+    if manifest is None:
+        if (folder / MARKER).exists():
+            return StageStatus(stage.name, "incomplete",
+                               f"{len(_output_files(folder))} files kept; the next run resumes from them")
+        if (folder / MANIFEST).exists():
+            return StageStatus(stage.name, "stale", "manifest unreadable")
+        return StageStatus(stage.name, "not run")
+    expected = expected_record(stage, capture, params, output_root)
+    if expected.missing:
+        return StageStatus(stage.name, "stale",
+                           f"upstream {', '.join(expected.missing)} has no complete result")
+    reasons = stale_reasons(manifest, expected)
+    if not reasons and outputs_fingerprint(folder) != manifest["outputs"]["fingerprint"]:
+        reasons.append("output files changed on disk")
+    return StageStatus(stage.name, "stale" if reasons else "up to date", "; ".join(reasons))
+
+
+def graph_status(stages: Sequence[Stage], capture: Capture, params: Mapping[str, Any],
+                 output_root: Path) -> list[StageStatus]:
+    """Status of every stage; an up-to-date stage with a not-up-to-date upstream is reported stale."""
+    statuses: dict[str, StageStatus] = {}
+    for stage in stages:
+        status = stage_status(stage, capture, params[stage.name], output_root)
+        behind = [name for name in stage.inputs if statuses[name].state != "up to date"]
+        if status.state == "up to date" and behind:
+            status = StageStatus(stage.name, "stale", f"upstream {', '.join(behind)} not up to date")
+        statuses[stage.name] = status
+    return list(statuses.values())
+
+
+# ---------------------------------------------------------------------------------------------
+# Running
+
+
+@dataclass(frozen=True)
+class StageOutcome:
+    """What happened to one stage in a run: ``action`` is "ran", "up to date" or "not selected"."""
+
+    name: str
+    action: str
+    seconds: float = 0.0
+    frames: int | None = None
+    reason: str = ""
+
+
+@contextlib.contextmanager
+def output_lock(output_root: Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``<out>/.lock`` for the duration of a run."""
+    output_root.mkdir(parents=True, exist_ok=True)
+    with open(output_root / LOCK, "a") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise InputError(f"{output_root}: another run is using this output directory "
+                             "(expected one run at a time; wait for it or pick another --out)") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def write_run_record(output_root: Path, capture: Capture, params: Mapping[str, Any]) -> None:
+    """Remember which capture and parameters this output folder is for (``stages <out>`` reads it)."""
+    frames_io.write_json(output_root / RUN_RECORD, {
+        "capture": str(capture.root.resolve()),
+        "params": {name: params_to_dict(value) for name, value in params.items() if value is not None},
+    })
+
+
+def read_run_record(output_root: Path) -> dict:
+    path = output_root / RUN_RECORD
+    if not path.is_file():
+        raise InputError(f"{path}: missing "
+                         "(expected an output directory written by `python -m pipeline run`)")
+    record = frames_io.read_json(path)
+    if not isinstance(record, dict) or not isinstance(record.get("capture"), str):
+        raise InputError(f"{path}: no capture path recorded "
+                         "(expected a file written by `python -m pipeline run`)")
+    return record
+
+
+@dataclass
+class Runner:
+    """Runs a stage graph on one capture into one output folder (hold :func:`output_lock` around it)."""
+
+    stages: Sequence[Stage]
+    capture: Capture
+    params: Mapping[str, Any]
+    output_root: Path
+    workers: Workers
+    show_progress: bool = False
+    outcomes: list[StageOutcome] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        check_graph(self.stages)
+
+    def run(self, selected: Collection[str] | None = None, *, force: bool = False) -> list[StageOutcome]:
+        """Run the ``selected`` stages (default all) in declaration order; return what happened."""
+        selected = set(selected) if selected is not None else {stage.name for stage in self.stages}
+        self.outcomes = []
+        for stage in self.stages:
+            if stage.name not in selected:
+                self.outcomes.append(StageOutcome(stage.name, "not selected"))
+                continue
+            self.outcomes.append(self.run_stage(stage, force=force))
+        return self.outcomes
+
+    def run_stage(self, stage: Stage, *, force: bool = False) -> StageOutcome:
+        folder = self.output_root / stage.name
+        expected = expected_record(stage, self.capture, self.params[stage.name], self.output_root)
+        if expected.missing:
+            upstream = expected.missing[0]
+            raise InputError(f"{self.output_root / upstream}: stage {stage.name} needs the results of "
+                             f"{upstream}, which are not complete (expected a finished {upstream} stage; "
+                             "run it first)")
+        manifest = read_manifest(folder)
+        if manifest is not None and not force:
+            reasons = stale_reasons(manifest, expected)
+            if not reasons and outputs_fingerprint(folder) == manifest["outputs"]["fingerprint"]:
+                log.info("%s: up to date", stage.name)
+                return StageOutcome(stage.name, "up to date", reason="")
+            log.info("%s: stale (%s)", stage.name, "; ".join(reasons) or "output files changed on disk")
+
+        (folder / MANIFEST).unlink(missing_ok=True)
+        marker = folder / MARKER
+        resumable = (not force and marker.is_file()
+                     and marker.read_text(encoding="utf-8").strip() == expected.key)
+        if resumable:
+            removed = atomic.remove_temp_files(folder)
+            log.info("%s: resuming (%d leftover temporary files removed)", stage.name, removed)
+        else:
+            if folder.exists():
+                shutil.rmtree(folder)
+            folder.mkdir(parents=True)
+            atomic.write_text(marker, expected.key + "\n")
+
+        context = StageContext(stage.name, self.capture, self.params[stage.name], folder, self.output_root,
+                               self.workers, self.show_progress)
+        started = time.perf_counter()
+        frames = stage.run(context)
+        seconds = time.perf_counter() - started
+
+        manifest = {
+            **expected.record,
+            "cache_key": expected.key,
+            "package_version": package_version(),
+            "outputs": describe_outputs(folder),
+            "timing": {"seconds": round(seconds, 6), "frames": frames, "workers": self.workers.description},
+            "finished_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        }
+        frames_io.write_json(folder / MANIFEST, manifest)
+        return StageOutcome(stage.name, "ran", seconds, frames)
+
+
+def format_summary(outcomes: Sequence[StageOutcome]) -> str:
+    """Table of what each stage did, with its time per frame and frames per second."""
+    rows = [("stage", "action", "seconds", "frames", "ms/frame", "frames/s")]
+    for outcome in outcomes:
+        timed = outcome.action == "ran"
+        per_frame = timed and outcome.frames
+        rows.append((
+            outcome.name, outcome.action,
+            f"{outcome.seconds:.2f}" if timed else "-",
+            str(outcome.frames) if timed and outcome.frames is not None else "-",
+            f"{1000 * outcome.seconds / outcome.frames:.1f}" if per_frame else "-",
+            f"{outcome.frames / outcome.seconds:.2f}" if per_frame and outcome.seconds > 0 else "-",
+        ))
+    widths = [max(len(row[column]) for row in rows) for column in range(len(rows[0]))]
+    return "\n".join("  ".join(cell.ljust(width) if column < 2 else cell.rjust(width)
+                               for column, (cell, width) in enumerate(zip(row, widths, strict=True)))
+                     for row in rows)
+
