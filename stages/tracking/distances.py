@@ -44,10 +44,13 @@ class Residuals:
         Residual of each pair (k = 3 for point distances, 1 for the algebraic one), metres.
     J : (K, k, D) float or None
         de/dΛ, or None when not asked for.
+    J_scale : (K, k) float or None
+        de/d(ln s) for a uniform scaling s of the whole body about its root joint, when asked for.
     """
 
     e: np.ndarray
     J: np.ndarray | None
+    J_scale: np.ndarray | None = None
 
 
 def residual_size(distance: str) -> int:
@@ -57,7 +60,7 @@ def residual_size(distance: str) -> int:
 
 def residuals(y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, body: BodyModel,
               kin: Kinematics, ellipsoids: Ellipsoids, *, distance: str = "normals",
-              jacobian: bool = False) -> Residuals:
+              jacobian: bool = False, scale: bool = False) -> Residuals:
     """Residuals (and optionally their pose Jacobians) of the pairs (i[k], p[k]).
 
     Parameters
@@ -71,13 +74,16 @@ def residuals(y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, body: 
     distance : {"normals", "points", "algebraic"}
     jacobian : bool
         Also return de/dΛ (K, k, D).
+    scale : bool
+        Also return de/d(ln s) (K, k) for the body's height: scaling every ellipsoid by s about the
+        root c is scaling the datum by 1/s about c, so dx/d(ln s) = (x − c) − (∂x/∂y)(y − c).
     """
     if distance not in DISTANCES:
         raise ValueError(f"distance={distance!r}, expected one of {DISTANCES}")
     y_k, n_k, t = y[i], n[i], ellipsoids.t[p]
     if distance == "algebraic":
         Q = _shape(ellipsoids, -2.0)[p]
-        return _algebraic(y_k, Q, t, ellipsoids.semi_axes[p], body, kin, p, jacobian)
+        return _algebraic(y_k, Q, t, ellipsoids.semi_axes[p], body, kin, p, jacobian, scale)
     if distance == "normals":
         x, A_y, A_n = _normal_point(n_k, _shape(ellipsoids, 2.0)[p], t, jacobian)
     else:
@@ -86,7 +92,11 @@ def residuals(y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, body: 
     if not jacobian:
         return Residuals(e=e, J=None)
     J_x = _point_jacobian(x, y_k, n_k, A_y, A_n, body, kin, body.ellipsoid_segment[p])
-    return Residuals(e=e, J=-J_x)
+    J_scale = None
+    if scale:
+        c = kin.t[0]
+        J_scale = -(x - c) if A_y is None else -(x - c) + np.einsum("kab,kb->ka", A_y, y_k - c)
+    return Residuals(e=e, J=-J_x, J_scale=J_scale)
 
 
 def all_residuals(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
@@ -169,7 +179,7 @@ def _point_jacobian(x, y, n, A_y, A_n, body, kin, segment):
     return J.transpose(0, 2, 1)
 
 
-def _algebraic(y, Q, t, semi, body, kin, p, jacobian):
+def _algebraic(y, Q, t, semi, body, kin, p, jacobian, scale):
     """Plänkers & Fua's algebraic distance q(Y) = YᵀQY (eq. 1) in metres: r = (ρ/2) q, Q = R D Rᵀ."""
     v = y - t
     g = np.einsum("kab,kb->ka", Q, v)
@@ -184,4 +194,5 @@ def _algebraic(y, Q, t, semi, body, kin, p, jacobian):
     dy[:, translation, :] = kin.axis[translation][None]
     J = -rho[:, None] * np.einsum("ka,kda->kd", g, dy)
     J *= body.moves[:, body.ellipsoid_segment[p]].T
-    return Residuals(e=r[:, None], J=J[:, None, :])
+    J_scale = (r - rho * np.einsum("ka,ka->k", g, y - kin.t[0]))[:, None] if scale else None
+    return Residuals(e=r[:, None], J=J[:, None, :], J_scale=J_scale)

@@ -40,6 +40,9 @@ PRIOR_SIGMA_RAD = 0.25
 LM_DAMPING = 1e-3
 LM_GROWTH = 10.0
 LM_TRIES = 4
+# Heights (metres) an estimated body may take: people, not dolls or giants; keeps a scale step on
+# poor data from running away.
+HEIGHT_RANGE_M = (1.2, 2.2)
 # A tiny ridge keeps the normal equations solvable when a DOF has no data and no prior.
 RIDGE = 1e-9
 
@@ -58,12 +61,15 @@ class EMParams:
         Stop when the log-likelihood gain per observation falls below this (nats).
     gauss_newton_steps : int
         Damped Gauss-Newton steps per M-step (1 is a generalised EM step).
+    estimate_scale : bool
+        Also estimate the body's overall size (standing height) with the pose.
     """
 
     distance: str = "normals"
     max_iterations: int = 20
     tolerance: float = 1e-3
     gauss_newton_steps: int = 1
+    estimate_scale: bool = False
 
 
 @dataclass(frozen=True)
@@ -108,10 +114,11 @@ class EStep:
 
 @dataclass(frozen=True)
 class MStep:
-    """New parameters from one M-step: pose Λ (D,) and mixture (Σ, π)."""
+    """New parameters from one M-step: pose Λ (D,), mixture (Σ, π) and the body's height (metres)."""
 
     pose: np.ndarray
     mixture: Mixture
+    height_m: float
 
 
 @dataclass(frozen=True)
@@ -122,6 +129,8 @@ class FitResult:
     ----------
     pose : (D,) float
         Estimated pose Λ.
+    height_m : float
+        Standing height of the fitted body (the starting body's unless the scale was estimated).
     mixture : Mixture
         Final Σ and π.
     iterations : int
@@ -135,6 +144,7 @@ class FitResult:
     """
 
     pose: np.ndarray
+    height_m: float
     mixture: Mixture
     iterations: int
     converged: bool
@@ -178,31 +188,34 @@ def e_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixt
 
 def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixture: Mixture,
            estep: EStep, *, distance: str = "normals", prior_pose: np.ndarray | None = None,
-           gauss_newton_steps: int = 1) -> MStep:
+           gauss_newton_steps: int = 1, estimate_scale: bool = False) -> MStep:
     """M-step of Horaud et al. 2009 (Sec. 3, step 3): pose by damped Gauss-Newton, then Σ and π.
 
     The pose minimises ½ Σ_i Σ_p t_ip (y_i − x_ip(Λ))ᵀ Σ⁻¹ (y_i − x_ip(Λ)) (eq. 14 for fixed t_ip)
     plus, for DOFs with a prior weight, ½ w_d ((Λ_d − Λ̂_d) / PRIOR_SIGMA_RAD)² towards `prior_pose`;
     joint limits are enforced by clipping each step. Then Σ = Σ t_ip e_ip e_ipᵀ / Σ t_ip at the new
-    pose and π_p = (1/I) Σ_i t_ip.
+    pose and π_p = (1/I) Σ_i t_ip. With `estimate_scale` the body's height is a further unknown of the
+    least squares.
     """
     I, P = estep.t.shape
     if I == 0:
-        return MStep(pose=pose, mixture=mixture)
+        return MStep(pose=pose, mixture=mixture, height_m=body.height_m)
     i, p = np.nonzero(estep.t > PRUNE_POSTERIOR)
     t = estep.t[i, p]  # (K,)
     W = np.linalg.inv(mixture.Sigma)  # Σ⁻¹
     prior_pose = pose if prior_pose is None else prior_pose
     prior = body.prior_weight / PRIOR_SIGMA_RAD**2  # (D,)
     for _ in range(gauss_newton_steps):
-        pose = _gauss_newton_step(y, n, i, p, t, W, body, pose, prior, prior_pose, distance)
+        pose, body = _gauss_newton_step(y, n, i, p, t, W, body, pose, prior, prior_pose, distance,
+                                        estimate_scale)
     kin = body.fk(pose)
     e = residuals(y, n, i, p, body, kin, body.ellipsoids(kin), distance=distance).e
     Sigma = np.einsum("k,ka,kb->ab", t, e, e) / max(t.sum(), np.finfo(float).tiny)
     pi = np.empty(P + 1)
     pi[:P] = estep.t.sum(axis=0) / I
     pi[P] = estep.t_outlier.sum() / I
-    return MStep(pose=pose, mixture=Mixture(Sigma=_floor_covariance(Sigma), pi=_floor_priors(pi)))
+    return MStep(pose=pose, mixture=Mixture(Sigma=_floor_covariance(Sigma), pi=_floor_priors(pi)),
+                 height_m=body.height_m)
 
 
 def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume: np.ndarray,
@@ -232,15 +245,17 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
     iterations = 0
     while not converged and iterations < params.max_iterations:
         mstep = m_step(y, n, body, pose, mixture, estep, distance=params.distance, prior_pose=prior_pose,
-                       gauss_newton_steps=params.gauss_newton_steps)
+                       gauss_newton_steps=params.gauss_newton_steps, estimate_scale=params.estimate_scale)
         pose, mixture = mstep.pose, mstep.mixture
+        if mstep.height_m != body.height_m:
+            body = body.scaled(mstep.height_m)
         estep = e_step(y, n, body, pose, mixture, V, distance=params.distance)
         iterations += 1
         history.append(estep.log_likelihood)
         converged = abs(history[-1] - history[-2]) < params.tolerance * len(y)
     outliers = float(estep.t_outlier.mean()) if len(y) else 1.0
-    return FitResult(pose=pose, mixture=mixture, iterations=iterations, converged=converged,
-                     log_likelihood=tuple(history), outlier_fraction=outliers)
+    return FitResult(pose=pose, height_m=body.height_m, mixture=mixture, iterations=iterations,
+                     converged=converged, log_likelihood=tuple(history), outlier_fraction=outliers)
 
 
 def _log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
@@ -252,29 +267,40 @@ def _log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
     return -0.5 * (np.einsum("...a,...a->...", z, z) + log_det + k * np.log(2.0 * np.pi))
 
 
-def _gauss_newton_step(y, n, i, p, t, W, body, pose, prior, prior_pose, distance):
-    """One Levenberg-Marquardt step on eq. (14) for fixed posteriors; returns the accepted pose."""
+def _gauss_newton_step(y, n, i, p, t, W, body, pose, prior, prior_pose, distance, estimate_scale):
+    """One Levenberg-Marquardt step on eq. (14) for fixed posteriors; returns the accepted pose, body.
+
+    The unknowns are Λ and, with `estimate_scale`, ln s of the body's size (an extra last column).
+    """
     kin = body.fk(pose)
-    res = residuals(y, n, i, p, body, kin, body.ellipsoids(kin), distance=distance, jacobian=True)
+    res = residuals(y, n, i, p, body, kin, body.ellipsoids(kin), distance=distance, jacobian=True,
+                    scale=estimate_scale)
+    J = res.J if not estimate_scale else np.concatenate([res.J, res.J_scale[:, :, None]], axis=2)
     L = np.linalg.cholesky(W)  # W = L Lᵀ: whitened residual Lᵀ e
     sqrt_t = np.sqrt(t)[:, None]
     r = (res.e @ L) * sqrt_t  # (K,k)
-    Jw = (np.einsum("ba,kbd->kad", L, res.J) * sqrt_t[:, :, None]).reshape(-1, body.pose_size)  # Lᵀ J
+    Jw = (np.einsum("ba,kbd->kad", L, J) * sqrt_t[:, :, None]).reshape(-1, J.shape[2])  # Lᵀ J
+    prior = np.append(prior, 0.0) if estimate_scale else prior
+    offset = np.append(pose - prior_pose, 0.0) if estimate_scale else pose - prior_pose
     H = Jw.T @ Jw + np.diag(prior)
-    g = Jw.T @ r.reshape(-1) + prior * (pose - prior_pose)
-    cost = 0.5 * (r**2).sum() + 0.5 * (prior * (pose - prior_pose) ** 2).sum()
+    g = Jw.T @ r.reshape(-1) + prior * offset
+    cost = 0.5 * (r**2).sum() + 0.5 * (prior * offset**2).sum()
     diag = np.diag(H) + RIDGE
     damping = LM_DAMPING
     for _ in range(LM_TRIES):
-        candidate = body.clip(pose - np.linalg.solve(H + np.diag(damping * diag + RIDGE), g))
-        kin_c = body.fk(candidate)
-        e_c = residuals(y, n, i, p, body, kin_c, body.ellipsoids(kin_c), distance=distance).e
+        step = np.linalg.solve(H + np.diag(damping * diag + RIDGE), -g)
+        candidate = body.clip(pose + step[: body.pose_size])
+        body_c = body
+        if estimate_scale:
+            body_c = body.scaled(float(np.clip(body.height_m * np.exp(step[-1]), *HEIGHT_RANGE_M)))
+        kin_c = body_c.fk(candidate)
+        e_c = residuals(y, n, i, p, body_c, kin_c, body_c.ellipsoids(kin_c), distance=distance).e
         r_c = (e_c @ L) * sqrt_t
-        cost_c = 0.5 * (r_c**2).sum() + 0.5 * (prior * (candidate - prior_pose) ** 2).sum()
+        cost_c = 0.5 * (r_c**2).sum() + 0.5 * (prior[: body.pose_size] * (candidate - prior_pose) ** 2).sum()
         if cost_c <= cost:
-            return candidate
+            return candidate, body_c
         damping *= LM_GROWTH
-    return pose
+    return pose, body
 
 
 def _floor_covariance(Sigma: np.ndarray) -> np.ndarray:

@@ -71,3 +71,12 @@ def test_fit_on_a_single_datum_stays_finite(body):
 def test_bad_volume_is_rejected():
     with pytest.raises(ValueError, match="volume"):
         volume_size(np.array([[0.0, 0.0, 0.0], [1.0, -1.0, 1.0]]))
+
+
+def test_em_estimates_the_body_height(body):
+    rng = np.random.default_rng(14)
+    truth = random_pose(body, rng, scale=0.2)
+    tall = body.scaled(1.85)
+    y, n = sample_ellipsoids(tall, truth, 1000, rng, outlier_fraction=0.2)
+    result = fit(y, n, body.scaled(1.70), truth, VOLUME, EMParams(estimate_scale=True, max_iterations=40))
+    assert result.height_m == pytest.approx(1.85, abs=0.01)
