@@ -68,7 +68,8 @@ def write_config(root: Path, **changes) -> Path:
 
 def make_capture(root: Path, *, n_cameras: int = 3, n_frames: int = 4, media: str = "images",
                  fmt: str = "anipose", units: str = "m", up: str = "+z", backgrounds: bool = False,
-                 silhouettes: bool = False, volume: dict | None = None, size: tuple[int, int] = TINY_SIZE) -> Path:
+                 silhouettes: bool = False, volume: dict | None = None,
+                 size: tuple[int, int] = TINY_SIZE) -> Path:
     """Write a tiny capture under ``root`` and return ``root``.
 
     ``media`` is "images", "videos" (MJPG .avi) or "none" (then pass ``silhouettes=True``).

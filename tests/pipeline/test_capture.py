@@ -1,0 +1,118 @@
+"""Capture reading: layout discovery, streaming frames, world conversion, derived volume, fingerprints."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import types
+
+import numpy as np
+import pytest
+from conftest import BACKGROUND_GREY, TINY_SIZE, frame_image, make_capture, tiny_rig, write_config
+
+from pipeline.capture import Capture, derive_volume
+
+
+def test_image_capture_metadata(tiny_capture):
+    capture = Capture.open(tiny_capture)
+    assert capture.media == "images"
+    assert capture.fps == 25.0
+    assert capture.rig.names == ("cam0", "cam1", "cam2")
+    assert all(camera.size == TINY_SIZE for camera in capture.rig)
+    assert capture.frame_numbers == (0, 1, 2, 3)
+    assert capture.height_m is None
+    assert not capture.silhouettes_given
+    assert capture.background("cam0") is None
+
+
+def test_iter_images_streams_the_requested_frames(tiny_capture):
+    capture = Capture.open(tiny_capture)
+    frames = capture.iter_images("cam1", [1, 3])
+    assert isinstance(frames, types.GeneratorType)  # one frame at a time, nothing preloaded
+    received = list(frames)
+    assert [frame for frame, _ in received] == [1, 3]
+    np.testing.assert_array_equal(received[1][1], frame_image(3))
+
+
+def test_video_capture_reads_and_seeks(tmp_path):
+    capture = Capture.open(make_capture(tmp_path / "c", media="videos", n_frames=20))
+    assert capture.media == "videos"
+    assert capture.frame_numbers == tuple(range(20))
+    centre = (TINY_SIZE[1] // 2, TINY_SIZE[0] // 2)
+    wanted = [0, 2, 3, 15, 19]  # small skip (decoded), large skip (seek)
+    for frame, image in capture.iter_images("cam2", wanted):
+        assert image.shape == (TINY_SIZE[1], TINY_SIZE[0], 3)
+        assert abs(int(image[centre][1]) - (60 + 10 * frame)) <= 4, frame  # MJPG is lossy
+    assert [frame for frame, _ in capture.iter_images("cam2", wanted)] == wanted
+
+
+def test_frame_range_selects_on_frame_numbers(tiny_capture):
+    write_config(tiny_capture, frames={"start": 1, "stop": 4, "step": 2})
+    assert Capture.open(tiny_capture).frame_numbers == (1, 3)
+
+
+def test_silhouettes_only_capture(tmp_path):
+    capture = Capture.open(make_capture(tmp_path / "c", media="none", silhouettes=True))
+    assert capture.media == "silhouettes" and not capture.has_images and capture.silhouettes_given
+    mask = capture.read_silhouette("cam0", 2)
+    assert mask.dtype == np.uint8 and set(np.unique(mask)) == {0, 255}
+    with pytest.raises(ValueError, match="silhouettes only"):
+        next(capture.iter_images("cam0", [0]))
+
+
+def test_backgrounds_are_read(tmp_path):
+    capture = Capture.open(make_capture(tmp_path / "c", backgrounds=True))
+    assert capture.background("cam1").shape == (TINY_SIZE[1], TINY_SIZE[0], 3)
+    assert capture.background("cam1").max() == BACKGROUND_GREY
+
+
+@pytest.mark.parametrize(("fmt", "units", "up"), [("anipose", "m", "+z"), ("opencv", "cm", "+y"),
+                                                  ("colmap", "mm", "-x")])
+def test_calibration_is_converted_to_the_world_frame(tmp_path, fmt, units, up):
+    capture = Capture.open(make_capture(tmp_path / "c", fmt=fmt, units=units, up=up))
+    np.testing.assert_allclose(capture.rig.centres, tiny_rig().centres, atol=1e-9)
+
+
+def test_volume_from_capture_yaml(tmp_path):
+    volume = {"min": [-1.0, -1.5, 0.0], "max": [1.0, 1.5, 2.0]}
+    capture = Capture.open(make_capture(tmp_path / "c", volume=volume))
+    np.testing.assert_array_equal(capture.volume, [volume["min"], volume["max"]])
+    assert capture.volume_source == "capture.yaml"
+
+
+def test_derived_volume_covers_what_most_cameras_see():
+    rig = tiny_rig(8, radius_m=4.0)  # a ring of 8 cameras looking at (0, 0, 1)
+    volume = derive_volume(rig)
+    assert volume[0, 2] == 0.0 and volume[1, 2] == 2.3
+    assert np.all(volume[0, :2] < -0.5) and np.all(volume[1, :2] > 0.5)  # the centre is inside
+    assert np.all(volume[0, :2] > -4.0) and np.all(volume[1, :2] < 4.0)  # the cameras are outside
+    np.testing.assert_allclose(volume[0, :2], -volume[1, :2], atol=0.1)  # symmetric ring, symmetric box
+
+
+def test_derived_volume_needs_a_camera_seeing_the_floor():
+    from calib.camera import Camera, Rig
+    sky = Rig((Camera.look_at("up", (0, 0, 1), (0, 0, 10), up=(0, 1, 0), f_px=50, size=TINY_SIZE),))
+    with pytest.raises(ValueError, match="no camera sees the floor"):
+        derive_volume(sky)
+
+
+def test_capture_pickles_for_workers(tiny_capture):
+    capture = pickle.loads(pickle.dumps(Capture.open(tiny_capture)))
+    assert [frame for frame, _ in capture.iter_images("cam0", [0])] == [0]
+
+
+def test_fingerprints_follow_the_files(tiny_capture):
+    capture = Capture.open(tiny_capture)
+    before = {part: capture.fingerprint(part) for part in ("config", "calibration", "images", "frames")}
+    image = tiny_capture / "images" / "cam0" / "000001.png"
+    os.utime(image, ns=(1, 1))
+    after = Capture.open(tiny_capture)
+    assert after.fingerprint("images") != before["images"]
+    assert {part: after.fingerprint(part) for part in ("config", "calibration", "frames")} == {
+        part: before[part] for part in ("config", "calibration", "frames")}
+
+
+def test_unknown_keys_are_warned_about(tiny_capture, caplog):
+    write_config(tiny_capture, volum={"min": [0, 0, 0], "max": [1, 1, 1]})
+    Capture.open(tiny_capture)
+    assert "ignoring unknown key volum" in caplog.text

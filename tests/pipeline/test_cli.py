@@ -1,0 +1,259 @@
+"""The command line: end to end through the calibration stage, and one test per user mistake.
+
+Every mistake must be one line ``error: <file or argument>: <what> (expected ...)`` on stderr, exit
+status 2, no traceback, and no result written.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from conftest import make_capture, tiny_rig, write_config, write_video
+
+from calib.formats import load_rig
+from pipeline import frames_io
+from pipeline.cli import SUBCOMMANDS, main
+from pipeline.runner import MANIFEST, output_lock
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def run_cli(*argv) -> int:
+    return main([str(arg) for arg in argv])
+
+
+def test_run_end_to_end_through_calibration(tiny_capture, tmp_path):
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "pipeline", "run", str(tiny_capture), "--out", str(out), "-q"]
+    first = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert first.returncode == 0, first.stderr
+    assert "calibration  ran" in first.stdout
+
+    rig = load_rig("anipose", out / "calibration" / "rig.toml")
+    np.testing.assert_allclose(rig.centres, tiny_rig().centres, atol=1e-9)
+    summary = frames_io.read_json(out / "calibration" / "capture.json")
+    assert summary["fps"] == 25.0 and summary["frames"] == [0, 1, 2, 3]
+    assert summary["cameras"] == ["cam0", "cam1", "cam2"] and summary["height_m"] is None
+    assert np.asarray(summary["volume"]).shape == (2, 3)
+
+    second = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert second.returncode == 0 and "calibration  up to date" in second.stdout
+
+    status = subprocess.run([sys.executable, "-m", "pipeline", "stages", str(out)], cwd=REPO,
+                            capture_output=True, text=True, timeout=60)
+    assert status.returncode == 0 and status.stdout.split() == ["calibration", "up", "to", "date"]
+
+
+def test_calibration_reruns_when_the_capture_changes(tiny_capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert run_cli("run", tiny_capture, "--out", out, "-q") == 0
+    write_config(tiny_capture, subject={"height_m": 1.8})
+    assert run_cli("stages", out) == 0
+    assert "calibration  stale: capture config changed" in capsys.readouterr().out
+    assert run_cli("run", tiny_capture, "--out", out, "-q") == 0
+    assert "calibration  ran" in capsys.readouterr().out
+    assert frames_io.read_json(out / "calibration" / "capture.json")["height_m"] == 1.8
+
+
+def test_help_everywhere(capsys):
+    for argv in (["--help"], *([name, "--help"] for name in SUBCOMMANDS)):
+        with pytest.raises(SystemExit) as exit_info:
+            main(argv)
+        assert exit_info.value.code == 0
+        assert "usage:" in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad input: one test per mistake
+
+
+def expect_error(capsys, argv, *fragments, out: Path | None = None) -> str:
+    """Run the CLI, check exit status 2 and a one-line message containing ``fragments``."""
+    assert run_cli(*argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    message = err[-1]
+    assert message.startswith("error: ") and "Traceback" not in "\n".join(err)
+    assert "expected" in message.lower()
+    for fragment in fragments:
+        assert fragment in message, message
+    if out is not None:
+        assert not list(out.rglob(MANIFEST)), "a failed run left a manifest behind"
+    return message
+
+
+def run_argv(capture: Path, out: Path, *extra) -> list:
+    return ["run", capture, "--out", out, "-q", *extra]
+
+
+def test_missing_capture_yaml(tiny_capture, tmp_path, capsys):
+    (tiny_capture / "capture.yaml").unlink()
+    out = tmp_path / "out"
+    expect_error(capsys, run_argv(tiny_capture, out), "capture.yaml: missing")
+    assert not out.exists()
+
+
+def test_malformed_capture_yaml(tiny_capture, tmp_path, capsys):
+    (tiny_capture / "capture.yaml").write_text("fps: [25\ncalibration: {")
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "capture.yaml: not valid YAML")
+
+
+def test_capture_yaml_not_a_mapping(tiny_capture, tmp_path, capsys):
+    (tiny_capture / "capture.yaml").write_text("- fps\n- 25\n")
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "capture.yaml: top level is list")
+
+
+def test_bad_fps(tiny_capture, tmp_path, capsys):
+    write_config(tiny_capture, fps=-3)
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "capture.yaml: fps is -3", "positive")
+
+
+def test_unknown_calibration_format(tiny_capture, tmp_path, capsys):
+    write_config(tiny_capture, calibration={"format": "blender", "path": "calibration/calibration.toml"})
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"),
+                 "calibration.format 'blender' is unknown", "colmap, opencv, anipose")
+
+
+def test_calibration_path_missing(tiny_capture, tmp_path, capsys):
+    write_config(tiny_capture, calibration={"format": "anipose", "path": "calib/nowhere.toml"})
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "calibration.path 'calib/nowhere.toml'")
+
+
+def test_calibration_file_unreadable(tiny_capture, tmp_path, capsys):
+    (tiny_capture / "calibration" / "calibration.toml").write_text("[cam_0\nname = ")
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "calibration.toml", "TOML")
+
+
+def test_camera_in_media_but_not_in_calibration(tiny_capture, tmp_path, capsys):
+    shutil.copytree(tiny_capture / "images" / "cam0", tiny_capture / "images" / "cam9")
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"),
+                 "images: camera 'cam9' is not in the calibration")
+
+
+def test_camera_in_calibration_but_not_in_media(tiny_capture, tmp_path, capsys):
+    shutil.rmtree(tiny_capture / "images" / "cam1")
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"),
+                 "images: calibrated camera 'cam1' has no media")
+
+
+def test_videos_with_different_frame_counts(tmp_path, capsys):
+    capture = make_capture(tmp_path / "c", media="videos", n_frames=6)
+    write_video(capture / "videos" / "cam2.avi", 5)
+    expect_error(capsys, run_argv(capture, tmp_path / "out"), "cam2.avi: 5 frames but cam0.avi has 6")
+
+
+def test_image_folders_with_different_frames(tiny_capture, tmp_path, capsys):
+    (tiny_capture / "images" / "cam2" / "000003.png").unlink()
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "frame 3", "same frame numbers")
+
+
+def test_non_image_file_in_an_image_folder(tiny_capture, tmp_path, capsys):
+    (tiny_capture / "images" / "cam0" / "notes.txt").write_text("hello")
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "notes.txt: not a frame image")
+
+
+def test_unreadable_image(tiny_capture, tmp_path, capsys):
+    (tiny_capture / "images" / "cam1" / "000000.png").write_bytes(b"not a png")
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "000000.png: not a readable image")
+
+
+def test_image_size_differs_from_calibration(tmp_path, capsys):
+    capture = make_capture(tmp_path / "c")
+    make_capture(tmp_path / "other", size=(80, 60))
+    shutil.rmtree(capture / "images")
+    shutil.copytree(tmp_path / "other" / "images", capture / "images")
+    expect_error(capsys, run_argv(capture, tmp_path / "out"), "64x48", "80x60")
+
+
+def test_unknown_stage_name(tiny_capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    expect_error(capsys, run_argv(tiny_capture, out, "--only", "tracknig"),
+                 "--only tracknig: unknown stage", "calibration")
+    assert not out.exists()
+
+
+def test_set_unknown_stage(tiny_capture, tmp_path, capsys):
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out", "--set", "silhouetes.threshold=3"),
+                 "--set silhouetes: unknown stage", "calibration")
+
+
+def test_set_key_of_a_stage_without_parameters(tiny_capture, tmp_path, capsys):
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out", "--set", "calibration.scale=2"),
+                 "--set calibration: this stage takes no parameters")
+
+
+def test_set_malformed(tiny_capture, tmp_path, capsys):
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out", "--set", "threshold"),
+                 "--set threshold: malformed", "stage.param=value")
+
+
+def test_config_file_missing(tiny_capture, tmp_path, capsys):
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out", "--config", tmp_path / "params.yaml"),
+                 "params.yaml: cannot read")
+
+
+def test_frames_start_out_of_range(tiny_capture, tmp_path, capsys):
+    write_config(tiny_capture, frames={"start": 10})
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "frames.start 10 is out of range", "3")
+
+
+def test_frames_stop_out_of_range(tiny_capture, tmp_path, capsys):
+    write_config(tiny_capture, frames={"start": 0, "stop": 9})
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "frames.stop 9 is out of range")
+
+
+def test_frames_step_not_positive(tiny_capture, tmp_path, capsys):
+    write_config(tiny_capture, frames={"step": 0})
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "frames.step is 0", ">= 1")
+
+
+def test_unknown_units(tiny_capture, tmp_path, capsys):
+    config = yaml.safe_load((tiny_capture / "capture.yaml").read_text())
+    write_config(tiny_capture, calibration={**config["calibration"], "units": "inch"})
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"),
+                 "calibration.units 'inch' is unknown", "m, cm, mm")
+
+
+def test_unknown_up_axis(tiny_capture, tmp_path, capsys):
+    config = yaml.safe_load((tiny_capture / "capture.yaml").read_text())
+    write_config(tiny_capture, calibration={**config["calibration"], "up": "z"})
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "calibration.up 'z' is unknown", "+z")
+
+
+def test_volume_min_not_below_max(tiny_capture, tmp_path, capsys):
+    write_config(tiny_capture, volume={"min": [0, 0, 0], "max": [1, -1, 2]})
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "volume.min", "min < max")
+
+
+def test_no_media(tiny_capture, tmp_path, capsys):
+    shutil.rmtree(tiny_capture / "images")
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "no media found")
+
+
+def test_capture_directory_missing(tmp_path, capsys):
+    expect_error(capsys, run_argv(tmp_path / "nothing", tmp_path / "out"), "no such capture directory")
+
+
+def test_concurrent_run_on_the_same_output(tiny_capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    with output_lock(out):
+        expect_error(capsys, run_argv(tiny_capture, out), "another run is using this output directory",
+                     out=out)
+
+
+def test_stages_of_a_folder_that_was_never_run(tmp_path, capsys):
+    expect_error(capsys, ["stages", tmp_path], "run.json: missing")
+
+
+def test_failed_rerun_leaves_no_stale_result(tiny_capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert run_cli(*run_argv(tiny_capture, out)) == 0
+    os.remove(tiny_capture / "images" / "cam0" / "000002.png")
+    expect_error(capsys, run_argv(tiny_capture, out), "same frame numbers")
+    assert (out / "calibration" / MANIFEST).exists()  # validation failed before touching the results

@@ -1,0 +1,278 @@
+"""The cached stage runner on a small fake graph: skip, rerun what depends on a change, resume.
+
+Fake graph: ``source`` (whole-stage, writes one JSON) -> ``per_frame`` (one JSON per frame, through
+``map_frames``) -> ``summary`` (sums the per-frame values). Every frame computed is appended to a log
+file, so tests can count exactly which work was done.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from calib.errors import InputError
+from pipeline import frames_io
+from pipeline.capture import Capture
+from pipeline.executors import make_executor
+from pipeline.params import apply_overrides, default_params
+from pipeline.runner import (
+    MANIFEST,
+    MARKER,
+    Runner,
+    Stage,
+    consecutive_chunks,
+    graph_status,
+    output_lock,
+    select_stages,
+)
+
+WORK_LOG = "FAKE_STAGE_WORK_LOG"  # environment: file where fake stages log their work
+FAIL_AT = "FAKE_STAGE_FAIL_AT"  # environment: frame at which the per-frame stage raises
+
+
+@dataclass(frozen=True)
+class SourceParams:
+    value: float = 1.0
+    comment: str = ""  # does not change the output: downstream must not rerun when only this changes
+
+
+@dataclass(frozen=True)
+class PerFrameParams:
+    scale: float = 2.0
+
+
+@dataclass(frozen=True)
+class SummaryParams:
+    rounding: int = 3
+
+
+def _log(entry: str) -> None:
+    with open(os.environ[WORK_LOG], "a") as handle:
+        handle.write(entry + "\n")
+
+
+def run_source(ctx) -> None:
+    _log("source")
+    frames_io.write_json(ctx.out_dir / "value.json", {"value": ctx.params.value})
+
+
+def per_frame_task(chunk: tuple[int, ...], *, value: float, scale: float, out_dir: Path) -> None:
+    for frame in chunk:
+        if str(frame) == os.environ.get(FAIL_AT):
+            raise RuntimeError(f"simulated crash at frame {frame}")
+        _log(f"per_frame {frame}")
+        frames_io.write_json(out_dir / frames_io.frame_name(frame, ".json"), {"v": value * scale * frame})
+
+
+def run_per_frame(ctx) -> int:
+    value = frames_io.read_json(ctx.input_dir("source") / "value.json")["value"]
+    task = functools.partial(per_frame_task, value=value, scale=ctx.params.scale, out_dir=ctx.out_dir)
+    return ctx.map_frames(task, lambda frame: [ctx.out_dir / frames_io.frame_name(frame, ".json")],
+                          chunk_size=1)
+
+
+def run_summary(ctx) -> None:
+    _log("summary")
+    frame_files = sorted(ctx.input_dir("per_frame").glob("[0-9]*.json"))
+    total = sum(frames_io.read_json(path)["v"] for path in frame_files)
+    frames_io.write_json(ctx.out_dir / "total.json", {"total": round(total, ctx.params.rounding)})
+
+
+STAGES = (
+    Stage("source", run_source, params_type=SourceParams, capture_parts=("config",)),
+    Stage("per_frame", run_per_frame, inputs=("source",), params_type=PerFrameParams,
+          capture_parts=("frames",)),
+    Stage("summary", run_summary, inputs=("per_frame",), params_type=SummaryParams),
+)
+
+
+@pytest.fixture
+def setup(tmp_path, tiny_capture, monkeypatch):
+    """(capture, output folder, run(params overrides, **options) -> outcomes, read work log)."""
+    monkeypatch.setenv(WORK_LOG, str(tmp_path / "work.log"))
+    capture = Capture.open(tiny_capture)
+    out = tmp_path / "out"
+
+    def run(overrides=None, selected=None, force=False, stages=STAGES):
+        params = apply_overrides(default_params(stages), overrides or {}, source="test")
+        (tmp_path / "work.log").write_text("")
+        with output_lock(out), make_executor(1) as workers:
+            outcomes = Runner(stages, capture, params, out, workers).run(selected, force=force)
+        return {outcome.name: outcome.action for outcome in outcomes}
+
+    def work():
+        return (tmp_path / "work.log").read_text().split("\n")[:-1]
+
+    return capture, out, run, work
+
+
+def test_first_run_runs_everything_and_writes_manifests(setup):
+    capture, out, run, work = setup
+    assert run() == {"source": "ran", "per_frame": "ran", "summary": "ran"}
+    assert work() == ["source", "per_frame 0", "per_frame 1", "per_frame 2", "per_frame 3", "summary"]
+    manifest = json.loads((out / "per_frame" / MANIFEST).read_text())
+    assert manifest["params"] == {"scale": 2.0}
+    assert manifest["timing"]["frames"] == len(capture.frame_numbers)
+    assert set(manifest["inputs"]) == {"stage:source", "capture:frames"}
+    assert frames_io.read_json(out / "summary" / "total.json") == {"total": 12.0}  # 2 * (0+1+2+3)
+
+
+def test_second_run_skips_everything(setup):
+    _, _, run, work = setup
+    run()
+    assert run() == {"source": "up to date", "per_frame": "up to date", "summary": "up to date"}
+    assert work() == []
+
+
+def test_changing_a_parameter_reruns_that_stage_and_downstream_only(setup):
+    _, out, run, work = setup
+    run()
+    assert run({"per_frame": {"scale": 3.0}}) == {
+        "source": "up to date", "per_frame": "ran", "summary": "ran"}
+    assert frames_io.read_json(out / "summary" / "total.json") == {"total": 18.0}
+    assert run({"per_frame": {"scale": 3.0}, "summary": {"rounding": 1}}) == {
+        "source": "up to date", "per_frame": "up to date", "summary": "ran"}
+    assert work() == ["summary"]
+
+
+def test_upstream_rerun_with_identical_outputs_does_not_ripple_down(setup):
+    _, _, run, work = setup
+    run()
+    assert run({"source": {"comment": "same numbers"}}) == {
+        "source": "ran", "per_frame": "up to date", "summary": "up to date"}
+    assert work() == ["source"]
+
+
+def test_killed_run_resumes_with_the_remaining_frames(setup, monkeypatch):
+    _, out, run, work = setup
+    monkeypatch.setenv(FAIL_AT, "2")
+    with pytest.raises(RuntimeError, match="simulated crash at frame 2"):
+        run()
+    assert work() == ["source", "per_frame 0", "per_frame 1"]
+    assert not (out / "per_frame" / MANIFEST).exists()  # incomplete stage: no manifest to trust
+    assert (out / "per_frame" / MARKER).exists()
+
+    monkeypatch.delenv(FAIL_AT)
+    assert run() == {"source": "up to date", "per_frame": "ran", "summary": "ran"}
+    assert work() == ["per_frame 2", "per_frame 3", "summary"]
+    assert frames_io.read_json(out / "summary" / "total.json") == {"total": 12.0}
+
+
+def test_interrupted_run_with_other_parameters_starts_over(setup, monkeypatch):
+    _, out, run, work = setup
+    monkeypatch.setenv(FAIL_AT, "2")
+    with pytest.raises(RuntimeError):
+        run()
+    monkeypatch.delenv(FAIL_AT)
+    run({"per_frame": {"scale": 5.0}})
+    per_frame_work = [entry for entry in work() if entry.startswith("per_frame")]
+    assert per_frame_work == [f"per_frame {f}" for f in range(4)]
+    assert frames_io.read_json(out / "per_frame" / "000001.json") == {"v": 5.0}
+
+
+def test_leftover_temporary_files_are_removed_on_resume(setup, monkeypatch):
+    _, out, run, _ = setup
+    monkeypatch.setenv(FAIL_AT, "1")
+    with pytest.raises(RuntimeError):
+        run()
+    leftover = out / "per_frame" / ".tmp-123-abcd-000001.json"
+    leftover.write_text("{half")
+    monkeypatch.delenv(FAIL_AT)
+    run()
+    assert not leftover.exists()
+
+
+def test_corrupt_manifest_is_a_logged_miss(setup, caplog):
+    _, out, run, work = setup
+    run()
+    (out / "summary" / MANIFEST).write_text("{not json")
+    assert run()["summary"] == "ran"
+    assert "unreadable manifest" in caplog.text
+    assert work() == ["summary"]
+
+
+def test_deleted_output_file_is_recomputed_alone(setup):
+    _, out, run, work = setup
+    run()
+    (out / "per_frame" / "000002.json").unlink()
+    assert run() == {"source": "up to date", "per_frame": "ran", "summary": "up to date"}
+    assert work() == ["per_frame 2"]  # identical content again, so summary stays valid
+
+
+def test_force_reruns_selected_stages(setup):
+    _, _, run, work = setup
+    run()
+    assert run(selected=["per_frame"], force=True) == {
+        "source": "not selected", "per_frame": "ran", "summary": "not selected"}
+    assert work() == [f"per_frame {f}" for f in range(4)]
+
+
+def test_selected_stage_needs_completed_upstream(setup):
+    _, _, run, _ = setup
+    with pytest.raises(InputError, match="needs the results of source"):
+        run(selected=["per_frame"])
+
+
+def test_status_reports_why_a_stage_is_stale(setup):
+    capture, out, run, _ = setup
+    params = default_params(STAGES)
+    assert [s.state for s in graph_status(STAGES, capture, params, out)] == ["not run"] * 3
+    run()
+    assert {s.state for s in graph_status(STAGES, capture, params, out)} == {"up to date"}
+    changed = apply_overrides(params, {"per_frame": {"scale": 4.0}}, source="test")
+    statuses = {s.name: s for s in graph_status(STAGES, capture, changed, out)}
+    assert statuses["source"].state == "up to date"
+    assert statuses["per_frame"].reason == "parameter scale: 2.0 -> 4.0"
+    assert statuses["summary"].reason == "upstream per_frame not up to date"
+
+
+def test_status_of_an_interrupted_stage_is_incomplete(setup, monkeypatch):
+    capture, out, run, _ = setup
+    monkeypatch.setenv(FAIL_AT, "3")
+    with pytest.raises(RuntimeError):
+        run()
+    statuses = {s.name: s for s in graph_status(STAGES, capture, default_params(STAGES), out)}
+    assert statuses["per_frame"].state == "incomplete"
+    assert statuses["per_frame"].reason.startswith("3 files kept")
+
+
+def test_second_concurrent_run_is_refused(tmp_path):
+    with output_lock(tmp_path / "out"):
+        with pytest.raises(InputError, match="another run is using this output directory"):
+            with output_lock(tmp_path / "out"):
+                pass
+    with output_lock(tmp_path / "out"):  # released: usable again
+        pass
+
+
+@pytest.mark.parametrize(("options", "expected"), [
+    ({}, ["source", "per_frame", "summary"]),
+    ({"only": "per_frame"}, ["per_frame"]),
+    ({"start": "per_frame"}, ["per_frame", "summary"]),
+    ({"end": "per_frame"}, ["source", "per_frame"]),
+    ({"start": "per_frame", "end": "per_frame"}, ["per_frame"]),
+])
+def test_select_stages(options, expected):
+    assert select_stages(STAGES, **options) == expected
+
+
+def test_select_unknown_stage_lists_the_valid_ones():
+    with pytest.raises(InputError, match="--only nope: unknown stage .*source, per_frame, summary"):
+        select_stages(STAGES, only="nope")
+
+
+def test_consecutive_chunks_break_at_gaps_and_size():
+    frames = (0, 2, 4, 6, 8, 10, 12)  # a step-2 selection: consecutive means adjacent in this list
+    assert consecutive_chunks([0, 2, 4, 8, 10, 12], frames, 2) == [(0, 2), (4,), (8, 10), (12,)]
+
+
+def test_graph_declaration_errors():
+    with pytest.raises(ValueError, match="not declared before it"):
+        Runner((STAGES[1], STAGES[0]), None, {}, Path("."), None)
+    with pytest.raises(ValueError, match="stage name"):
+        Stage("Bad Name", run_source)
