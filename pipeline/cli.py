@@ -29,6 +29,7 @@ from calib.errors import InputError
 SUBCOMMANDS: dict[str, str] = {
     "run": "pipeline.commands.run",
     "stages": "pipeline.commands.stages",
+    "eval": "pipeline.evaluate",
 }
 
 #: Exit status for a user error (as argparse uses for a bad command line).

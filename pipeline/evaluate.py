@@ -1,0 +1,137 @@
+"""Score a run against ground truth: MPJPE, PCK, angle errors, silhouette IoU -> <out>/eval/metrics.json.
+
+Usage: ``python -m pipeline eval <out_dir> [--truth <capture>/groundtruth/joints.csv]``.
+
+The estimate is ``<out_dir>/export/joints.csv``. The truth defaults to
+``<capture_dir>/groundtruth/joints.csv`` of the capture named by ``capture_dir`` in
+``<out_dir>/calibration/capture.json``. Silhouettes are scored when both ``<out_dir>/silhouettes/`` and
+true masks (``masks/<camera>/<frame:06d>.png`` next to the truth joints.csv) exist. The metric
+definitions are in :mod:`stages.export.metrics`; the scored joints are ``SCORED_JOINTS``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+
+from calib.errors import InputError
+from pipeline import frames_io
+from pipeline.export_io import JOINTS_FILE, read_joints_csv
+from stages.export.metrics import evaluate_joints, mask_iou
+
+#: Where the evaluation writes, inside the run's output directory.
+EVAL_DIR, METRICS_FILE = "eval", "metrics.json"
+CAPTURE_JSON = Path("calibration") / "capture.json"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("out_dir", type=Path, help="output directory of a run (holds export/joints.csv)")
+    parser.add_argument("--truth", type=Path, default=None,
+                        help="ground-truth joints.csv (default: groundtruth/joints.csv of the run's capture)")
+
+
+def main(args: argparse.Namespace) -> int:
+    summary = evaluate_run(args.out_dir, truth=args.truth)
+    print(format_metrics(summary))
+    print(f"written: {Path(args.out_dir) / EVAL_DIR / METRICS_FILE}")
+    return 0
+
+
+def default_truth(out_dir: str | os.PathLike) -> Path:
+    """The ground-truth joints.csv of the capture a run was made from (``capture_dir`` in capture.json)."""
+    summary_path = Path(out_dir) / CAPTURE_JSON
+    summary = frames_io.read_json(summary_path) if summary_path.is_file() else {}
+    capture_dir = summary.get("capture_dir") if isinstance(summary, dict) else None
+    if not capture_dir:
+        raise InputError(f"{summary_path}: no capture_dir recorded, so the ground truth is unknown "
+                         "(expected --truth <capture>/groundtruth/joints.csv)")
+    truth = Path(capture_dir) / "groundtruth" / "joints.csv"
+    if not truth.is_file():
+        raise InputError(f"{truth}: the run's capture has no ground truth (expected --truth <joints.csv>)")
+    return truth
+
+
+def silhouette_iou(estimated_dir: str | os.PathLike, truth_dir: str | os.PathLike) -> dict | None:
+    """IoU of estimated silhouettes against true masks, for every (camera, frame) present in both.
+
+    Parameters
+    ----------
+    estimated_dir : folder ``<camera>/<frame:06d>.png`` of the silhouette stage
+    truth_dir : folder ``<camera>/<frame:06d>.png`` of true masks
+
+    Returns
+    -------
+    dict or None
+        ``{"mean": mean IoU over all compared masks, "per_camera": {camera: mean IoU},
+        "masks_compared": count}``, or None when no mask pair exists.
+    """
+    estimated_dir, truth_dir = Path(estimated_dir), Path(truth_dir)
+    if not estimated_dir.is_dir() or not truth_dir.is_dir():
+        return None
+    per_camera: dict[str, list[float]] = {}
+    for camera_dir in sorted(p for p in truth_dir.iterdir() if p.is_dir()):
+        for truth_file in sorted(camera_dir.glob("*.png")):
+            estimated_file = estimated_dir / camera_dir.name / truth_file.name
+            if estimated_file.is_file():
+                estimate, truth = frames_io.read_mask(estimated_file), frames_io.read_mask(truth_file)
+                if estimate.shape != truth.shape:
+                    raise InputError(f"{estimated_file}: size {estimate.shape[::-1]} differs from the true "
+                                     f"mask {truth_file} {truth.shape[::-1]} (expected the same image size)")
+                per_camera.setdefault(camera_dir.name, []).append(mask_iou(estimate, truth))
+    if not per_camera:
+        return None
+    every = [value for values in per_camera.values() for value in values]
+    return {"mean": float(np.mean(every)), "masks_compared": len(every),
+            "per_camera": {camera: float(np.mean(values)) for camera, values in per_camera.items()}}
+
+
+def evaluate_run(out_dir: str | os.PathLike, *, truth: str | os.PathLike | None = None) -> dict:
+    """Score a run's exported joints (and silhouettes) and write ``<out_dir>/eval/metrics.json``.
+
+    Returns
+    -------
+    dict
+        The content of metrics.json: the fields of :meth:`JointMetrics.summary` plus ``estimate`` and
+        ``truth`` (paths) and ``silhouette_iou`` (see :func:`silhouette_iou`, or None).
+    """
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise InputError(f"{out_dir}: not a directory (expected the output directory of a run)")
+    estimate_path = out_dir / "export" / JOINTS_FILE
+    if not estimate_path.is_file():
+        raise InputError(f"{estimate_path}: not found (expected a run whose export stage has finished)")
+    truth_path = Path(truth) if truth is not None else default_truth(out_dir)
+    estimate = read_joints_csv(estimate_path)
+    true = read_joints_csv(truth_path)
+    metrics = evaluate_joints(*estimate, *true)
+    summary = {"estimate": str(estimate_path), "truth": str(truth_path), **metrics.summary(),
+               "silhouette_iou": silhouette_iou(out_dir / "silhouettes", truth_path.parent / "masks")}
+    frames_io.write_json(out_dir / EVAL_DIR / METRICS_FILE, summary)
+    return summary
+
+
+def format_metrics(summary: dict) -> str:
+    """A readable table of a metrics.json summary."""
+    pck = "   ".join(f"PCK@{threshold} {value:.3f}" for threshold, value in summary["pck"].items())
+    worst = summary["worst_frame"]
+    lines = [
+        f"MPJPE {summary['mpjpe_mm']:.1f} mm over {len(summary['scored_joints'])} joints and "
+        f"{summary['frames_scored']} frames; {100 * summary['fraction_estimated']:.1f}% of "
+        f"{summary['truth_frames']} truth frames estimated",
+        pck,
+        f"worst frame {worst['frame']}: {worst['mpjpe_mm']:.1f} mm",
+        "",
+        f"{'joint':<20}{'MPJPE mm':>10}",
+    ]
+    lines += [f"{name:<20}{value:>10.1f}" for name, value in summary["per_joint_mpjpe_mm"].items()]
+    if summary["angle_errors_deg"]:
+        lines += ["", f"{'angle':<20}{'error deg':>10}"]
+        lines += [f"{name:<20}{value:>10.1f}" for name, value in summary["angle_errors_deg"].items()]
+    iou = summary.get("silhouette_iou")
+    if iou:
+        cameras = ", ".join(f"{camera} {value:.3f}" for camera, value in iou["per_camera"].items())
+        lines += ["", f"silhouette IoU {iou['mean']:.3f} over {iou['masks_compared']} masks ({cameras})"]
+    return "\n".join(lines)
