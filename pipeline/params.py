@@ -12,7 +12,7 @@ field, nested dataclasses as nested sections::
 Overrides are validated against the dataclass fields before any work starts: an unknown stage or
 key, or a value of the wrong type, is an :class:`InputError` naming where it came from and listing
 what is valid. Values are parsed with ``yaml.safe_load`` (``--set a.b=0.5`` gives a float,
-``=true`` a bool, ``=[1, 2]`` a list).
+``=true`` a bool, ``=[1, 2]`` a list; ``1e-6``, a string in YAML 1.1, is accepted for a float).
 """
 
 from __future__ import annotations
@@ -161,6 +161,11 @@ def _convert(value: Any, hint: Any) -> Any:
     if hint is int:
         return value if isinstance(value, int) and not isinstance(value, bool) else _NO_MATCH
     if hint is float:
+        if isinstance(value, str):  # YAML 1.1 reads 1e-6 (no dot) as a string
+            try:
+                return float(value)
+            except ValueError:
+                return _NO_MATCH
         return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else _NO_MATCH
     if hint is str:
         return value if isinstance(value, str) else _NO_MATCH

@@ -1,0 +1,101 @@
+"""Executors: in-process, local process pool and Dask all run ``map_frames`` to the same files."""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+from calib.errors import InputError
+from pipeline import frames_io
+from pipeline.capture import Capture
+from pipeline.executors import InProcessExecutor, make_executor
+from pipeline.runner import StageContext
+
+
+def write_frames(chunk: tuple[int, ...], *, out_dir: Path) -> None:
+    """A per-frame task: one JSON per frame, recording which process computed it."""
+    for frame in chunk:
+        frames_io.write_json(out_dir / frames_io.frame_name(frame, ".json"),
+                             {"frame": frame, "square": frame * frame, "pid": os.getpid()})
+
+
+def fail_on_odd(chunk: tuple[int, ...]) -> None:
+    if any(frame % 2 for frame in chunk):
+        raise RuntimeError(f"odd chunk {chunk}")
+
+
+def map_over_capture(capture: Capture, out_dir: Path, workers, chunk_size=None) -> int:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ctx = StageContext("test", capture, None, out_dir, out_dir.parent, workers)
+    return ctx.map_frames(functools.partial(write_frames, out_dir=out_dir),
+                          lambda frame: [out_dir / frames_io.frame_name(frame, ".json")],
+                          chunk_size=chunk_size)
+
+
+def results(out_dir: Path) -> dict[int, int]:
+    written = [frames_io.read_json(path) for path in sorted(out_dir.glob("*.json"))]
+    return {data["frame"]: data["square"] for data in written}
+
+
+def test_in_process_executor_returns_results_and_exceptions():
+    executor = InProcessExecutor()
+    assert executor.submit(pow, 2, 10).result() == 1024
+    with pytest.raises(ZeroDivisionError):
+        executor.submit(divmod, 1, 0).result()
+
+
+def test_in_process_map_frames(tiny_capture, tmp_path):
+    capture = Capture.open(tiny_capture)
+    with make_executor(1) as workers:
+        assert map_over_capture(capture, tmp_path / "out", workers) == 4
+        assert map_over_capture(capture, tmp_path / "out", workers) == 0  # all frames already there
+    assert results(tmp_path / "out") == {0: 0, 1: 1, 2: 4, 3: 9}
+
+
+def test_process_pool_map_frames(tiny_capture, tmp_path):
+    capture = Capture.open(tiny_capture)
+    with make_executor(2) as workers:
+        assert workers.count == 2
+        assert map_over_capture(capture, tmp_path / "out", workers, chunk_size=1) == 4
+    assert results(tmp_path / "out") == {0: 0, 1: 1, 2: 4, 3: 9}
+    assert os.getpid() not in {frames_io.read_json(p)["pid"] for p in (tmp_path / "out").glob("*.json")}
+
+
+def test_worker_exception_reaches_the_caller(tiny_capture, tmp_path):
+    capture = Capture.open(tiny_capture)
+    ctx_dir = tmp_path / "out"
+    with make_executor(2) as workers:
+        ctx = StageContext("test", capture, None, ctx_dir, tmp_path, workers)
+        with pytest.raises(RuntimeError, match="odd chunk"):
+            ctx.map_frames(fail_on_odd, lambda frame: [ctx_dir / f"{frame}"], chunk_size=1)
+
+
+@pytest.mark.parametrize(("workers", "scheduler", "message"), [
+    (0, None, "--workers 0: expected a positive whole number"),
+    (1, "local:zero", "--scheduler local:zero: expected local:N"),
+])
+def test_bad_executor_options(workers, scheduler, message):
+    with pytest.raises(InputError, match=message):
+        with make_executor(workers, scheduler):
+            pass
+
+
+@pytest.mark.dask
+def test_dask_local_cluster_map_frames(tiny_capture, tmp_path):
+    pytest.importorskip("distributed")
+    import cloudpickle
+
+    # Dask workers cannot import this test module by name: ship its functions by value.
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    try:
+        capture = Capture.open(tiny_capture)
+        with make_executor(1, "local:2") as workers:
+            assert workers.count == 2 and workers.description.startswith("Dask at ")
+            assert map_over_capture(capture, tmp_path / "out", workers, chunk_size=1) == 4
+    finally:
+        cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+    assert results(tmp_path / "out") == {0: 0, 1: 1, 2: 4, 3: 9}
