@@ -1,0 +1,177 @@
+"""3-D points with outward normals from one frame's silhouettes: the tracker's data.
+
+Two methods:
+
+- ``"visual_shape"`` (the paper's data): rim points on viewing edges, one per sampled outline point,
+  with the exact normal of the viewing-cone tangent plane (``visual_shape.py``);
+- ``"visual_hull"``: voxel carving with marching cubes, points and normals on the hull's surface
+  (``visual_hull.py``); slower and its normals are those of the hull's facets, not of the body.
+
+``reconstruct`` validates its inputs and dispatches; the maths lives in the modules.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.camera import Rig
+from calib.errors import InputError
+from stages.reconstruction.visual_hull import hull_surface_points
+from stages.reconstruction.visual_shape import rim_points
+
+METHODS = ("visual_shape", "visual_hull")
+RIM_PLACEMENTS = ("osculating", "midpoint")
+
+
+@dataclass(frozen=True)
+class ReconstructionParams:
+    """Parameters of the reconstruction stage.
+
+    Attributes
+    ----------
+    method : {"visual_shape", "visual_hull"}
+    n_observations : int
+        How many observations to return (50 to 5000), spread evenly over cameras and outlines; fewer
+        when the silhouettes do not support that many.
+    tolerated_views : int
+        A point still counts as inside the hull when it falls outside this many silhouettes (real
+        silhouettes have holes; a camera may miss a hand). 0 = the exact visual hull.
+    rim_placement : {"osculating", "midpoint"}
+        Where the visual shape puts the rim point on its viewing edge: from the other cones' tangent
+        planes at the edge's ends (see ``visual_shape.py``), or the edge's midpoint.
+    samples_per_ray : int
+        Samples along each viewing ray's bounded stretch before the in/out transitions are bisected;
+        edges shorter than the sample spacing (a few millimetres) can be missed.
+    contour_smoothing_px : float
+        Gaussian smoothing of outlines along the contour (in contour points), against pixel staircase.
+    voxel_size_m, coarse_voxel_size_m : float
+        Visual hull: final voxel size and the size carving starts at (metres).
+    """
+
+    method: str = "visual_shape"
+    n_observations: int = 1000
+    tolerated_views: int = 0
+    rim_placement: str = "osculating"
+    samples_per_ray: int = 48
+    contour_smoothing_px: float = 1.5
+    voxel_size_m: float = 0.01
+    coarse_voxel_size_m: float = 0.08
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise InputError(
+                f"reconstruction.method: expected one of {', '.join(METHODS)}, got {self.method!r}"
+            )
+        if self.rim_placement not in RIM_PLACEMENTS:
+            raise InputError(
+                f"reconstruction.rim_placement: expected one of {', '.join(RIM_PLACEMENTS)}, "
+                f"got {self.rim_placement!r}"
+            )
+        if not (isinstance(self.n_observations, int) and 50 <= self.n_observations <= 5000):
+            raise InputError(
+                "reconstruction.n_observations: expected an integer from 50 to 5000, "
+                f"got {self.n_observations!r}"
+            )
+        if not (isinstance(self.tolerated_views, int) and self.tolerated_views >= 0):
+            raise InputError(
+                f"reconstruction.tolerated_views: expected an integer >= 0, got {self.tolerated_views!r}"
+            )
+        if not (isinstance(self.samples_per_ray, int) and self.samples_per_ray >= 2):
+            raise InputError(
+                f"reconstruction.samples_per_ray: expected an integer >= 2, got {self.samples_per_ray!r}"
+            )
+        if self.contour_smoothing_px < 0:
+            raise InputError(
+                f"reconstruction.contour_smoothing_px: expected a value >= 0, got {self.contour_smoothing_px}"
+            )
+        if not 0 < self.voxel_size_m <= self.coarse_voxel_size_m:
+            raise InputError(
+                "reconstruction.voxel_size_m/coarse_voxel_size_m: expected 0 < voxel_size_m <= "
+                f"coarse_voxel_size_m, got {self.voxel_size_m} and {self.coarse_voxel_size_m}"
+            )
+
+
+@dataclass(frozen=True)
+class Observations:
+    """One frame's data for the tracker.
+
+    Attributes
+    ----------
+    points : (N, 3) float64
+        World points, metres; N may be 0.
+    normals : (N, 3) float64
+        Unit outward surface normals at the points.
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+
+    def __post_init__(self) -> None:
+        points = np.asarray(self.points, dtype=np.float64).reshape(-1, 3)
+        normals = np.asarray(self.normals, dtype=np.float64).reshape(-1, 3)
+        if points.shape != normals.shape:
+            raise ValueError(f"observations: {len(points)} points but {len(normals)} normals")
+        object.__setattr__(self, "points", points)
+        object.__setattr__(self, "normals", normals)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def reconstruct(masks: Sequence[np.ndarray], rig: Rig, volume, params: ReconstructionParams) -> Observations:
+    """Points and outward normals of the person seen in ``masks``, inside the working ``volume``.
+
+    Parameters
+    ----------
+    masks : sequence of (H, W) uint8
+        One silhouette per camera of ``rig``, in rig order, each the camera's image size; 0 = background.
+    rig : Rig
+    volume : (2, 3) float
+        Working volume ``[min, max]`` corners, metres; points outside it are dropped.
+    params : ReconstructionParams
+
+    Returns
+    -------
+    Observations
+        At most ``params.n_observations`` points, unit normals, no NaN; empty when the silhouettes do
+        not agree on anything (empty views, person out of view).
+    """
+    volume = np.asarray(volume, dtype=np.float64)
+    if volume.shape != (2, 3) or not np.all(np.isfinite(volume)) or not np.all(volume[1] > volume[0]):
+        raise InputError(
+            f"volume: expected finite [min, max] corners of shape (2, 3), min < max, got {volume.tolist()}"
+        )
+    if len(masks) != len(rig):
+        raise InputError(f"masks: expected one mask per camera ({len(rig)}), got {len(masks)}")
+    checked = []
+    for camera, mask in zip(rig, masks, strict=True):
+        mask = np.asarray(mask)
+        width, height = camera.size
+        if mask.shape != (height, width):
+            raise InputError(
+                f"mask of camera '{camera.name}': expected shape ({height}, {width}) from the camera's image "
+                f"size, got {mask.shape}"
+            )
+        checked.append(np.where(mask > 0, np.uint8(255), np.uint8(0)) if mask.dtype != np.uint8 else mask)
+    if params.method == "visual_hull":
+        points, normals = hull_surface_points(
+            checked, rig, volume,
+            n_observations=params.n_observations,
+            tolerated_views=params.tolerated_views,
+            voxel_size_m=params.voxel_size_m,
+            coarse_voxel_size_m=params.coarse_voxel_size_m,
+        )
+    else:
+        points, normals = rim_points(
+            checked, rig, volume,
+            n_observations=params.n_observations,
+            tolerated_views=params.tolerated_views,
+            rim_placement=params.rim_placement,
+            samples_per_ray=params.samples_per_ray,
+            contour_smoothing_px=params.contour_smoothing_px,
+        )
+    finite = np.all(np.isfinite(points), axis=1) & np.all(np.isfinite(normals), axis=1)
+    return Observations(points[finite], normals[finite])

@@ -1,0 +1,125 @@
+"""Silhouette outlines with sub-pixel positions, tangents and the normals of their viewing cones.
+
+Every viewing-cone face lies in the plane through the camera centre and a contour edge; at a rim
+point the surface normal equals that plane's normal, oriented away from the silhouette's interior
+(DESIGN.md, "Normals from silhouettes"). This module turns a mask into those planes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+from calib.camera import Camera
+
+# Contours with fewer points than this are specks (a few pixels), not body parts.
+MIN_CONTOUR_POINTS = 12
+# Contour points closer than this to the image edge (pixels) outline the frame, not the person.
+BORDER_MARGIN_PX = 2.0
+# OpenCV's contour runs through the centres of the outermost foreground pixels, while the outline of
+# the silhouette lies between those and the first background pixels: half a pixel further out.
+OUTLINE_OFFSET_PX = 0.5
+# Offset (pixels) at which the two sides of a contour point are read to decide which side is inside.
+SIDE_PROBE_PX = 1.5
+
+
+@dataclass(frozen=True)
+class Outline:
+    """The outline of one camera's silhouette, all contours concatenated.
+
+    Attributes
+    ----------
+    pixels : (L, 2) float
+        Sub-pixel outline positions ``(u, v)``.
+    tangents : (L, 2) float
+        Unit image tangents along the outline.
+    outward : (L, 2) float
+        Unit image normals pointing away from the silhouette's interior.
+    contour : (L,) int
+        Which contour each point belongs to (0, 1, ...).
+    arc_length : (L,) float
+        Cumulative outline length in pixels over the concatenated contours, for even sampling.
+    usable : (L,) bool
+        False near the image border, where the outline is the frame's edge rather than a rim.
+    """
+
+    pixels: np.ndarray
+    tangents: np.ndarray
+    outward: np.ndarray
+    contour: np.ndarray
+    arc_length: np.ndarray
+    usable: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.pixels)
+
+
+def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
+    """The smoothed outline of ``mask`` (H, W) uint8, every contour (outer ones and holes).
+
+    Positions are smoothed along the contour with a Gaussian of ``smoothing_px`` points (removing the
+    pixel staircase) and moved half a pixel outwards onto the true outline.
+    """
+    contours, _ = cv2.findContours(mask, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    pieces = [c.reshape(-1, 2).astype(np.float64) for c in contours if len(c) >= MIN_CONTOUR_POINTS]
+    if not pieces:
+        empty = np.zeros((0, 2))
+        return Outline(empty, empty, empty, np.zeros(0, int), np.zeros(0), np.zeros(0, bool))
+    height, width = mask.shape
+    all_pixels, all_tangents, all_outward, all_ids, all_steps = [], [], [], [], []
+    for index, raw in enumerate(pieces):
+        pixels = gaussian_filter1d(raw, smoothing_px, axis=0, mode="wrap") if smoothing_px > 0 else raw
+        derivative = gaussian_filter1d(raw, max(smoothing_px, 1.0), axis=0, order=1, mode="wrap")
+        tangents = derivative / np.maximum(np.linalg.norm(derivative, axis=1, keepdims=True), 1e-12)
+        outward = np.column_stack([tangents[:, 1], -tangents[:, 0]])
+        if _mostly_inside(mask, pixels + SIDE_PROBE_PX * outward):
+            outward = -outward
+        all_pixels.append(pixels + OUTLINE_OFFSET_PX * outward)
+        all_tangents.append(tangents)
+        all_outward.append(outward)
+        all_ids.append(np.full(len(raw), index))
+        all_steps.append(np.linalg.norm(raw - np.roll(raw, 1, axis=0), axis=1))
+    pixels = np.concatenate(all_pixels)
+    u, v = pixels[:, 0], pixels[:, 1]
+    usable = (
+        (u > BORDER_MARGIN_PX) & (v > BORDER_MARGIN_PX)
+        & (u < width - 1 - BORDER_MARGIN_PX) & (v < height - 1 - BORDER_MARGIN_PX)
+    )
+    return Outline(
+        pixels,
+        np.concatenate(all_tangents),
+        np.concatenate(all_outward),
+        np.concatenate(all_ids),
+        np.cumsum(np.concatenate(all_steps)),
+        usable,
+    )
+
+
+def _mostly_inside(mask: np.ndarray, probes: np.ndarray) -> bool:
+    """Whether most ``probes`` (L, 2) fall on foreground pixels of ``mask``."""
+    height, width = mask.shape
+    u = np.clip(np.rint(probes[:, 0]).astype(int), 0, width - 1)
+    v = np.clip(np.rint(probes[:, 1]).astype(int), 0, height - 1)
+    return np.count_nonzero(mask[v, u]) * 2 > len(probes)
+
+
+def cone_normals(camera: Camera, pixels: np.ndarray, tangents: np.ndarray, outward: np.ndarray) -> np.ndarray:
+    """(L, 3) unit normals of the viewing-cone tangent planes at outline points, oriented outwards.
+
+    The plane through the camera centre containing the rays of ``pixels`` (L, 2) and of a point a
+    little along ``tangents`` (L, 2); its normal is the cross product of the two ray directions, turned
+    to the side of ``outward`` (L, 2) (distortion makes a pixel's tangent line a curve in the normalised
+    image, so the second ray is taken one pixel away, where that curvature is negligible).
+    """
+    if len(pixels) == 0:
+        return np.zeros((0, 3))
+    ray = camera.pixel_rays(pixels)  # (L, 3)
+    along = camera.pixel_rays(pixels + tangents)
+    beside = camera.pixel_rays(pixels + outward)
+    normals = np.cross(ray, along)
+    flip = np.einsum("ij,ij->i", normals, beside - ray) < 0
+    normals[flip] *= -1.0
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-15)

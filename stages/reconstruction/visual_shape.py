@@ -1,0 +1,329 @@
+"""The visual shape: rim points and normals on viewing edges (Franco & Boyer's EPVH, as used by the paper).
+
+For a point on camera i's silhouette outline, the viewing ray grazes the surface at one *rim point*,
+where the surface normal is the normal ``n`` of the viewing-cone tangent plane. Which points of the ray
+are possible is fixed by the other silhouettes: the *viewing edge* is the part of the ray inside every
+other viewing cone (with ``tolerated_views`` allowed to disagree). We find it by
+
+1. bounding the ray by the working volume and by each other silhouette's convex hull (exact and cheap:
+   the projected ray is a line and the hull a convex polygon in normalised image coordinates);
+2. sampling the bounded stretch and testing the masks, then bisecting every in/out transition.
+
+Where on its edge the rim point lies is not fixed by camera i alone. The crude guess is the midpoint.
+``rim_placement="osculating"`` uses the other views' cones instead: each edge end lies on another
+view's cone, whose tangent plane there has normal ``m``. If the surface were locally a sphere or a
+cylinder of radius r touching the ray at ``t*`` (any radius and axis), a plane with unit normal ``m``
+tangent to it meets the ray at ``t = t* + r α``, ``α = (1 − m·n) / (m·d)`` (substitute the ray into the
+plane ``m·(X − O) = r`` with ``X(t*) − O = r n``). Two edge ends give two such equations in the two
+unknowns ``t*`` and r, so the rim point follows; it always lies on the edge because α ≤ 0 at the near
+end and α ≥ 0 at the far end.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from calib.camera import Camera, Rig
+from stages.reconstruction.contours import Outline, cone_normals, outline
+from stages.reconstruction.views import box_interval, in_volume, inside, outside_count
+
+# The convex hull of a silhouette is widened by this many pixels before clipping rays, so that lens
+# distortion (which bends the hull's straight edges slightly) never cuts off a true part of the cone.
+HULL_MARGIN_PX = 2.0
+# The sampled stretch of each ray extends this far (metres) beyond the hull bounds, so that the first
+# and last samples are outside and every edge end is bracketed.
+RANGE_MARGIN_M = 0.01
+# Bisection steps per edge end: each halves the bracket, 8 take a 2 cm step below 0.1 mm.
+BISECTION_STEPS = 8
+# |α| is kept at least this large so that a nearly parallel or noisy end plane cannot push the rim
+# point beyond the other end (it pulls the estimate towards that end instead).
+MIN_ALPHA = 1e-3
+# A ray crossing a cone face at a smaller angle than this (sine) has an ill-defined crossing point.
+MIN_FACE_ANGLE_SIN = np.sin(np.radians(5.0))
+# An edge end found on the pixel grid lies within about a pixel of the outline it crosses; a nearest
+# outline point further away than MAX_SNAP_PX, or a move along the ray longer than MAX_SNAP_M (metres),
+# means the face found is not the one crossed: the end keeps its grid position.
+MAX_SNAP_PX = 3.0
+MAX_SNAP_M = 0.15
+OUTLINE_TOLERANCE_KERNEL = np.ones((3, 3), np.uint8)
+# Sample this many more rays than observations wanted: some rays have no edge, some have several.
+RAY_OVERSAMPLING = 1.3
+
+
+@dataclass(frozen=True)
+class ViewingEdges:
+    """Segments of viewing rays inside all (but the tolerated) other cones.
+
+    Attributes
+    ----------
+    ray : (E,) int
+        Index of the ray each edge lies on.
+    t_near, t_far : (E,) float
+        Ends of the edge as distances from the camera centre along the ray (metres).
+    camera_near, camera_far : (E,) int
+        The view whose cone bounds each end, -1 where the end is the working volume's boundary.
+    """
+
+    ray: np.ndarray
+    t_near: np.ndarray
+    t_far: np.ndarray
+    camera_near: np.ndarray
+    camera_far: np.ndarray
+
+
+def rim_points(
+    masks: Sequence[np.ndarray],
+    rig: Rig,
+    volume: np.ndarray,
+    *,
+    n_observations: int,
+    tolerated_views: int,
+    rim_placement: str,
+    samples_per_ray: int,
+    contour_smoothing_px: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rim points (N, 3) and their unit outward normals (N, 3), at most ``n_observations`` of them."""
+    cameras = list(rig)
+    outlines = [outline(mask, smoothing_px=contour_smoothing_px) for mask in masks]
+    rays = _sample_rays(outlines, round(n_observations * RAY_OVERSAMPLING))
+    camera_of, pixels = rays
+    if len(camera_of) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    origins = np.stack([camera.centre for camera in cameras])[camera_of]  # (M, 3)
+    directions = np.zeros((len(camera_of), 3))
+    normals = np.zeros((len(camera_of), 3))
+    for index, camera in enumerate(cameras):
+        chosen = camera_of == index
+        if chosen.any():
+            ours = outlines[index]
+            picked = pixels[chosen]
+            directions[chosen] = camera.pixel_rays(ours.pixels[picked])
+            normals[chosen] = cone_normals(
+                camera, ours.pixels[picked], ours.tangents[picked], ours.outward[picked]
+            )
+
+    # Inside tests accept points up to a pixel outside a silhouette: a grazing ray that runs along another
+    # view's outline would otherwise flicker in and out with the pixel grid and break into pieces.
+    tolerant = [cv2.dilate(mask, OUTLINE_TOLERANCE_KERNEL) for mask in masks]
+    edges = _viewing_edges(cameras, tolerant, outlines, volume, origins, directions, camera_of,
+                           tolerated_views=tolerated_views, samples_per_ray=samples_per_ray)
+    d = directions[edges.ray]
+    t_near, m_near = _snap_to_cones(cameras, outlines, origins[edges.ray], d, edges.t_near, edges.camera_near)
+    t_far, m_far = _snap_to_cones(cameras, outlines, origins[edges.ray], d, edges.t_far, edges.camera_far)
+    t_far = np.maximum(t_far, t_near)
+    if rim_placement == "osculating":
+        t_rim = _osculating_rim(t_near, t_far, m_near, m_far, d, normals[edges.ray])
+    else:
+        t_rim = 0.5 * (t_near + t_far)
+    points = origins[edges.ray] + t_rim[:, None] * directions[edges.ray]
+    point_normals = normals[edges.ray]
+    keep = in_volume(points, volume)
+    points, point_normals = points[keep], point_normals[keep]
+    if len(points) > n_observations:
+        chosen = np.unique(np.linspace(0, len(points) - 1, n_observations).round().astype(int))
+        points, point_normals = points[chosen], point_normals[chosen]
+    return points, point_normals
+
+
+def _sample_rays(outlines: list[Outline], n_rays: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(camera (M,), outline index (M,))``: usable outline points spread evenly by arc length.
+
+    Every camera with a usable outline gets an equal share, so that no view dominates the data.
+    """
+    usable_cameras = [index for index, ours in enumerate(outlines) if ours.usable.any()]
+    camera_of, picked = [], []
+    for index in usable_cameras:
+        ours = outlines[index]
+        candidates = np.flatnonzero(ours.usable)
+        share = max(1, round(n_rays / len(usable_cameras)))
+        arc = ours.arc_length[candidates]
+        targets = np.linspace(arc[0], arc[-1], min(share, len(candidates)), endpoint=False)
+        chosen = np.unique(candidates[np.clip(np.searchsorted(arc, targets), 0, len(candidates) - 1)])
+        camera_of.append(np.full(len(chosen), index))
+        picked.append(chosen)
+    if not camera_of:
+        return np.zeros(0, int), np.zeros(0, int)
+    return np.concatenate(camera_of), np.concatenate(picked)
+
+
+def _viewing_edges(
+    cameras: list[Camera],
+    masks: Sequence[np.ndarray],
+    outlines: list[Outline],
+    volume: np.ndarray,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    camera_of: np.ndarray,
+    *,
+    tolerated_views: int,
+    samples_per_ray: int,
+) -> ViewingEdges:
+    """The viewing edges of rays ``origins + t directions`` (M, 3) cast from cameras ``camera_of`` (M,)."""
+    t_low, t_high = box_interval(origins, directions, volume)
+    hull_low, hull_high = _hull_bounds(cameras, outlines, origins, directions, camera_of, tolerated_views)
+    t_low = np.maximum(t_low, hull_low - RANGE_MARGIN_M)
+    t_high = np.minimum(t_high, hull_high + RANGE_MARGIN_M)
+    alive = np.flatnonzero(t_high > t_low)
+    if len(alive) == 0:
+        return ViewingEdges(*(np.zeros(0, int),) * 5)
+    fractions = np.linspace(0.0, 1.0, samples_per_ray)  # (S,)
+    t = t_low[alive, None] + (t_high - t_low)[alive, None] * fractions  # (A, S)
+    X = origins[alive, None, :] + t[..., None] * directions[alive, None, :]  # (A, S, 3)
+    skip = np.repeat(camera_of[alive], samples_per_ray)
+    ok = (outside_count(cameras, masks, X.reshape(-1, 3), skip) <= tolerated_views).reshape(t.shape)
+    # A single outside sample between inside ones is a grazing ray flickering along another view's
+    # outline, not a gap in the body: close it.
+    ok[:, 1:-1] |= ok[:, :-2] & ok[:, 2:]
+
+    # Runs of consecutive inside samples; a run touching the stretch's end is bounded by the volume.
+    padded = np.pad(ok, ((0, 0), (1, 1)))
+    rows, starts = np.nonzero(padded[:, 1:-1] & ~padded[:, :-2])
+    _, ends = np.nonzero(padded[:, 1:-1] & ~padded[:, 2:])  # same row order as starts (row-major)
+    ray = alive[rows]
+    t_near, camera_near = _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows,
+                                       starts, -1, tolerated_views)
+    t_far, camera_far = _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows,
+                                     ends, +1, tolerated_views)
+    return ViewingEdges(ray, t_near, t_far, camera_near, camera_far)
+
+
+def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, index, step, tolerated_views):
+    """Bisect each edge end between the inside sample ``index`` and its outside neighbour ``index + step``.
+
+    Returns the end's ray parameter (E,) and the camera whose cone it crosses (E,), -1 when the end is
+    the sampled stretch's boundary (the volume).
+    """
+    samples = t.shape[1]
+    outer = index + step
+    bounded = (outer >= 0) & (outer < samples)
+    t_in = t[rows, index]
+    t_out = np.where(bounded, t[rows, np.clip(outer, 0, samples - 1)], t_in)
+    idx = np.flatnonzero(bounded)
+    camera = np.full(len(rows), -1)
+    if len(idx) == 0:
+        return t_in, camera
+    o, d, skip = origins[ray[idx]], directions[ray[idx]], camera_of[ray[idx]]
+    lo, hi = t_in[idx].copy(), t_out[idx].copy()  # lo inside, hi outside
+    for _ in range(BISECTION_STEPS):
+        mid = 0.5 * (lo + hi)
+        good = outside_count(cameras, masks, o + mid[:, None] * d, skip) <= tolerated_views
+        lo = np.where(good, mid, lo)
+        hi = np.where(good, hi, mid)
+    X_in, X_out = o + lo[:, None] * d, o + hi[:, None] * d
+    crossing = np.full(len(idx), -1)
+    for number, (cam, mask) in enumerate(zip(cameras, masks, strict=True)):
+        flips = inside(cam, mask, X_in) & ~inside(cam, mask, X_out) & (skip != number) & (crossing < 0)
+        crossing[flips] = number
+    t_end = t_in.copy()
+    t_end[idx] = 0.5 * (lo + hi)
+    camera[idx] = crossing
+    return t_end, camera
+
+
+def _hull_bounds(cameras, outlines, origins, directions, camera_of, tolerated_views):
+    """Ray parameters ``(low (M,), high (M,))`` outside which a ray leaves more than ``tolerated_views``
+    silhouettes' convex hulls.
+
+    For camera j the hull is a convex polygon ``e_k · x <= c_k`` in normalised image coordinates x, and
+    the ray projects to ``x(t) = (A_xy + t B_xy) / (A_z + t B_z)`` with ``A = R_j o + t_j``, ``B = R_j d``;
+    multiplying by the positive depth makes every edge a linear inequality ``p t <= q`` in t.
+    """
+    n_rays = len(origins)
+    lows = np.full((len(cameras), n_rays), -np.inf)
+    highs = np.full((len(cameras), n_rays), np.inf)
+    for index, (camera, ours) in enumerate(zip(cameras, outlines, strict=True)):
+        others = camera_of != index
+        if len(ours) == 0:
+            lows[index, others], highs[index, others] = np.inf, -np.inf
+            continue
+        e, c = _hull_halfplanes(camera, ours.pixels)
+        A = origins[others] @ camera.R.T + camera.t  # (M', 3)
+        B = directions[others] @ camera.R.T
+        p = B[:, :2] @ e.T - np.outer(B[:, 2], c)  # (M', K)
+        q = np.outer(A[:, 2], c) - A[:, :2] @ e.T
+        # Depth A_z + t B_z > 0 is one more half-line.
+        p = np.column_stack([p, -B[:, 2]])
+        q = np.column_stack([q, A[:, 2]])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bound = q / p
+        low = np.where(p < 0, bound, -np.inf).max(axis=1)
+        high = np.where(p > 0, bound, np.inf).min(axis=1)
+        never = np.any((p == 0) & (q < 0), axis=1)
+        low[never], high[never] = np.inf, -np.inf
+        lows[index, others], highs[index, others] = low, high
+    order = tolerated_views  # the (k+1)-th most restrictive bound may be violated by k views
+    low = -np.sort(-lows, axis=0)[min(order, len(cameras) - 1)]
+    high = np.sort(highs, axis=0)[min(order, len(cameras) - 1)]
+    return low, high
+
+
+def _hull_halfplanes(camera: Camera, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(e (K, 2), c (K,))``: the convex hull of ``pixels`` in normalised coordinates as ``e · x <= c``."""
+    normalised = camera.undistort_pixels(pixels).astype(np.float32)
+    hull = cv2.convexHull(normalised).reshape(-1, 2).astype(np.float64)
+    if len(hull) < 3:
+        # A degenerate outline (a line of pixels): bound it by its box.
+        low, high = hull.min(axis=0), hull.max(axis=0)
+        hull = np.array([[low[0], low[1]], [high[0], low[1]], [high[0], high[1]], [low[0], high[1]]])
+    following = np.roll(hull, -1, axis=0)
+    edge = following - hull
+    e = np.column_stack([edge[:, 1], -edge[:, 0]])
+    e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-15)
+    centroid = hull.mean(axis=0)
+    flip = np.einsum("ij,ij->i", e, centroid - hull) > 0
+    e[flip] *= -1.0
+    margin = HULL_MARGIN_PX / min(camera.K[0, 0], camera.K[1, 1])
+    return e, np.einsum("ij,ij->i", e, hull) + margin
+
+
+def _snap_to_cones(cameras, outlines, o, d, t_end, camera_end) -> tuple[np.ndarray, np.ndarray]:
+    """Edge ends moved onto the exact cone faces, and those faces' outward unit normals (E, 3).
+
+    The end ``o + t d`` (E, 3) found on the pixel grid is projected into the camera whose cone it lies
+    on; the nearest point of that camera's smoothed outline gives the face (the plane through the camera
+    centre and the outline's tangent line), and the end moves to where the ray meets that plane. A ray
+    nearly parallel to the face (or a move longer than ``MAX_SNAP_M``) keeps the grid position. Ends on
+    the working volume keep their position and get a zero normal.
+    """
+    t_snapped = t_end.copy()
+    m = np.zeros((len(t_end), 3))
+    X = o + t_end[:, None] * d
+    for index, camera in enumerate(cameras):
+        chosen = np.flatnonzero(camera_end == index)
+        ours = outlines[index]
+        if len(chosen) == 0 or len(ours) == 0:
+            continue
+        pixel_distance, nearest = cKDTree(ours.pixels).query(camera.project(X[chosen]))
+        m[chosen] = cone_normals(camera, ours.pixels[nearest], ours.tangents[nearest], ours.outward[nearest])
+        facing = np.einsum("ij,ij->i", m[chosen], d[chosen])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_plane = np.einsum("ij,ij->i", m[chosen], camera.centre - o[chosen]) / facing
+        good = (
+            (np.abs(facing) > MIN_FACE_ANGLE_SIN)
+            & (pixel_distance < MAX_SNAP_PX)
+            & (np.abs(t_plane - t_end[chosen]) < MAX_SNAP_M)
+        )
+        t_snapped[chosen[good]] = t_plane[good]
+    return t_snapped, m
+
+
+def _osculating_rim(t_near, t_far, m_near, m_far, d, n) -> np.ndarray:
+    """(E,) ray parameter of each edge's rim point from the cone faces ``m`` (E, 3) at its two ends.
+
+    Solves ``t_near = t* + r α_near``, ``t_far = t* + r α_far`` (module docstring). Falls back to the
+    midpoint where an end is not on a cone (the working volume) or the ray grazes the end's face, which
+    makes α meaningless.
+    """
+    facing_near = np.einsum("ij,ij->i", m_near, d)
+    facing_far = np.einsum("ij,ij->i", m_far, d)
+    informative = (facing_near < -MIN_FACE_ANGLE_SIN) & (facing_far > MIN_FACE_ANGLE_SIN)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        alpha_near = np.minimum((1.0 - np.einsum("ij,ij->i", m_near, n)) / facing_near, -MIN_ALPHA)
+        alpha_far = np.maximum((1.0 - np.einsum("ij,ij->i", m_far, n)) / facing_far, MIN_ALPHA)
+        t_rim = (alpha_far * t_near - alpha_near * t_far) / (alpha_far - alpha_near)
+    return np.where(informative, t_rim, 0.5 * (t_near + t_far))
