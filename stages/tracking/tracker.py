@@ -1,0 +1,274 @@
+"""Tracking over time: one EM fit per frame from a constant-velocity prediction, with recovery.
+
+Every frame starts from the previous pose plus the previous frame-to-frame change (constant
+velocity), which is close enough for EM to converge in a few iterations (Horaud et al. 2009, Sec. 3:
+"robust tracking"). What the paper leaves open is handled here:
+
+- first frame and after a loss: automatic initialisation from the data (`init.initialise`);
+- unknown height: estimated at the initialisation and refined over the next `scale_frames` frames;
+- failure detection: an outlier fraction above `max_outlier_fraction`, or a log-likelihood per
+  observation far below the running level, triggers a re-initialisation, and the better of the two
+  fits (by likelihood) is kept;
+- frames with no or too few observations: the pose is predicted (velocity decaying) and flagged
+  "predicted", then "lost" when the gap lasts; tracking re-initialises when data return.
+Nothing here produces NaN: unusable rows of the input are dropped and every output is finite.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from stages.tracking.body import BodyModel
+from stages.tracking.em import HEIGHT_RANGE_M, EMParams, fit, volume_size
+from stages.tracking.init import InitParams, initialise, library_poses, load_pose_library
+
+STATUSES = ("tracked", "initialised", "predicted", "lost")
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    """Tunables of the tracker (defaults are generic, not tuned to one sequence).
+
+    Attributes
+    ----------
+    height_m : float or None
+        Subject's standing height in metres; None = estimate it from the data.
+    distance : {"normals", "points", "algebraic"}
+        Datum-to-ellipsoid distance (the paper's is "normals").
+    max_iterations : int
+        EM iterations per frame at most.
+    tolerance : float
+        EM stops when the log-likelihood gain per observation is below this (nats).
+    sigma_m : float
+        Standard deviation of Σ = σ² I at the start of every frame's EM: about the prediction error.
+    min_observations : int
+        Fewer observations than this: the frame is predicted, not fitted.
+    max_outlier_fraction : float
+        A fit explaining more than this fraction of the data as outliers is a failure.
+    max_likelihood_drop : float
+        A fit whose log-likelihood per observation is this much (nats) below the running level is a
+        failure.
+    velocity_decay : float
+        Factor on the velocity for each predicted frame (a gap's motion slows down).
+    max_predicted_frames : int
+        After this many frames without a fit, the subject is lost and the next data re-initialise.
+    scale_frames : int
+        With an unknown height, frames over which the height keeps being estimated.
+    init_headings, init_refine : int
+        Initialisation: headings per library pose, hypotheses refined by EM.
+    """
+
+    height_m: float | None = None
+    distance: str = "normals"
+    max_iterations: int = 10
+    tolerance: float = 1e-3
+    sigma_m: float = 0.02
+    min_observations: int = 30
+    max_outlier_fraction: float = 0.6
+    max_likelihood_drop: float = 2.0
+    velocity_decay: float = 0.7
+    max_predicted_frames: int = 10
+    scale_frames: int = 10
+    init_headings: int = 12
+    init_refine: int = 4
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One frame's estimate.
+
+    Attributes
+    ----------
+    pose : (D,) float
+        Pose vector Λ of the body (see `body`).
+    joints : (17, 3) float
+        Joint centres in `JOINT_NAMES` order, metres, world.
+    log_likelihood : float
+        ln P(Y | Λ) of the frame's data (eq. 12), nats; 0 when not fitted.
+    iterations : int
+        EM iterations (of the refinement, for an initialisation).
+    outlier_fraction : float
+        Mean outlier posterior; 1 when not fitted.
+    status : {"tracked", "initialised", "predicted", "lost"}
+        "predicted" and "lost" frames are not exported.
+    height_m : float
+        Body height used for this frame, metres.
+    """
+
+    pose: np.ndarray
+    joints: np.ndarray
+    log_likelihood: float
+    iterations: int
+    outlier_fraction: float
+    status: str
+    height_m: float
+
+    def to_dict(self) -> dict:
+        """JSON-ready dictionary (lists of floats)."""
+        return {**asdict(self), "pose": self.pose.tolist(), "joints": self.joints.tolist()}
+
+
+@dataclass(frozen=True)
+class TrackerState:
+    """What the next frame needs from the past; JSON-serialisable so that a run can resume.
+
+    Attributes
+    ----------
+    pose, velocity : (D,) float
+        Last estimated pose and its last frame-to-frame change.
+    height_m : float
+        Current body height, metres.
+    height_weight : int
+        Frames that contributed to the height estimate (it is frozen at `scale_frames`).
+    likelihood_level : float
+        Running level of the log-likelihood per observation of good fits (nats).
+    frames_without_fit : int
+        Consecutive frames predicted instead of fitted.
+    lost : bool
+        The next frame with data must re-initialise.
+    """
+
+    pose: np.ndarray
+    velocity: np.ndarray
+    height_m: float
+    height_weight: int
+    likelihood_level: float
+    frames_without_fit: int
+    lost: bool
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "pose": self.pose.tolist(), "velocity": self.velocity.tolist()}
+
+    @staticmethod
+    def from_dict(data: dict) -> TrackerState:
+        return TrackerState(pose=np.asarray(data["pose"], dtype=float),
+                            velocity=np.asarray(data["velocity"], dtype=float),
+                            height_m=float(data["height_m"]), height_weight=int(data["height_weight"]),
+                            likelihood_level=float(data["likelihood_level"]),
+                            frames_without_fit=int(data["frames_without_fit"]), lost=bool(data["lost"]))
+
+
+# Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
+_LEVEL_RATE = 0.1
+# Normals shorter than this are not directions; such rows are dropped.
+_MIN_NORMAL = 1e-6
+
+
+def track_frame(state: TrackerState | None, obs, body: BodyModel, params: TrackerParams,
+                volume: np.ndarray) -> tuple[FrameResult, TrackerState]:
+    """Estimate one frame's pose from its observations and the tracker's state.
+
+    Parameters
+    ----------
+    state : TrackerState or None
+        None on the first frame.
+    obs
+        Any object with `points` (N, 3) and `normals` (N, 3) (metres, unit outward normals).
+    body : BodyModel
+        The body (its height is replaced by `params.height_m` or by the estimate).
+    params : TrackerParams
+    volume : (2, 3) float
+        Working volume [min; max], metres.
+    """
+    volume = np.asarray(volume, dtype=float)
+    volume_size(volume)
+    y, n = _usable(obs)
+    if state is None:
+        height = params.height_m if params.height_m is not None else body.height_m
+        state = TrackerState(pose=body.scaled(height).zero_pose(), velocity=np.zeros(body.pose_size),
+                             height_m=height, height_weight=0, likelihood_level=np.nan,
+                             frames_without_fit=0, lost=True)
+        state = TrackerState(**{**state.__dict__, "pose": _centre_pose(state.pose, volume)})
+    sized = body.scaled(state.height_m)
+    if len(y) < params.min_observations:
+        return _predict(state, sized, params)
+    em = EMParams(distance=params.distance, max_iterations=params.max_iterations, tolerance=params.tolerance)
+    if state.lost:
+        return _initialise(state, y, n, sized, params, volume, em)
+    prediction = sized.clip(state.pose + state.velocity)
+    estimate_scale = params.height_m is None and state.height_weight < params.scale_frames
+    tracked = fit(y, n, sized, prediction, volume, EMParams(**{**em.__dict__, "estimate_scale": estimate_scale}),
+                  sigma_m=params.sigma_m)
+    per_obs = tracked.log_likelihood[-1] / len(y)
+    failed = (tracked.outlier_fraction > params.max_outlier_fraction
+              or (np.isfinite(state.likelihood_level) and per_obs < state.likelihood_level - params.max_likelihood_drop))
+    if failed:
+        result, new_state = _initialise(state, y, n, sized, params, volume, em)
+        if result.log_likelihood > tracked.log_likelihood[-1] and result.status != "lost":
+            return result, new_state
+    height = state.height_m
+    weight = state.height_weight
+    if estimate_scale:
+        weight += 1
+        height = float(np.clip(height + (tracked.height_m - height) / weight, *HEIGHT_RANGE_M))
+    if tracked.outlier_fraction > params.max_outlier_fraction:
+        return _predict(state, sized, params)
+    level = per_obs if not np.isfinite(state.likelihood_level) else (
+        (1 - _LEVEL_RATE) * state.likelihood_level + _LEVEL_RATE * per_obs)
+    velocity = tracked.pose - state.pose if state.frames_without_fit == 0 else np.zeros_like(state.velocity)
+    new_state = TrackerState(pose=tracked.pose, velocity=velocity, height_m=height, height_weight=weight,
+                             likelihood_level=level, frames_without_fit=0, lost=False)
+    result = FrameResult(pose=tracked.pose, joints=body.scaled(tracked.height_m).joint_positions(tracked.pose),
+                         log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
+                         outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m)
+    return result, new_state
+
+
+def _usable(obs) -> tuple[np.ndarray, np.ndarray]:
+    """Finite points and unit normals (I, 3) each; rows with NaN/inf or null normals dropped."""
+    y = np.asarray(obs.points, dtype=float).reshape(-1, 3)
+    n = np.asarray(obs.normals, dtype=float).reshape(-1, 3)
+    if len(y) != len(n):
+        raise ValueError(f"observations: {len(y)} points but {len(n)} normals, expected as many")
+    length = np.linalg.norm(n, axis=1)
+    keep = np.all(np.isfinite(y), axis=1) & np.isfinite(length) & (length > _MIN_NORMAL)
+    return y[keep], n[keep] / length[keep, None]
+
+
+def _centre_pose(pose: np.ndarray, volume: np.ndarray) -> np.ndarray:
+    """The pose moved horizontally to the volume's centre (a finite stand-in before any data)."""
+    pose = pose.copy()
+    pose[:2] = volume.mean(axis=0)[:2]
+    return pose
+
+
+def _predict(state: TrackerState, body: BodyModel, params: TrackerParams) -> tuple[FrameResult, TrackerState]:
+    """A frame without a fit: continue the motion (slowing down), flag it, declare a loss when long."""
+    gap = state.frames_without_fit + 1
+    lost = state.lost or gap > params.max_predicted_frames
+    velocity = state.velocity * params.velocity_decay if not lost else np.zeros_like(state.velocity)
+    pose = body.clip(state.pose + velocity)
+    new_state = TrackerState(pose=pose, velocity=velocity, height_m=state.height_m,
+                             height_weight=state.height_weight, likelihood_level=state.likelihood_level,
+                             frames_without_fit=gap, lost=lost)
+    result = FrameResult(pose=pose, joints=body.joint_positions(pose), log_likelihood=0.0, iterations=0,
+                         outlier_fraction=1.0, status="lost" if lost else "predicted", height_m=state.height_m)
+    return result, new_state
+
+
+def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, TrackerState]:
+    """Initialise from the data alone (`init.initialise`) and start a fresh track."""
+    estimate = params.height_m is None and state.height_weight < params.scale_frames
+    candidates = library_poses(body, load_pose_library())
+    init = initialise(y, n, body, volume, candidates, estimate_height=estimate, em=em,
+                      params=InitParams(headings=params.init_headings, refine=params.init_refine))
+    fitted = init.fit
+    if fitted.outlier_fraction > params.max_outlier_fraction:
+        lost_state = TrackerState(**{**state.__dict__, "lost": True, "frames_without_fit": state.frames_without_fit + 1})
+        result = FrameResult(pose=fitted.pose, joints=body.scaled(init.height_m).joint_positions(fitted.pose),
+                             log_likelihood=fitted.log_likelihood[-1], iterations=fitted.iterations,
+                             outlier_fraction=fitted.outlier_fraction, status="lost", height_m=init.height_m)
+        return result, lost_state
+    height, weight = state.height_m, state.height_weight
+    if estimate:
+        weight += 1
+        height = init.height_m if weight == 1 else height + (init.height_m - height) / weight
+    new_state = TrackerState(pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
+                             height_weight=weight, likelihood_level=fitted.log_likelihood[-1] / len(y),
+                             frames_without_fit=0, lost=False)
+    result = FrameResult(pose=fitted.pose, joints=body.scaled(init.height_m).joint_positions(fitted.pose),
+                         log_likelihood=fitted.log_likelihood[-1], iterations=fitted.iterations,
+                         outlier_fraction=fitted.outlier_fraction, status="initialised", height_m=init.height_m)
+    return result, new_state
