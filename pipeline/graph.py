@@ -29,13 +29,22 @@ writing each frame's file atomically and using ``ctx.pending_frames`` to resume.
 
 from __future__ import annotations
 
+import functools
+import logging
+from collections.abc import Sequence
 from pathlib import Path
+
+import numpy as np
 
 from calib.camera import Rig
 from calib.formats import load_rig, save_rig
 from pipeline import atomic, frames_io
-from pipeline.capture import capture_summary
+from pipeline.capture import Capture, capture_summary
 from pipeline.runner import Stage, StageContext
+from stages.reconstruction import ReconstructionParams, reconstruct
+from stages.silhouettes import SilhouetteParams, extract_silhouette, median_background
+
+log = logging.getLogger(__name__)
 
 #: File names of the calibration stage's results.
 RIG_FILE = "rig.toml"
@@ -62,8 +71,96 @@ def read_calibration(folder: Path) -> tuple[Rig, dict]:
     return load_rig("anipose", folder / RIG_FILE), frames_io.read_json(folder / CAPTURE_FILE)
 
 
+#: Frames sampled per camera for a temporal-median background when no clean plate is given.
+MEDIAN_BACKGROUND_FRAMES = 25
+#: Below this many observations a frame is reported: the tracker will only predict its pose.
+FEW_OBSERVATIONS = 30
+
+
+def silhouette_path(out_dir: Path, camera: str, frame: int) -> Path:
+    return out_dir / camera / frames_io.frame_name(frame, ".png")
+
+
+def background_path(out_dir: Path, camera: str) -> Path:
+    return out_dir / "background" / f"{camera}.png"
+
+
+def _backgrounds(ctx: StageContext) -> None:
+    """Write one background image per camera: the clean plate, else a temporal median.
+
+    Computed once in this process, before the per-frame work, so every worker reads the same model.
+    """
+    capture = ctx.capture
+    for camera in capture.rig.names:
+        path = background_path(ctx.out_dir, camera)
+        if path.exists():
+            continue
+        plate = capture.background(camera)
+        if plate is None:
+            frames = capture.frame_numbers
+            picks = sorted({frames[int(i)] for i in np.linspace(0, len(frames) - 1,
+                                                                 min(MEDIAN_BACKGROUND_FRAMES, len(frames)))})
+            plate = median_background(image for _, image in capture.iter_images(camera, picks))
+            log.info("silhouettes: no clean plate for camera %s; using the median of %d frames", camera, len(picks))
+        frames_io.write_image(path, plate)
+
+
+def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: SilhouetteParams, out_dir: Path) -> None:
+    """Worker: masks of every camera for a chunk of consecutive frames (one decoder per camera)."""
+    for camera in capture.rig.names:
+        if capture.silhouettes_given:
+            masks = ((frame, capture.read_silhouette(camera, frame)) for frame in chunk)
+        else:
+            background = frames_io.read_image(background_path(out_dir, camera))
+            masks = ((frame, extract_silhouette(image, background, params))
+                     for frame, image in capture.iter_images(camera, chunk))
+        for frame, mask in masks:
+            frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
+
+
+def run_silhouettes(ctx: StageContext) -> int:
+    """Per frame and camera, the person's mask: given ones as they are, else background subtraction."""
+    if not ctx.capture.silhouettes_given:
+        _backgrounds(ctx)
+    names = ctx.capture.rig.names
+    task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir)
+    return ctx.map_frames(task, lambda frame: [silhouette_path(ctx.out_dir, c, frame) for c in names])
+
+
+def observations_path(out_dir: Path, frame: int) -> Path:
+    return out_dir / frames_io.frame_name(frame, ".ply")
+
+
+def reconstruction_task(chunk: Sequence[int], *, capture: Capture, params: ReconstructionParams,
+                        masks_dir: Path, out_dir: Path) -> None:
+    """Worker: points and normals of a chunk of frames from the silhouette stage's masks."""
+    for frame in chunk:
+        masks = [frames_io.read_mask(silhouette_path(masks_dir, camera, frame)) for camera in capture.rig.names]
+        empty = [camera for camera, mask in zip(capture.rig.names, masks, strict=True) if not mask.any()]
+        if empty:
+            log.warning("frame %d: empty silhouette in camera(s) %s", frame, ", ".join(empty))
+        observations = reconstruct(masks, capture.rig, capture.volume, params)
+        if len(observations) < FEW_OBSERVATIONS:
+            log.warning("frame %d: only %d observations (person out of view or silhouettes disagree)",
+                        frame, len(observations))
+        frames_io.write_ply(observations_path(out_dir, frame), observations.points, observations.normals)
+
+
+def run_reconstruction(ctx: StageContext) -> int:
+    """Per frame, sparse surface points with outward normals from all cameras' silhouettes."""
+    task = functools.partial(reconstruction_task, capture=ctx.capture, params=ctx.params,
+                             masks_dir=ctx.input_dir("silhouettes"), out_dir=ctx.out_dir)
+    return ctx.map_frames(task, lambda frame: [observations_path(ctx.out_dir, frame)])
+
+
 STAGES: tuple[Stage, ...] = (
     Stage("calibration", run_calibration,
           capture_parts=("config", "calibration", "image_sizes", "frames"),
           code=("calib", "pipeline.capture")),
+    Stage("silhouettes", run_silhouettes, inputs=("calibration",), params_type=SilhouetteParams,
+          capture_parts=("frames", "images", "background", "silhouettes"),
+          code=("stages.silhouettes",)),
+    Stage("reconstruction", run_reconstruction, inputs=("calibration", "silhouettes"),
+          params_type=ReconstructionParams, capture_parts=("config", "frames"),
+          code=("stages.reconstruction",)),
 )
