@@ -29,6 +29,7 @@ writing each frame's file atomically and using ``ctx.pending_frames`` to resume.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 from collections.abc import Sequence
@@ -41,8 +42,10 @@ from calib.formats import load_rig, save_rig
 from pipeline import atomic, frames_io
 from pipeline.capture import Capture, capture_summary
 from pipeline.runner import Stage, StageContext
-from stages.reconstruction import ReconstructionParams, reconstruct
+from stages.reconstruction import Observations, ReconstructionParams, reconstruct
 from stages.silhouettes import SilhouetteParams, extract_silhouette, median_background
+from stages.tracking.body import load_body
+from stages.tracking.tracker import FrameResult, TrackerParams, TrackerState, track_frame
 
 log = logging.getLogger(__name__)
 
@@ -153,6 +156,45 @@ def run_reconstruction(ctx: StageContext) -> int:
     return ctx.map_frames(task, lambda frame: [observations_path(ctx.out_dir, frame)])
 
 
+def tracking_path(out_dir: Path, frame: int) -> Path:
+    return out_dir / "frames" / frames_io.frame_name(frame, ".json")
+
+
+def read_tracking(folder: Path, frame: int) -> tuple[FrameResult, TrackerState]:
+    """One frame's tracking record: its estimate and the tracker's state after it."""
+    record = frames_io.read_json(tracking_path(folder, frame))
+    result = record["result"]
+    return (FrameResult(**{**result, "pose": np.asarray(result["pose"]), "joints": np.asarray(result["joints"])}),
+            TrackerState.from_dict(record["state"]))
+
+
+def run_tracking(ctx: StageContext) -> int:
+    """Fit the articulated body to each frame's observations, in order (frame t starts from t-1).
+
+    Sequential by nature, so it runs in this process; each frame's record (estimate + tracker state)
+    is written atomically, and a resumed run restarts from the state after the last complete frame.
+    """
+    params: TrackerParams = ctx.params
+    if params.height_m is None and ctx.capture.height_m is not None:
+        params = dataclasses.replace(params, height_m=ctx.capture.height_m)
+    body = load_body()
+    frames = ctx.capture.frame_numbers
+    pending = ctx.pending_frames(lambda frame: [tracking_path(ctx.out_dir, frame)])
+    done = len(frames) - len(pending)
+    state = read_tracking(ctx.out_dir, frames[done - 1])[1] if done else None
+    observations_dir = ctx.input_dir("reconstruction")
+    with ctx.progress(len(frames), initial=done) as bar:
+        for frame in frames[done:]:
+            points, normals = frames_io.read_ply(observations_path(observations_dir, frame))
+            result, state = track_frame(state, Observations(points, normals), body, params, ctx.capture.volume)
+            if result.status in ("predicted", "lost"):
+                log.warning("frame %d: pose %s, not exported (%d observations)", frame, result.status, len(points))
+            frames_io.write_json(tracking_path(ctx.out_dir, frame),
+                                 {"frame": frame, "result": result.to_dict(), "state": state.to_dict()})
+            bar.update(1)
+    return len(frames) - done
+
+
 STAGES: tuple[Stage, ...] = (
     Stage("calibration", run_calibration,
           capture_parts=("config", "calibration", "image_sizes", "frames"),
@@ -163,4 +205,6 @@ STAGES: tuple[Stage, ...] = (
     Stage("reconstruction", run_reconstruction, inputs=("calibration", "silhouettes"),
           params_type=ReconstructionParams, capture_parts=("config", "frames"),
           code=("stages.reconstruction",)),
+    Stage("tracking", run_tracking, inputs=("calibration", "reconstruction"), params_type=TrackerParams,
+          capture_parts=("config", "frames"), code=("stages.tracking",)),
 )
