@@ -15,8 +15,14 @@ Hierarchy
     exactly; the pelvis aims both hips (they are opposite each other, the pelvis being their centre)
     and every other joint aims one bone. The rest pose is a T-pose facing +Z: legs down (-Y), arms
     sideways (the subject's left is +X), trunk, neck and head up, feet forward (+Z). Offsets are the
-    median bone lengths over the sequence along these rest directions. Only the root (pelvis) has
-    position channels; every joint has ``Zrotation Xrotation Yrotation`` channels (intrinsic Z, X, Y).
+    median bone lengths over the sequence along these rest directions. Every joint has
+    ``Zrotation Xrotation Yrotation`` channels (intrinsic Z, X, Y). The root (pelvis), the neck and
+    the head also have position channels: the trunk (pelvis -> neck) and the neck (neck -> head) are
+    the bones whose straight length really changes, because the spine bends (over the CMU clips in
+    mocap/ the pelvis-neck distance varies by 5 to 55 mm, neck-head by up to 8 mm), and a rigid
+    trunk would shift the whole upper body by that much. Their position channels give the exact
+    distance along the bone; a viewer that ignores position channels below the root shows the
+    median length instead.
 
 Rotations
     The pelvis frame is measured: x from the right to the left hip, y the trunk direction made
@@ -31,7 +37,8 @@ Rotations
 
 Exactness: a joint's position is its parent's plus the rotated offset, i.e. the observed bone
 direction times the median length, so positions are reproduced exactly for bones whose length is
-constant, and otherwise are off by the length's deviation from the median.
+constant (and for the trunk and neck whatever their length), and otherwise are off by the length's deviation
+from the median.
 """
 
 from __future__ import annotations
@@ -48,6 +55,9 @@ from stages.joints import JOINT_NAMES, SCORED_JOINTS
 
 #: World (x, y, z), +z up  ->  BVH (x, z, -y), +Y up.
 WORLD_TO_BVH = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+#: BVH joints with position channels: the root, and the ends of the bending trunk and neck.
+_POSITIONED = ("pelvis", "neck", "head")
 
 #: Length (metres) of the End Site segments (top of head, hands, tips of the feet): a display
 #: aid only, no joint position depends on it.
@@ -182,9 +192,10 @@ def _hierarchy_text(joints: list[_BvhJoint], offsets: dict[str, np.ndarray]) -> 
         lines.append(f"{pad}{{")
         x, y, z = offsets[joint.name]
         lines.append(f"{pad}  OFFSET {x:.{DECIMALS}f} {y:.{DECIMALS}f} {z:.{DECIMALS}f}")
-        position = "Xposition Yposition Zposition " if joint.parent is None else ""
-        count = 6 if joint.parent is None else 3
-        lines.append(f"{pad}  CHANNELS {count} {position}Zrotation Xrotation Yrotation")
+        if joint.name in _POSITIONED:
+            lines.append(f"{pad}  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation")
+        else:
+            lines.append(f"{pad}  CHANNELS 3 Zrotation Xrotation Yrotation")
         children = _children(joints, joint.name)
         for child in children:
             write(child, depth + 1)
@@ -227,15 +238,19 @@ def bvh_from_joints(joints: np.ndarray, frame_time_s: float, *, names: Sequence[
     P = {name: selected[:, i] @ WORLD_TO_BVH.T for i, name in enumerate(wanted)}
     bvh_joints = _bvh_joints(wanted)
 
+    at = {joint.name: joint.at for joint in bvh_joints}
+    parent_at = {joint.name: at[joint.parent] for joint in bvh_joints[1:]}
     offsets = {"pelvis": np.zeros(3)}
     for joint in bvh_joints[1:]:
-        parent_at = next(j.at for j in bvh_joints if j.name == joint.parent)
-        length = np.median(np.linalg.norm(P[joint.at] - P[parent_at], axis=-1))
+        length = np.median(np.linalg.norm(P[joint.at] - P[parent_at[joint.name]], axis=-1))
         offsets[joint.name] = np.array(joint.rest_from_parent, dtype=np.float64) * length
 
     G = _world_rotations(bvh_joints, P)
     columns = [P["pelvis"], _euler_zxy_degrees(G["pelvis"])]
     for joint in bvh_joints[1:]:
+        if joint.name in _POSITIONED:  # the rest direction times the bone's current length
+            length = np.linalg.norm(P[joint.at] - P[parent_at[joint.name]], axis=-1)
+            columns.append(length[:, None] * np.array(joint.rest_from_parent, dtype=np.float64))
         local = np.swapaxes(G[joint.parent], -1, -2) @ G[joint.name]
         columns.append(_euler_zxy_degrees(local))
     motion = np.hstack(columns)

@@ -31,6 +31,21 @@ def test_bvh_read_by_bvhio_reproduces_joint_positions(tmp_path):
         assert error.max() < 1e-3, f"{name}: {error.max() * 1000:.3f} mm"
 
 
+def test_bvh_follows_a_stretching_trunk_exactly(tmp_path):
+    joints = random_motion(30, seed=8)
+    pelvis, neck = JOINT_NAMES.index("pelvis"), JOINT_NAMES.index("neck")
+    upper = [JOINT_NAMES.index(n) for n in ("neck", "head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow",
+                                            "l_wrist", "r_wrist")]
+    trunk = joints[:, neck] - joints[:, pelvis]
+    stretch = 0.05 * np.sin(np.arange(30) / 3)[:, None] * trunk / np.linalg.norm(trunk, axis=1, keepdims=True)
+    joints[:, upper] += stretch[:, None]   # the spine bends: pelvis-neck distance varies by +-5 cm
+    path = tmp_path / "motion.bvh"
+    path.write_text(bvh_from_joints(joints, 1 / 25))
+    positions, _ = _read_back(path, len(joints))
+    for j, name in enumerate(JOINT_NAMES):
+        assert np.abs(positions[name] - joints[:, j]).max() < 1e-3, name
+
+
 def test_bvh_without_toes_ends_ankles_in_end_sites(tmp_path):
     joints = random_motion(10, seed=4)[:, :15]
     text = bvh_from_joints(joints, 0.04, names=SCORED_JOINTS)
