@@ -1,0 +1,154 @@
+"""Benchmark of the silhouette and reconstruction stages against the true body surface.
+
+    python -m pipeline.bench.reconstruction [--clips taekwondo leaning] [--frames 12] [--cameras 6]
+        [--observations 1000] [--captures data_samples/taekwondo ...]
+
+Reconstruction: for each clip, the synthetic body (MakeHuman mesh skinned to the clip, ``pipeline.synth``)
+is posed at ``--frames`` frames spread over the clip and its exact silhouettes are ray-cast into a ring of
+``--cameras`` cameras at 780 x 580. Each method (visual shape with both rim placements, visual hull) then
+reconstructs the frame, and its points are compared with the posed mesh: distance to the surface
+(open3d ``RaycastingScene.compute_distance``; median and 95th percentile, mm), the angle between each
+normal and the normal of the closest surface triangle (median, degrees), the fraction of outliers
+(> 3 cm from the surface), the number of points and the time per frame.
+
+Silhouettes (``--captures``): for each synthetic capture with ``groundtruth/masks``, every camera-frame
+is segmented from its video or images (clean plate when present, else the temporal median) and compared
+with the true mask: IoU per camera-frame (median, 5th percentile) and time per frame for all cameras.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from calib.camera import Camera, Rig
+from pipeline.bench.tracker import CLIPS
+from pipeline.capture import Capture
+from pipeline.mocap import load_clip
+from pipeline.poselib import clip_path
+from pipeline.synth import build_body, pose_body, posed_mesh
+from pipeline.synth.render import body_scene, pixel_grid_rays, render_body
+from stages.reconstruction import Observations, ReconstructionParams, reconstruct
+from stages.silhouettes import SilhouetteParams, extract_silhouette, median_background
+
+OUTLIER_DISTANCE_M = 0.03
+IMAGE_SIZE = (780, 580)
+FOCAL_PX = 700.0
+VOLUME = np.array([[-2.5, -2.5, 0.0], [2.5, 2.5, 2.3]])
+VARIANTS = {
+    "visual_shape/osculating": ReconstructionParams(method="visual_shape", rim_placement="osculating"),
+    "visual_shape/midpoint": ReconstructionParams(method="visual_shape", rim_placement="midpoint"),
+    "visual_hull": ReconstructionParams(method="visual_hull"),
+}
+
+
+def ring_rig(n_cameras: int, centre: np.ndarray) -> Rig:
+    """``n_cameras`` cameras on a 4.5 m ring at 1.2 to 2.2 m height, aimed at ``centre`` (3,)."""
+    cameras = []
+    for i in range(n_cameras):
+        angle = 2 * np.pi * i / n_cameras + 0.2
+        eye = centre[:2].tolist() + [0.0]
+        eye = [eye[0] + 4.5 * np.cos(angle), eye[1] + 4.5 * np.sin(angle), 1.2 + (i % 3) * 0.5]
+        cameras.append(Camera.look_at(f"cam_{i}", eye, [centre[0], centre[1], 1.0], f_px=FOCAL_PX, size=IMAGE_SIZE))
+    return Rig(tuple(cameras))
+
+
+def surface_errors(observations: Observations, vertices: np.ndarray, triangles: np.ndarray):
+    """(distance (N,) metres, normal angle (N,) degrees) of observations to the mesh's closest points."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32)))
+    query = o3d.core.Tensor(observations.points.astype(np.float32))
+    distance = scene.compute_distance(query).numpy().astype(np.float64)
+    closest = scene.compute_closest_points(query)
+    faces = triangles[closest["primitive_ids"].numpy()]
+    corners = vertices[faces]
+    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    face_normals /= np.maximum(np.linalg.norm(face_normals, axis=1, keepdims=True), 1e-15)
+    cosines = np.clip(np.einsum("ij,ij->i", face_normals, observations.normals), -1.0, 1.0)
+    return distance, np.degrees(np.arccos(cosines))
+
+
+def bench_reconstruction(clips: list[str], n_frames: int, n_cameras: int, n_observations: int) -> None:
+    print(f"reconstruction: {n_cameras} cameras {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]}, {n_observations} observations")
+    print(f"{'clip':10s} {'method':24s} {'N':>6s} {'med mm':>7s} {'p95 mm':>7s} {'normal°':>8s} "
+          f"{'out>3cm':>8s} {'ms/frame':>9s}")
+    for clip in clips:
+        amc, asf = CLIPS[clip]
+        motion = load_clip(clip_path(amc), skeleton=None if asf is None else clip_path(asf))
+        body = build_body(motion)
+        frames = np.linspace(0, motion.n_frames - 1, n_frames).round().astype(int)
+        results = {name: {"d": [], "a": [], "n": [], "t": []} for name in VARIANTS}
+        for frame in frames:
+            posed = pose_body(body, motion, int(frame))
+            vertices, triangles = posed_mesh(posed)
+            rig = ring_rig(n_cameras, vertices.mean(axis=0))
+            scene = body_scene(posed)
+            colours = np.ones((64, 3))
+            masks = [
+                np.where(render_body(camera, pixel_grid_rays(camera), scene, posed, colours).mask, 255, 0).astype(
+                    np.uint8
+                )
+                for camera in rig
+            ]
+            for name, params in VARIANTS.items():
+                params = ReconstructionParams(**{**params.__dict__, "n_observations": n_observations})
+                start = time.perf_counter()
+                observations = reconstruct(masks, rig, VOLUME, params)
+                results[name]["t"].append(time.perf_counter() - start)
+                distance, angle = surface_errors(observations, vertices, triangles)
+                results[name]["d"].append(distance)
+                results[name]["a"].append(angle)
+                results[name]["n"].append(len(observations))
+        for name, r in results.items():
+            d, a = np.concatenate(r["d"]), np.concatenate(r["a"])
+            print(f"{clip:10s} {name:24s} {np.mean(r['n']):6.0f} {np.median(d) * 1e3:7.1f} "
+                  f"{np.percentile(d, 95) * 1e3:7.1f} {np.median(a):8.1f} {np.mean(d > OUTLIER_DISTANCE_M):8.3f} "
+                  f"{np.median(r['t']) * 1e3:9.1f}")
+
+
+def bench_silhouettes(captures: list[Path], max_frames: int) -> None:
+    print("silhouettes: IoU per camera-frame against groundtruth/masks")
+    print(f"{'capture':12s} {'frames':>6s} {'IoU med':>8s} {'IoU p5':>7s} {'ms/frame (all cams)':>20s}")
+    params = SilhouetteParams()
+    for path in captures:
+        capture = Capture.open(path)
+        truth_root = Path(path) / "groundtruth" / "masks"
+        frames = capture.frame_numbers
+        frames = [frames[i] for i in np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).round().astype(int)]
+        ious, seconds = [], np.zeros(len(frames))
+        for camera in capture.rig.names:
+            background = capture.background(camera)
+            if background is None:
+                background = median_background(image for _, image in capture.iter_images(camera, capture.frame_numbers))
+            for k, (frame, image) in enumerate(capture.iter_images(camera, frames)):
+                start = time.perf_counter()
+                mask = extract_silhouette(image, background, params)
+                seconds[k] += time.perf_counter() - start
+                truth = cv2.imread(str(truth_root / camera / f"{frame:06d}.png"), cv2.IMREAD_GRAYSCALE)
+                union = np.count_nonzero((mask > 0) | (truth > 0))
+                ious.append(np.count_nonzero((mask > 0) & (truth > 0)) / union if union else 1.0)
+        print(f"{Path(path).name:12s} {len(frames):6d} {np.median(ious):8.3f} {np.percentile(ious, 5):7.3f} "
+              f"{np.median(seconds) * 1e3:20.1f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--clips", nargs="*", default=["taekwondo", "leaning"], choices=sorted(CLIPS))
+    parser.add_argument("--frames", type=int, default=12)
+    parser.add_argument("--cameras", type=int, default=6)
+    parser.add_argument("--observations", type=int, default=1000)
+    parser.add_argument("--captures", nargs="*", default=[], type=Path)
+    args = parser.parse_args()
+    if args.captures:
+        bench_silhouettes(args.captures, args.frames)
+    if args.clips:
+        bench_reconstruction(args.clips, args.frames, args.cameras, args.observations)
+
+
+if __name__ == "__main__":
+    main()
