@@ -157,26 +157,19 @@ def overlay_stills(images: Mapping[str, tuple[int, np.ndarray]], rig: Rig, estim
     return stills
 
 
+def _viewer_series(sequence: JointSequence, frames: list[int]) -> dict:
+    """One sequence for the viewer: its bones, body sides and per-frame poses (None where missing)."""
+    row = {int(frame): k for k, frame in enumerate(sequence.frames)}
+    poses = [np.round(sequence.joints[row[frame]], 3).tolist() if frame in row else None for frame in frames]
+    sides = ["l" if n.startswith("l_") else "r" if n.startswith("r_") else "c" for n in sequence.names]
+    return {"bones": bones_among(sequence.names), "sides": sides, "poses": poses}
+
+
 def viewer_data(estimate: JointSequence, truth: JointSequence | None, fps: float) -> dict:
     """The 3-D viewer's data (see report_assets/viewer.js): every frame of either sequence, mm-rounded."""
-    names = estimate.names
     frames = sorted(set(estimate.frames.tolist()) | (set(truth.frames.tolist()) if truth else set()))
-
-    def poses(sequence: JointSequence) -> list:
-        out = []
-        for frame in frames:
-            pose = sequence.at(frame)
-            if pose is not None and all(n in sequence.names for n in names):
-                pose = pose[[sequence.names.index(n) for n in names]]
-                out.append(np.round(pose, 3).tolist())
-            else:
-                out.append(None)
-        return out
-
-    sides = ["l" if n.startswith("l_") else "r" if n.startswith("r_") else "c" for n in names]
-    truth_poses = poses(truth) if truth is not None and set(names) <= set(truth.names) else None
-    return {"names": list(names), "bones": bones_among(names), "sides": sides, "frames": frames,
-            "fps": float(fps), "estimate": poses(estimate), "truth": truth_poses}
+    return {"frames": frames, "fps": float(fps), "estimate": _viewer_series(estimate, frames),
+            "truth": _viewer_series(truth, frames) if truth is not None else None}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,7 +1,8 @@
 // Animated 3-D skeleton of the report: a rotating orthographic view on a <canvas>, play/pause and a
 // frame slider. Data: the JSON in <script id="skeleton-data"> (see pipeline/report.py, _viewer_data):
-// {names, bones: [[i, j], ...], sides: ["l"|"r"|"c", ...], frames: [...], fps,
-//  estimate: [[[x, y, z] x J] | null per frame], truth: same or null}; metres, world frame, +z up.
+// {frames: [...], fps, estimate: series, truth: series or null}, where a series is
+// {bones: [[i, j], ...], sides: ["l"|"r"|"c" per joint], poses: [[[x, y, z] per joint] or null per frame]};
+// metres, world frame, +z up.
 (function () {
   "use strict";
   const data = JSON.parse(document.getElementById("skeleton-data").textContent);
@@ -16,8 +17,9 @@
 
   // Centre and scale from every joint of every frame, so the view does not jump while playing.
   const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
-  for (const series of [data.estimate, data.truth || []]) {
-    for (const pose of series) {
+  for (const series of [data.estimate, data.truth]) {
+    if (!series) continue;
+    for (const pose of series.poses) {
       if (!pose) continue;
       for (const p of pose) for (let k = 0; k < 3; k++) { lo[k] = Math.min(lo[k], p[k]); hi[k] = Math.max(hi[k], p[k]); }
     }
@@ -39,9 +41,9 @@
     return [canvas.width / 2 + scale * u, canvas.height / 2 - scale * up];
   }
 
-  function drawPose(pose, colourOf, width) {
+  function drawPose(series, pose, colourOf, width) {
     context.lineWidth = width;
-    for (const [i, j] of data.bones) {
+    for (const [i, j] of series.bones) {
       const a = project(pose[i]), b = project(pose[j]);
       context.strokeStyle = colourOf(j);
       context.beginPath(); context.moveTo(a[0], a[1]); context.lineTo(b[0], b[1]); context.stroke();
@@ -64,9 +66,9 @@
   function draw() {
     context.clearRect(0, 0, canvas.width, canvas.height);
     drawFloor();
-    if (data.truth && data.truth[frame]) drawPose(data.truth[frame], () => "#999999", 5);
-    const pose = data.estimate[frame];
-    if (pose) drawPose(pose, (j) => colours[data.sides[j]], 3);
+    if (data.truth && data.truth.poses[frame]) drawPose(data.truth, data.truth.poses[frame], () => "#999999", 5);
+    const pose = data.estimate.poses[frame];
+    if (pose) drawPose(data.estimate, pose, (j) => colours[data.estimate.sides[j]], 3);
     label.textContent = "frame " + data.frames[frame] + (pose ? "" : " (not estimated)");
     slider.value = String(frame);
   }

@@ -8,7 +8,14 @@ import pytest
 from calib.camera import Camera, Rig
 from pipeline import frames_io
 from pipeline.export_io import write_joints_csv
-from pipeline.report import JointSequence, build_report, overlay_stills, stage_timings, write_report
+from pipeline.report import (
+    JointSequence,
+    build_report,
+    overlay_stills,
+    stage_timings,
+    viewer_data,
+    write_report,
+)
 from stages.joints import JOINT_NAMES
 
 CHROMIUM_SECONDS = 60
@@ -116,3 +123,15 @@ def test_overlay_stills_draw_estimate_and_truth():
     front = stills[0][2]
     assert (front == 255).all(axis=2).any() and (front[:, :, 2] > 200).any()   # white truth, red right side
     assert not stills[1][2].any()  # frame 7 is in neither sequence
+
+
+def test_viewer_data_aligns_frames_and_keeps_each_sequence_joints():
+    joints = _walk(4)
+    estimate = JointSequence(np.array([0, 1, 3]), JOINT_NAMES, joints[[0, 1, 3]])
+    truth = JointSequence(np.array([1, 2, 3]), JOINT_NAMES[:15], joints[1:, :15])   # no toes
+    data = viewer_data(estimate, truth, 30.0)
+    assert data["frames"] == [0, 1, 2, 3] and data["fps"] == 30.0
+    assert [pose is None for pose in data["estimate"]["poses"]] == [False, False, True, False]
+    assert [pose is None for pose in data["truth"]["poses"]] == [True, False, False, False]
+    assert len(data["truth"]["bones"]) == 14 and len(data["estimate"]["bones"]) == 16
+    assert data["estimate"]["sides"][:4] == ["c", "c", "c", "l"]
