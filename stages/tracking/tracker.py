@@ -139,14 +139,18 @@ class TrackerState:
     lost: bool
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "pose": self.pose.tolist(), "velocity": self.velocity.tolist()}
+        """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
+        level = self.likelihood_level if np.isfinite(self.likelihood_level) else None
+        return {**asdict(self), "pose": self.pose.tolist(), "velocity": self.velocity.tolist(),
+                "likelihood_level": level}
 
     @staticmethod
     def from_dict(data: dict) -> TrackerState:
         return TrackerState(pose=np.asarray(data["pose"], dtype=float),
                             velocity=np.asarray(data["velocity"], dtype=float),
                             height_m=float(data["height_m"]), height_weight=int(data["height_weight"]),
-                            likelihood_level=float(data["likelihood_level"]),
+                            likelihood_level=np.nan if data["likelihood_level"] is None
+                            else float(data["likelihood_level"]),
                             frames_without_fit=int(data["frames_without_fit"]), lost=bool(data["lost"]))
 
 
@@ -192,8 +196,9 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     tracked = fit(y, n, sized, prediction, volume, EMParams(**{**em.__dict__, "estimate_scale": estimate_scale}),
                   sigma_m=params.sigma_m)
     per_obs = tracked.log_likelihood[-1] / len(y)
-    failed = (tracked.outlier_fraction > params.max_outlier_fraction
-              or (np.isfinite(state.likelihood_level) and per_obs < state.likelihood_level - params.max_likelihood_drop))
+    dropped = np.isfinite(state.likelihood_level) and (
+        per_obs < state.likelihood_level - params.max_likelihood_drop)
+    failed = tracked.outlier_fraction > params.max_outlier_fraction or dropped
     if failed:
         result, new_state = _initialise(state, y, n, sized, params, volume, em)
         if result.log_likelihood > tracked.log_likelihood[-1] and result.status != "lost":
@@ -256,7 +261,8 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
                       params=InitParams(headings=params.init_headings, refine=params.init_refine))
     fitted = init.fit
     if fitted.outlier_fraction > params.max_outlier_fraction:
-        lost_state = TrackerState(**{**state.__dict__, "lost": True, "frames_without_fit": state.frames_without_fit + 1})
+        lost_state = TrackerState(**{**state.__dict__, "lost": True,
+                                     "frames_without_fit": state.frames_without_fit + 1})
         result = FrameResult(pose=fitted.pose, joints=body.scaled(init.height_m).joint_positions(fitted.pose),
                              log_likelihood=fitted.log_likelihood[-1], iterations=fitted.iterations,
                              outlier_fraction=fitted.outlier_fraction, status="lost", height_m=init.height_m)

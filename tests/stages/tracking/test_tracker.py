@@ -1,0 +1,103 @@
+"""Tracking over time on data sampled from the body's own ellipsoids, and degenerate inputs."""
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from tracking_testing import VOLUME, sample_ellipsoids
+
+from stages.tracking.body import load_body
+from stages.tracking.tracker import STATUSES, TrackerParams, TrackerState, track_frame
+
+PARAMS = TrackerParams(height_m=1.75, init_headings=6, init_refine=2)
+
+
+@pytest.fixture(scope="module")
+def body():
+    return load_body("default")
+
+
+def _walk(body, frames):
+    """A short motion: stepping forward while turning, knees and elbows bending."""
+    poses = []
+    for f in range(frames):
+        pose = body.zero_pose()
+        pose[1] = 0.02 * f
+        pose[3] = 0.3 + 0.02 * f
+        for name, amplitude in [("l_thigh.flex", 0.4), ("r_thigh.flex", -0.4), ("l_shank.flex", 0.5),
+                                ("l_forearm.flex", 0.8), ("r_forearm.flex", 0.4)]:
+            pose[body.dof_names.index(name)] = amplitude * np.sin(0.25 * f) + (0.5 if "shank" in name else 0.0)
+        poses.append(body.clip(pose))
+    return poses
+
+
+def _obs(body, pose, rng, count=600):
+    y, n = sample_ellipsoids(body, pose, count, rng, outlier_fraction=0.2)
+    return SimpleNamespace(points=y, normals=n)
+
+
+def test_tracks_a_sequence_from_an_automatic_start(body):
+    rng = np.random.default_rng(20)
+    truth = _walk(body.scaled(1.75), 6)
+    state, errors, statuses = None, [], []
+    for pose in truth:
+        result, state = track_frame(state, _obs(body, pose, rng), body, PARAMS, VOLUME)
+        errors.append(np.linalg.norm(result.joints - body.joint_positions(pose), axis=1).mean())
+        statuses.append(result.status)
+    assert statuses[0] == "initialised" and set(statuses[1:]) == {"tracked"}
+    assert max(errors) < 0.02  # metres, every frame
+
+
+def test_empty_and_degenerate_frames_are_predicted_never_nan(body):
+    rng = np.random.default_rng(21)
+    pose = _walk(body, 1)[0]
+    _, state = track_frame(None, _obs(body, pose, rng), body, PARAMS, VOLUME)
+    empty = SimpleNamespace(points=np.zeros((0, 3)), normals=np.zeros((0, 3)))
+    nan_rows = SimpleNamespace(points=np.full((50, 3), np.nan), normals=np.ones((50, 3)))
+    for obs in [empty, nan_rows]:
+        result, state = track_frame(state, obs, body, PARAMS, VOLUME)
+        assert result.status == "predicted"
+        assert np.all(np.isfinite(result.joints)) and np.all(np.isfinite(result.pose))
+
+
+def test_first_frame_without_data_is_lost_but_finite(body):
+    empty = SimpleNamespace(points=np.zeros((0, 3)), normals=np.zeros((0, 3)))
+    result, state = track_frame(None, empty, body, PARAMS, VOLUME)
+    assert result.status == "lost" and state.lost
+    assert np.all(np.isfinite(result.joints))
+
+
+def test_all_outlier_frames_are_not_exported_and_tracking_recovers(body):
+    rng = np.random.default_rng(22)
+    poses = _walk(body, 3)
+    _, state = track_frame(None, _obs(body, poses[0], rng), body, PARAMS, VOLUME)
+    noise = SimpleNamespace(points=rng.uniform(VOLUME[0], VOLUME[1], (600, 3)),
+                            normals=np.tile([0.0, 0.0, 1.0], (600, 1)))
+    result, state = track_frame(state, noise, body, PARAMS, VOLUME)
+    assert result.status in ("predicted", "lost") and np.all(np.isfinite(result.joints))
+    result, state = track_frame(state, _obs(body, poses[2], rng), body, PARAMS, VOLUME)
+    assert result.status in ("tracked", "initialised")
+    assert np.linalg.norm(result.joints - body.joint_positions(poses[2]), axis=1).mean() < 0.02
+
+
+def test_state_round_trips_through_json(body):
+    rng = np.random.default_rng(23)
+    result, state = track_frame(None, _obs(body, _walk(body, 1)[0], rng), body, PARAMS, VOLUME)
+    again = TrackerState.from_dict(json.loads(json.dumps(state.to_dict())))
+    np.testing.assert_array_equal(again.pose, state.pose)
+    assert again.to_dict() == state.to_dict()
+    assert result.status in STATUSES and json.loads(json.dumps(result.to_dict()))["status"] == result.status
+
+
+def test_mismatched_points_and_normals_are_rejected(body):
+    obs = SimpleNamespace(points=np.zeros((5, 3)), normals=np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="normals"):
+        track_frame(None, obs, body, PARAMS, VOLUME)
+
+
+def test_state_before_any_fit_is_strict_json(body):
+    empty = SimpleNamespace(points=np.zeros((0, 3)), normals=np.zeros((0, 3)))
+    _, state = track_frame(None, empty, body, PARAMS, VOLUME)
+    text = json.dumps(state.to_dict(), allow_nan=False)
+    assert np.isnan(TrackerState.from_dict(json.loads(text)).likelihood_level)
