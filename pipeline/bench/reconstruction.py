@@ -58,18 +58,24 @@ def ring_rig(n_cameras: int, centre: np.ndarray) -> Rig:
     return Rig(tuple(cameras))
 
 
-def surface_errors(observations: Observations, vertices: np.ndarray, triangles: np.ndarray):
-    """(distance (N,) metres, normal angle (N,) degrees) of observations to the mesh's closest points."""
+def surface_errors(observations: Observations, vertices: np.ndarray, triangles: np.ndarray,
+                   vertex_normals: np.ndarray):
+    """(distance (N,) metres, normal angle (N,) degrees) of observations to the mesh's closest points.
+
+    The true normal is the smooth (vertex-interpolated) normal at the closest point, the one the
+    renderer shades with: facet normals of the mesh jump by several degrees from triangle to triangle.
+    """
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32)))
     query = o3d.core.Tensor(observations.points.astype(np.float32))
     distance = scene.compute_distance(query).numpy().astype(np.float64)
     closest = scene.compute_closest_points(query)
-    faces = triangles[closest["primitive_ids"].numpy()]
-    corners = vertices[faces]
-    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    face_normals /= np.maximum(np.linalg.norm(face_normals, axis=1, keepdims=True), 1e-15)
-    cosines = np.clip(np.einsum("ij,ij->i", face_normals, observations.normals), -1.0, 1.0)
+    corners = triangles[closest["primitive_ids"].numpy()]  # (N, 3)
+    uv = closest["primitive_uvs"].numpy().astype(np.float64)  # weights of corners 1 and 2
+    weights = np.column_stack([1.0 - uv.sum(axis=1), uv])
+    normals = np.einsum("nk,nkd->nd", weights, vertex_normals[corners])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-15)
+    cosines = np.clip(np.einsum("ij,ij->i", normals, observations.normals), -1.0, 1.0)
     return distance, np.degrees(np.arccos(cosines))
 
 
@@ -100,7 +106,7 @@ def bench_reconstruction(clips: list[str], n_frames: int, n_cameras: int, n_obse
                 start = time.perf_counter()
                 observations = reconstruct(masks, rig, VOLUME, params)
                 results[name]["t"].append(time.perf_counter() - start)
-                distance, angle = surface_errors(observations, vertices, triangles)
+                distance, angle = surface_errors(observations, vertices, triangles, posed.vertex_normals)
                 results[name]["d"].append(distance)
                 results[name]["a"].append(angle)
                 results[name]["n"].append(len(observations))
