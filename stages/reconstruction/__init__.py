@@ -55,7 +55,7 @@ class ReconstructionParams:
     n_observations: int = 1000
     tolerated_views: int = 0
     rim_placement: str = "osculating"
-    samples_per_ray: int = 48
+    samples_per_ray: int = 32
     contour_smoothing_px: float = 1.5
     voxel_size_m: float = 0.01
     coarse_voxel_size_m: float = 0.08

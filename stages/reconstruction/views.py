@@ -8,8 +8,6 @@ volume is meant to be seen by every camera, and a camera that misses part of the
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import numpy as np
 
 from calib.camera import Camera
@@ -18,34 +16,36 @@ from calib.camera import Camera
 MIN_DEPTH_M = 1e-3
 
 
-def inside(camera: Camera, mask: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """(N,) bool: which world points ``X`` (N, 3) project onto the foreground of ``mask`` (H, W)."""
-    if len(X) == 0:
-        return np.zeros(0, bool)
-    uv = camera.project(X)
+def inside_along_rays(camera: Camera, mask: np.ndarray, origins: np.ndarray, directions: np.ndarray,
+                      t: np.ndarray) -> np.ndarray:
+    """(M, S) bool: which points ``origins + t directions`` of rays (M, 3) at ``t`` (M, S) are inside the view.
+
+    In float32 and without building world points: in the camera frame a ray is
+    ``A + t B`` with ``A = R o + t_cam`` and ``B = R d``, so no (M, S, 3) world array is needed, and
+    float32 keeps millimetre precision at these distances while halving the memory traffic.
+    """
+    A = (origins @ camera.R.T + camera.t).astype(np.float32)  # (M, 3)
+    B = (directions @ camera.R.T).astype(np.float32)
+    t = t.astype(np.float32)
+    z = A[:, 2:3] + t * B[:, 2:3]  # (M, S) depth
+    seen = z > MIN_DEPTH_M
+    inverse_z = 1.0 / np.where(seen, z, np.float32(1.0))
+    x = (A[:, 0:1] + t * B[:, 0:1]) * inverse_z
+    y = (A[:, 1:2] + t * B[:, 1:2]) * inverse_z
+    k1, k2, p1, p2, k3 = camera.dist.astype(np.float32)
+    if np.any(camera.dist):
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        x, y = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+                y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
+    fx, fy, cx, cy = (np.float32(value) for value in (camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]))
+    u = np.rint(fx * x + cx)
+    v = np.rint(fy * y + cy)
     height, width = mask.shape
-    u = np.rint(uv[:, 0])
-    v = np.rint(uv[:, 1])
-    seen = (camera.depth(X) > MIN_DEPTH_M) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-    result = np.zeros(len(X), bool)
+    seen &= (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    result = np.zeros(t.shape, bool)
     result[seen] = mask[v[seen].astype(np.intp), u[seen].astype(np.intp)] > 0
     return result
-
-
-def outside_count(cameras: Sequence[Camera], masks: Sequence[np.ndarray], X: np.ndarray,
-                  skip: np.ndarray | None = None) -> np.ndarray:
-    """(N,) int: in how many views each world point ``X`` (N, 3) falls outside the silhouette.
-
-    ``skip`` (N,) int, when given, names for each point one camera not to count (the camera whose
-    viewing ray the point lies on: it is on that cone's boundary by construction).
-    """
-    count = np.zeros(len(X), np.int32)
-    for index, (camera, mask) in enumerate(zip(cameras, masks, strict=True)):
-        out = ~inside(camera, mask, X)
-        if skip is not None:
-            out &= skip != index
-        count += out
-    return count
 
 
 def box_interval(

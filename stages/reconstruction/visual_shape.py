@@ -30,16 +30,18 @@ from scipy.spatial import cKDTree
 
 from calib.camera import Camera, Rig
 from stages.reconstruction.contours import Outline, cone_normals, outline
-from stages.reconstruction.views import box_interval, in_volume, inside, outside_count
+from stages.reconstruction.views import box_interval, in_volume, inside_along_rays
 
 # The convex hull of a silhouette is widened by this many pixels before clipping rays, so that lens
 # distortion (which bends the hull's straight edges slightly) never cuts off a true part of the cone.
 HULL_MARGIN_PX = 2.0
+HULL_SIMPLIFY_PX = 1.0
 # The sampled stretch of each ray extends this far (metres) beyond the hull bounds, so that the first
 # and last samples are outside and every edge end is bracketed.
 RANGE_MARGIN_M = 0.01
-# Bisection steps per edge end: each halves the bracket, 8 take a 2 cm step below 0.1 mm.
-BISECTION_STEPS = 8
+# Bisection steps per edge end: each halves the bracket. The end is then snapped onto the exact cone
+# face, so the bracket only has to be small enough to find the right face (4 take 1 cm to 0.6 mm).
+BISECTION_STEPS = 4
 # |α| is kept at least this large so that a nearly parallel or noisy end plane cannot push the rim
 # point beyond the other end (it pulls the estimate towards that end instead).
 MIN_ALPHA = 1e-3
@@ -113,8 +115,12 @@ def rim_points(
     edges = _viewing_edges(cameras, tolerant, outlines, volume, origins, directions, camera_of,
                            tolerated_views=tolerated_views, samples_per_ray=samples_per_ray)
     d = directions[edges.ray]
-    t_near, m_near = _snap_to_cones(cameras, outlines, origins[edges.ray], d, edges.t_near, edges.camera_near)
-    t_far, m_far = _snap_to_cones(cameras, outlines, origins[edges.ray], d, edges.t_far, edges.camera_far)
+    count = len(edges.ray)
+    t_ends, m_ends = _snap_to_cones(  # both ends at once: (2E,)
+        cameras, outlines, np.concatenate([origins[edges.ray]] * 2), np.concatenate([d, d]),
+        np.concatenate([edges.t_near, edges.t_far]), np.concatenate([edges.camera_near, edges.camera_far]),
+    )
+    t_near, t_far, m_near, m_far = t_ends[:count], t_ends[count:], m_ends[:count], m_ends[count:]
     t_far = np.maximum(t_far, t_near)
     if rim_placement == "osculating":
         t_rim = _osculating_rim(t_near, t_far, m_near, m_far, d, normals[edges.ray])
@@ -173,9 +179,9 @@ def _viewing_edges(
         return ViewingEdges(*(np.zeros(0, int),) * 5)
     fractions = np.linspace(0.0, 1.0, samples_per_ray)  # (S,)
     t = t_low[alive, None] + (t_high - t_low)[alive, None] * fractions  # (A, S)
-    X = origins[alive, None, :] + t[..., None] * directions[alive, None, :]  # (A, S, 3)
-    skip = np.repeat(camera_of[alive], samples_per_ray)
-    ok = (outside_count(cameras, masks, X.reshape(-1, 3), skip) <= tolerated_views).reshape(t.shape)
+    ok = (~_inside_per_view(cameras, masks, origins[alive], directions[alive], camera_of[alive], t)).sum(
+        axis=0
+    ) <= tolerated_views
     # A single outside sample between inside ones is a grazing ray flickering along another view's
     # outline, not a gap in the body: close it.
     ok[:, 1:-1] |= ok[:, :-2] & ok[:, 2:]
@@ -184,44 +190,49 @@ def _viewing_edges(
     padded = np.pad(ok, ((0, 0), (1, 1)))
     rows, starts = np.nonzero(padded[:, 1:-1] & ~padded[:, :-2])
     _, ends = np.nonzero(padded[:, 1:-1] & ~padded[:, 2:])  # same row order as starts (row-major)
-    ray = alive[rows]
-    t_near, camera_near = _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows,
-                                       starts, -1, tolerated_views)
-    t_far, camera_far = _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows,
-                                     ends, +1, tolerated_views)
-    return ViewingEdges(ray, t_near, t_far, camera_near, camera_far)
+    # Both ends of every edge are refined together: (2E,) inside sample and its outside neighbour.
+    rows2 = np.concatenate([rows, rows])
+    inner = np.concatenate([starts, ends])
+    outer = np.concatenate([starts - 1, ends + 1])
+    t_end, camera_end = _refine_ends(cameras, masks, origins, directions, camera_of, alive[rows2], t, rows2,
+                                     inner, outer, tolerated_views)
+    count = len(rows)
+    return ViewingEdges(alive[rows], t_end[:count], t_end[count:], camera_end[:count], camera_end[count:])
 
 
-def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, index, step, tolerated_views):
-    """Bisect each edge end between the inside sample ``index`` and its outside neighbour ``index + step``.
+def _inside_per_view(cameras, masks, origins, directions, camera_of, t) -> np.ndarray:
+    """(C, M, S) bool: whether sample ``t`` (M, S) of ray m lies inside view c; a ray's own view says yes."""
+    result = np.ones((len(cameras),) + t.shape, bool)
+    for index, (camera, mask) in enumerate(zip(cameras, masks, strict=True)):
+        others = np.flatnonzero(camera_of != index)
+        result[index, others] = inside_along_rays(camera, mask, origins[others], directions[others], t[others])
+    return result
+
+
+def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, inner, outer, tolerated_views):
+    """Bisect each edge end between the inside sample ``inner`` (E,) and its outside neighbour ``outer``.
 
     Returns the end's ray parameter (E,) and the camera whose cone it crosses (E,), -1 when the end is
     the sampled stretch's boundary (the volume).
     """
     samples = t.shape[1]
-    outer = index + step
     bounded = (outer >= 0) & (outer < samples)
-    t_in = t[rows, index]
-    t_out = np.where(bounded, t[rows, np.clip(outer, 0, samples - 1)], t_in)
-    idx = np.flatnonzero(bounded)
+    t_end = t[rows, inner]
     camera = np.full(len(rows), -1)
+    idx = np.flatnonzero(bounded)
     if len(idx) == 0:
-        return t_in, camera
+        return t_end, camera
     o, d, skip = origins[ray[idx]], directions[ray[idx]], camera_of[ray[idx]]
-    lo, hi = t_in[idx].copy(), t_out[idx].copy()  # lo inside, hi outside
+    lo, hi = t_end[idx], t[rows[idx], outer[idx]]  # lo inside, hi outside
     for _ in range(BISECTION_STEPS):
         mid = 0.5 * (lo + hi)
-        good = outside_count(cameras, masks, o + mid[:, None] * d, skip) <= tolerated_views
+        good = (~_inside_per_view(cameras, masks, o, d, skip, mid[:, None])).sum(axis=0)[:, 0] <= tolerated_views
         lo = np.where(good, mid, lo)
         hi = np.where(good, hi, mid)
-    X_in, X_out = o + lo[:, None] * d, o + hi[:, None] * d
-    crossing = np.full(len(idx), -1)
-    for number, (cam, mask) in enumerate(zip(cameras, masks, strict=True)):
-        flips = inside(cam, mask, X_in) & ~inside(cam, mask, X_out) & (skip != number) & (crossing < 0)
-        crossing[flips] = number
-    t_end = t_in.copy()
+    views = _inside_per_view(cameras, masks, o, d, skip, np.column_stack([lo, hi]))  # (C, E', 2)
+    flips = views[:, :, 0] & ~views[:, :, 1]  # (C, E') inside at lo, outside at hi
     t_end[idx] = 0.5 * (lo + hi)
-    camera[idx] = crossing
+    camera[idx] = np.where(flips.any(axis=0), np.argmax(flips, axis=0), -1)
     return t_end, camera
 
 
@@ -265,7 +276,11 @@ def _hull_bounds(cameras, outlines, origins, directions, camera_of, tolerated_vi
 def _hull_halfplanes(camera: Camera, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(e (K, 2), c (K,))``: the convex hull of ``pixels`` in normalised coordinates as ``e · x <= c``."""
     normalised = camera.undistort_pixels(pixels).astype(np.float32)
-    hull = cv2.convexHull(normalised).reshape(-1, 2).astype(np.float64)
+    hull = cv2.convexHull(normalised)
+    # Fewer hull edges make clipping cheaper; the simplified polygon cuts at most this far inside the
+    # hull, so the margin below grows by as much.
+    simplify = HULL_SIMPLIFY_PX / min(camera.K[0, 0], camera.K[1, 1])
+    hull = cv2.approxPolyDP(hull, simplify, closed=True).reshape(-1, 2).astype(np.float64)
     if len(hull) < 3:
         # A degenerate outline (a line of pixels): bound it by its box.
         low, high = hull.min(axis=0), hull.max(axis=0)
@@ -277,7 +292,7 @@ def _hull_halfplanes(camera: Camera, pixels: np.ndarray) -> tuple[np.ndarray, np
     centroid = hull.mean(axis=0)
     flip = np.einsum("ij,ij->i", e, centroid - hull) > 0
     e[flip] *= -1.0
-    margin = HULL_MARGIN_PX / min(camera.K[0, 0], camera.K[1, 1])
+    margin = (HULL_MARGIN_PX + HULL_SIMPLIFY_PX) / min(camera.K[0, 0], camera.K[1, 1])
     return e, np.einsum("ij,ij->i", e, hull) + margin
 
 
