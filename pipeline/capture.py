@@ -621,6 +621,7 @@ def derive_volume(rig: Rig, *, height_m: float = DERIVED_VOLUME_HEIGHT_M) -> np.
 def capture_summary(capture: Capture) -> dict:
     """Plain-data description of the capture for ``calibration/capture.json``."""
     return {
+        "capture_dir": str(capture.root.resolve()),
         "fps": capture.fps,
         "cameras": list(capture.rig.names),
         "image_sizes": {camera.name: list(camera.size) for camera in capture.rig},

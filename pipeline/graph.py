@@ -41,7 +41,11 @@ from calib.camera import Rig
 from calib.formats import load_rig, save_rig
 from pipeline import atomic, frames_io
 from pipeline.capture import Capture, capture_summary
+from pipeline.export_io import JOINTS_FILE, write_exports, write_joints_csv, write_overlay_video
+from pipeline.report import write_report
 from pipeline.runner import Stage, StageContext
+from stages.export import ExportParams
+from stages.joints import JOINT_NAMES
 from stages.reconstruction import Observations, ReconstructionParams, reconstruct
 from stages.silhouettes import SilhouetteParams, extract_silhouette, median_background
 from stages.tracking.body import load_body
@@ -195,6 +199,41 @@ def run_tracking(ctx: StageContext) -> int:
     return len(frames) - done
 
 
+#: Statuses of tracked frames that are exported (the others were only predicted).
+EXPORTED_STATUSES = ("tracked", "initialised")
+
+
+def run_export(ctx: StageContext) -> None:
+    """joints.csv, BVH, angles and C3D of the estimated frames, then the report and overlay videos.
+
+    Frames the tracker only predicted are left out, as CAPTURE_FORMAT.md asks (no rows, never NaN).
+    """
+    params: ExportParams = ctx.params
+    capture = ctx.capture
+    results = {frame: read_tracking(ctx.input_dir("tracking"), frame)[0] for frame in capture.frame_numbers}
+    estimated = {frame: r.joints for frame, r in results.items() if r.status in EXPORTED_STATUSES}
+    if len(estimated) < len(results):
+        log.warning("export: %d of %d frames were not estimated and have no rows in joints.csv",
+                    len(results) - len(estimated), len(results))
+    frames = np.array(sorted(estimated), dtype=int)
+    if not len(frames):
+        # Nothing to animate: joints.csv keeps its header so that readers see "no frame", not a failure.
+        log.warning("export: no frame was estimated; joints.csv has no rows and no BVH/C3D is written")
+        write_joints_csv(ctx.out_dir / JOINTS_FILE, frames, np.zeros((0, len(JOINT_NAMES), 3)))
+        return
+    write_exports(ctx.out_dir, frames, np.stack([estimated[frame] for frame in frames]), capture.fps)
+    if params.report:
+        images = None
+        if capture.has_images and len(frames):
+            middle = int(frames[len(frames) // 2])
+            images = {camera: next(capture.iter_images(camera, [middle])) for camera in capture.rig.names[:2]}
+        write_report(ctx.output_root, rig=capture.rig, images=images)
+    if params.overlay_videos and capture.has_images:
+        for camera in capture.rig:
+            write_overlay_video(capture.iter_images(camera.name, capture.frame_numbers), camera, estimated,
+                                ctx.out_dir / f"overlay_{camera.name}.mp4", capture.fps)
+
+
 STAGES: tuple[Stage, ...] = (
     Stage("calibration", run_calibration,
           capture_parts=("config", "calibration", "image_sizes", "frames"),
@@ -207,4 +246,7 @@ STAGES: tuple[Stage, ...] = (
           code=("stages.reconstruction",)),
     Stage("tracking", run_tracking, inputs=("calibration", "reconstruction"), params_type=TrackerParams,
           capture_parts=("config", "frames"), code=("stages.tracking",)),
+    Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
+          capture_parts=("config", "frames", "images"),
+          code=("stages.export", "pipeline.export_io", "pipeline.report")),
 )

@@ -10,3 +10,22 @@ text or arrays and never open files. ``pipeline.export_io`` writes what they pro
 - :mod:`stages.export.metrics`: MPJPE, PCK, angle errors, silhouette IoU.
 - :mod:`stages.export.overlay`: a skeleton drawn on a camera image.
 """
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ExportParams:
+    """What the export stage writes besides joints.csv, BVH, angles and C3D (always written).
+
+    Attributes
+    ----------
+    report : bool
+        Write the self-contained HTML report (``export/report.html``).
+    overlay_videos : bool
+        Write one MP4 per camera with the fitted skeleton drawn on the frames (costs a full decode and
+        encode of every video, so it is off by default).
+    """
+
+    report: bool = True
+    overlay_videos: bool = False
