@@ -30,6 +30,7 @@ SUBCOMMANDS: dict[str, str] = {
     "run": "pipeline.commands.run",
     "stages": "pipeline.commands.stages",
     "eval": "pipeline.evaluate",
+    "synth": "pipeline.synth.cli",
 }
 
 #: Exit status for a user error (as argparse uses for a bad command line).

@@ -244,6 +244,12 @@ class Motion:
             self.joint_weights,
         )
 
+    def rest_pose(self) -> Motion:
+        """One frame of the skeleton's rest pose (every rotation the identity), root at its first position."""
+        n_bones = len(self.bone_names)
+        rotations = np.broadcast_to(np.eye(3), (1, n_bones, 3, 3)).copy()
+        return self._with_pose(self.fps, rotations, self.bone_origins[:1, 0])
+
     def _with_pose(self, fps: float, rotations: np.ndarray, root_positions: np.ndarray) -> Motion:
         origins, ends = _forward_kinematics(
             self.parents, self.rest_origins, self.rest_ends, rotations, root_positions

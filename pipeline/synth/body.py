@@ -1,0 +1,37 @@
+"""Choosing and posing the synthetic body: the skinned MakeHuman mesh (default) or tapered capsules.
+
+Usage (frame ``k`` of a clip)::
+
+    motion = load_clip("pipeline/data/clips/135_07.amc", skeleton="pipeline/data/clips/martialwalk.asf")
+    body = build_body(motion)                      # once per clip: "mesh" (default) or "capsules"
+    posed = pose_body(body, motion, k)             # PosedBody: triangles in world metres
+    points, normals = sample_body_surface(posed, 5000, np.random.default_rng(0))
+    vertices, triangles = posed_mesh(posed)
+"""
+
+from __future__ import annotations
+
+from pipeline.mocap import Motion
+from pipeline.synth.capsules import CapsuleBody, build_capsule_body
+from pipeline.synth.makehuman import MeshBody, build_mesh_body
+from pipeline.synth.posed import PosedBody
+
+BODY_KINDS = ("mesh", "capsules")
+
+Body = MeshBody | CapsuleBody
+
+
+def build_body(motion: Motion, kind: str = "mesh") -> Body:
+    """The body surface of ``kind`` bound to ``motion``'s skeleton (CMU bone names)."""
+    if kind == "mesh":
+        return build_mesh_body(motion)
+    if kind == "capsules":
+        return build_capsule_body(motion)
+    raise ValueError(f"body kind: expected one of {', '.join(BODY_KINDS)}, got {kind!r}")
+
+
+def pose_body(body: Body, motion: Motion, frame: int) -> PosedBody:
+    """``body`` posed at ``frame`` (0-based) of ``motion``, the clip it was built for."""
+    if not 0 <= frame < motion.n_frames:
+        raise IndexError(f"frame {frame} outside the clip's {motion.n_frames} frames")
+    return body.pose(motion, frame)
