@@ -10,10 +10,7 @@ ARGS ?=
 
 .PHONY: setup run stage test bench lint clean check-seq
 
-.venv/.installed: pyproject.toml requirements.lock scripts/bootstrap.sh
-	@bash scripts/bootstrap.sh
-
-setup: .venv/.installed
+setup:
 	@bash scripts/bootstrap.sh
 
 # SEQ names a folder of data_samples/ and nothing else.
@@ -28,7 +25,8 @@ stage: setup check-seq
 	@test -n "$(STAGE)" || { echo "make: say which stage, e.g. make stage STAGE=tracking SEQ=$(SEQ)"; exit 2; }
 	$(PY) -m pipeline run data_samples/$(SEQ) --out runs/$(SEQ) --only $(STAGE) --workers $(WORKERS) $(ARGS)
 
-test: setup
+test:
+	@bash scripts/bootstrap.sh --test
 	$(PY) -m pytest
 
 bench: setup

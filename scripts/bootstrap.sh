@@ -2,10 +2,15 @@
 # Brings a fresh machine up to what the project needs: the system libraries open3d
 # loads at import time, then a virtual environment with the pinned Python packages.
 # Idempotent: each step checks before it acts, so a second run costs a second or two.
+# With --test it also installs what only the test suite needs (headless Chromium, which loads the
+# HTML report to check that it renders).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libx11-6 libgomp1)
+if [ "${1:-}" = "--test" ]; then
+  SYSTEM_PACKAGES+=(chromium)
+fi
 missing=()
 for pkg in "${SYSTEM_PACKAGES[@]}"; do
   dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg")
