@@ -20,6 +20,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from calib.errors import InputError
 from pipeline.mocap import load_clip
 from pipeline.poselib import clip_path
 from pipeline.synth import build_body, pose_body, sample_body_surface
@@ -129,7 +130,11 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{'clip':<11} {'frames':>6} {'MPJPE':>7} {'worst':>7} {'knee°':>6} {'elbow°':>6} "
           f"{'fps trk':>8} {'fps all':>8} {'height':>7}  statuses")
     for name in args.clips:
-        r = run_clip(name, args)
+        try:
+            r = run_clip(name, args)
+        except InputError as err:  # e.g. the synthetic mesh body needs a CMU skeleton
+            print(f"{name:<11} skipped: {err}", flush=True)
+            continue
         print(f"{r['clip']:<11} {r['frames']:>6} {r['mpjpe_mm']:>7.1f} {r['worst_frame_mm']:>7.1f} "
               f"{r['knee_flexion_deg']:>6.1f} {r['elbow_flexion_deg']:>6.1f} {r['fps_tracking']:>8.1f} "
               f"{r['fps_all']:>8.1f} {r['final_height_m']:>7.3f}  {r['statuses']}", flush=True)
