@@ -17,6 +17,7 @@ import numpy as np
 
 from stages.joints import JOINT_NAMES
 from stages.tracking.body import BodyModel
+from stages.tracking.distances import residual_size
 from stages.tracking.em import HEIGHT_RANGE_M, EMParams, FitResult, Mixture, e_step, fit, volume_size
 
 _J = {name: k for k, name in enumerate(JOINT_NAMES)}
@@ -183,7 +184,7 @@ def initialise(y: np.ndarray, n: np.ndarray, body: BodyModel, volume: np.ndarray
     centre = np.median(y[:, :2], axis=0)
     top = np.quantile(y[:, 2], _CLOUD_TOP_QUANTILE)
     sample = rng.choice(len(y), min(len(y), _SCORE_POINTS), replace=False)
-    mixture = Mixture.initial(body.n_ellipsoids, _SCORE_SIGMA_M)
+    mixture = Mixture.initial(body.n_ellipsoids, _SCORE_SIGMA_M, residual_size(em.distance))
     scored = []
     for base in candidates:
         base_yaw = base[3]

@@ -101,3 +101,11 @@ def test_state_before_any_fit_is_strict_json(body):
     _, state = track_frame(None, empty, body, PARAMS, VOLUME)
     text = json.dumps(state.to_dict(), allow_nan=False)
     assert np.isnan(TrackerState.from_dict(json.loads(text)).likelihood_level)
+
+
+@pytest.mark.parametrize("distance", ["points", "algebraic"])
+def test_variant_distances_run_end_to_end(body, distance):
+    rng = np.random.default_rng(24)
+    params = TrackerParams(height_m=1.75, init_headings=4, init_refine=1, distance=distance)
+    result, _ = track_frame(None, _obs(body, _walk(body, 1)[0], rng), body, params, VOLUME)
+    assert result.status in STATUSES and np.all(np.isfinite(result.joints))
