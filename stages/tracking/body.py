@@ -204,19 +204,6 @@ class BodyModel:
                        ellipsoid_centre=self.ellipsoid_centre * s, semi_axes=self.semi_axes * s,
                        standing_root=self.standing_root * s, joint_offset=self.joint_offset * s)
 
-    def with_segment_scale(self, factors: np.ndarray) -> BodyModel:
-        """The body with every segment's geometry scaled by its own factor (S,) about its joint.
-
-        A factor scales the segment's child joint offsets, its ellipsoids and its joint centres, so a
-        factor 1.1 on a thigh makes the thigh 10 % longer and thicker and moves the knee down.
-        """
-        factors = np.asarray(factors, dtype=float)
-        off = self.offset * np.where(self.parent >= 0, factors[np.maximum(self.parent, 0)], 1.0)[:, None]
-        f_e = factors[self.ellipsoid_segment][:, None]
-        return replace(self, offset=off, ellipsoid_centre=self.ellipsoid_centre * f_e,
-                       semi_axes=self.semi_axes * f_e,
-                       joint_offset=self.joint_offset * factors[self.joint_segment][:, None])
-
     def _kinematics(self, pose_or_kin: np.ndarray | Kinematics) -> Kinematics:
         return pose_or_kin if isinstance(pose_or_kin, Kinematics) else self.fk(pose_or_kin)
 
