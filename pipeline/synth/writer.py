@@ -5,7 +5,7 @@ Layout (CAPTURE_FORMAT.md) under ``out``::
     capture.yaml
     calibration/...                    colmap/ | opencv/ | calibration.toml, in --units / --up
     videos/<camera>.mp4                or images/<camera>/<frame:06d>.png
-    background/<camera>.png            clean plate (the empty room, its own sensor noise)
+    background/<camera>.png            clean plate (the empty room, mean of 16 noisy empty frames)
     groundtruth/joints.csv             frame,joint,x,y,z in metres, world frame, the 17 JOINT_NAMES
     groundtruth/masks/<camera>/<frame:06d>.png   true masks (pixel centre ray hits the body)
     groundtruth/synth.yaml             how the capture was made (clip, span, seed, body, options)
@@ -55,6 +55,8 @@ CEILING_M = 3.2
 # Posed vertices kept (every n-th) when framing the cameras: enough to bound the body.
 FRAMING_VERTEX_STEP = 7
 VIDEO_FOURCC = "mp4v"
+#: The clean plate is written as the mean of this many empty frames (noise sigma / sqrt of it).
+CLEAN_PLATE_FRAMES = 16
 
 
 @dataclass(frozen=True)
@@ -161,7 +163,8 @@ def synthesise(params: SynthParams, out: Path) -> None:
     plates = {camera.name: render_room(camera, rays[camera.name], room) for camera in rig}
     (out / "background").mkdir()
     for camera in rig:
-        background = finish_image(plates[camera.name], params.noise_sigma, noise_rng)
+        # a studio's clean plate is the mean of many empty frames: less noise than one frame
+        background = finish_image(plates[camera.name], params.noise_sigma / CLEAN_PLATE_FRAMES**0.5, noise_rng)
         cv2.imwrite(str(out / "background" / f"{camera.name}.png"), background)
 
     sinks = {camera.name: _FrameSink(out, camera.name, params) for camera in rig}
