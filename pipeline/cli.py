@@ -31,6 +31,7 @@ SUBCOMMANDS: dict[str, str] = {
     "stages": "pipeline.commands.stages",
     "eval": "pipeline.evaluate",
     "synth": "pipeline.synth.cli",
+    "params": "pipeline.commands.params",
 }
 
 #: Exit status for a user error (as argparse uses for a bad command line).
