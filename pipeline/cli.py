@@ -32,6 +32,7 @@ SUBCOMMANDS: dict[str, str] = {
     "eval": "pipeline.evaluate",
     "synth": "pipeline.synth.cli",
     "params": "pipeline.commands.params",
+    "bench": "pipeline.commands.bench",
 }
 
 #: Exit status for a user error (as argparse uses for a bad command line).

@@ -1,0 +1,370 @@
+"""The benchmark suite behind ``python -m pipeline bench``: run suites, keep results, judge targets, write tables.
+
+``<out>/results.json`` holds one section per suite (``speed``, ``unseen``, ``paper``) plus ``meta``; running
+one suite replaces its own section and keeps the others, so the file always shows the latest measurement of
+each, and every section says how it was made (command, quick or full, date, commit, machine load).
+``<out>/results.md`` is drawn from results.json by :func:`format_results` alone, with the targets the project
+is judged by (:data:`TARGETS`) marked met or missed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import resource
+import subprocess
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+from pipeline import atomic
+from pipeline.bench import figures
+
+SUITES = ("speed", "unseen", "paper")
+RESULTS_JSON, RESULTS_MD = "results.json", "results.md"
+
+#: The project's targets (on this 2-core CPU).
+REAL_TIME_FPS = 28.0
+TRACKER_FPS = 100.0
+#: "About the same" peak memory for a capture three times longer: at most this ratio.
+MEMORY_RATIO = 1.2
+MPJPE_MM = 25.0
+WORST_FRAME_MM = 80.0
+FLEXION_DEG = 5.0
+
+
+@dataclass(frozen=True)
+class BenchOptions:
+    """Where the benchmark writes and how big it is.
+
+    ``captures``: cache of rendered synthetic captures; ``figures``: where the PNGs go; ``workers``: processes
+    for the pipeline runs, renderings and paper sweeps.
+    """
+
+    out: Path
+    captures: Path
+    figures: Path
+    quick: bool
+    workers: int
+
+    def command(self, suite: str) -> str:
+        """The command line that reproduces one suite's section."""
+        parts = ["python -m pipeline bench", f"--out {self.out}", f"--suite {suite}"]
+        if self.figures != self.out / "figures":
+            parts.append(f"--figures {self.figures}")
+        if self.workers != 2:
+            parts.append(f"--workers {self.workers}")
+        if self.quick:
+            parts.append("--quick")
+        return " ".join(parts)
+
+
+# ---------------------------------------------------------------------------------------------
+# Targets
+
+
+@dataclass(frozen=True)
+class Target:
+    """One judged number: where it is in results.json, which way is better, the threshold."""
+
+    suite: str
+    name: str
+    measure: Callable[[dict], float]
+    threshold: float
+    at_least: bool
+    unit: str
+
+    def judge(self, section: dict) -> dict:
+        try:
+            value = float(self.measure(section))
+        except (KeyError, TypeError, ValueError, ZeroDivisionError):
+            value = float("nan")
+        met = math.isfinite(value) and (value >= self.threshold if self.at_least else value <= self.threshold)
+        return {"suite": self.suite, "target": self.name, "value": value, "unit": self.unit,
+                "threshold": f"{'≥' if self.at_least else '≤'} {self.threshold:g} {self.unit}", "met": met}
+
+
+def _scored(section: dict) -> list[dict]:
+    return [row for row in section["rows"] if "mpjpe_mm" in row]
+
+
+def _claim_share(rows: list[dict], rival: str) -> float:
+    """Fraction of swept values where points + normals has a lower angle error than ``rival``."""
+    by_x: dict[float, dict[str, float]] = {}
+    for row in rows:
+        by_x.setdefault(row["x"], {})[row["distance"]] = row["angle_error_deg"]
+    pairs = [errors for errors in by_x.values() if "normals" in errors and rival in errors]
+    return sum(errors["normals"] < errors[rival] for errors in pairs) / len(pairs)
+
+
+TARGETS: tuple[Target, ...] = (
+    Target("speed", "end-to-end frames/s (6 cameras 780x580, video, 2 workers)",
+           lambda s: s["fps_end_to_end"], REAL_TIME_FPS, True, "fps"),
+    Target("speed", "tracker alone, frames/s at ~1000 observations", lambda s: s["tracker"]["fps_tracked"],
+           TRACKER_FPS, True, "fps"),
+    Target("speed", "peak memory, long / short capture", lambda s: s["memory_ratio"], MEMORY_RATIO, False, "×"),
+    Target("unseen", "mean MPJPE over captures", lambda s: s["mean"]["mpjpe_mm"], MPJPE_MM, False, "mm"),
+    Target("unseen", "fraction of frames estimated (worst capture)",
+           lambda s: min(row.get("fraction_estimated", 0.0) for row in s["rows"]), 1.0, True, ""),
+    Target("unseen", "worst frame (worst capture)", lambda s: max(row["worst_frame_mm"] for row in _scored(s)),
+           WORST_FRAME_MM, False, "mm"),
+    Target("unseen", "knee flexion error (mean)", lambda s: s["mean"]["knee_flexion_deg"], FLEXION_DEG, False, "°"),
+    Target("unseen", "elbow flexion error (mean)", lambda s: s["mean"]["elbow_flexion_deg"], FLEXION_DEG, False,
+           "°"),
+    Target("paper", "points+normals beat points alone (share of noise levels)",
+           lambda s: _claim_share(s["noise"], "points"), 1.0, True, ""),
+    Target("paper", "points+normals beat the algebraic distance (share of noise levels)",
+           lambda s: _claim_share(s["noise"], "algebraic"), 1.0, True, ""),
+    Target("paper", "points+normals beat points alone (share of observation counts)",
+           lambda s: _claim_share(s["observations"], "points"), 1.0, True, ""),
+)
+
+
+def judge_targets(results: dict) -> list[dict]:
+    """Every target of a suite present in ``results``, measured and judged."""
+    return [target.judge(results[target.suite]) for target in TARGETS if target.suite in results]
+
+
+# ---------------------------------------------------------------------------------------------
+# Tables
+
+
+def fmt(value, digits: int = 1) -> str:
+    """A table cell: numbers rounded, NaN and None as "–", booleans as yes/no."""
+    if value is None:
+        return "–"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return "–" if not math.isfinite(value) else f"{value:.{digits}f}"
+    return str(value)
+
+
+def format_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
+    """A GitHub-flavoured markdown table; numbers right-aligned."""
+    cells = [[fmt(value) for value in row] for row in rows]
+    numeric = [all(isinstance(row[k], (int, float)) and not isinstance(row[k], bool) for row in rows)
+               for k in range(len(header))] if rows else [False] * len(header)
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---:" if n else "---" for n in numeric) + "|"]
+    lines += ["| " + " | ".join(row) + " |" for row in cells]
+    return "\n".join(lines)
+
+
+def _percent(fraction) -> str:
+    return "–" if fraction is None else f"{100 * fraction:.0f} %"
+
+
+def _provenance(section: dict) -> str:
+    made = section["made"]
+    size = "quick (smoke-test size)" if section["quick"] else "full"
+    return (f"{size}; {made['date']}, commit {made['commit']}, {made['seconds']:.0f} s, "
+            f"load average {made['load_before']:.1f} before / {made['load_after']:.1f} after "
+            f"({made['cpus']} CPUs)\n\n```\n{section['command']}\n```")
+
+
+def format_targets(results: dict) -> str:
+    rows = [(t["suite"], t["target"], t["threshold"], t["value"], "met" if t["met"] else "**MISSED**")
+            for t in judge_targets(results)]
+    return format_table(("suite", "target", "threshold", "measured", "verdict"), rows)
+
+
+def format_speed(speed: dict) -> str:
+    long, short, tracker = speed["long"], speed["short"], speed.get("tracker", {})
+    recipe = speed["recipe"]
+    lines = [f"Capture `{speed['capture']}`: clip {recipe['clip']}, {recipe['cameras']} cameras {recipe['size']}, "
+             f"{recipe['media']}, {speed['fps_capture']:g} fps, {speed['frames']} frames; "
+             f"`python -m pipeline run` on a fresh output directory, {speed['workers']} workers.", ""]
+    lines.append(format_table(
+        ("run", "frames", "ok", "wall s", "frames/s", "peak RSS MB", "load before"),
+        [(name, run["frames"], run["ok"], run["seconds"], run["frames"] / run["seconds"], run["peak_rss_mb"],
+          run["load"]) for name, run in (("long", long), ("short (memory check)", short))]))
+    lines += ["", format_table(("stage", "ms/frame"), list(speed["stage_ms_per_frame"].items()) +
+                               [("**total (stages)**", sum(speed["stage_ms_per_frame"].values()))])]
+    if tracker:
+        lines += ["", f"Tracker alone (`track_frame` in-process on the long run's {tracker['frames']} observation "
+                      f"files, {tracker['observations_mean']:.0f} observations per frame on average): "
+                      f"{tracker['fps_tracked']:.1f} frames/s over tracked frames, {tracker['fps_all']:.1f} over all; "
+                      f"an initialisation takes {tracker['ms_initialisation']:.0f} ms; statuses "
+                      f"{tracker['statuses']}."]
+    lines += ["", f"Peak memory long / short: {speed['memory_ratio']:.2f}."]
+    return "\n".join(lines)
+
+
+UNSEEN_COLUMNS = (("capture", "capture"), ("clip", "clip"), ("body", "body"), ("cams", "cameras"),
+                  ("size", "size"), ("noise", "noise"), ("distr.", "distractors"), ("media", "media"),
+                  ("calibration", "calibration"), ("height", "height_known"), ("frames", "frames"),
+                  ("estimated", "fraction_estimated"), ("MPJPE mm", "mpjpe_mm"), ("worst mm", "worst_frame_mm"),
+                  ("knee °", "knee_flexion_deg"), ("elbow °", "elbow_flexion_deg"))
+
+
+def format_unseen(unseen: dict) -> str:
+    def cells(row: dict) -> tuple:
+        return tuple(_percent(row.get(key)) if key == "fraction_estimated" else row.get(key)
+                     for _, key in UNSEEN_COLUMNS)
+
+    mean = unseen["mean"]
+    rows = [cells(row) for row in unseen["rows"]] + [cells({**mean, "capture": f"**mean of {mean['captures']}**"})]
+    lines = [format_table([header for header, _ in UNSEEN_COLUMNS], rows)]
+    failed = [row for row in unseen["rows"] if "mpjpe_mm" not in row]
+    for row in failed:
+        reason = row.get("error") or row["run"].get("log_tail", "")
+        lines += ["", f"`{row['capture']}` was not scored: {reason}"]
+    return "\n".join(lines)
+
+
+def format_sweep(rows: list[dict], x_name: str) -> str:
+    distances = [d for d in ("normals", "points", "algebraic") if any(r["distance"] == d for r in rows)]
+    xs = sorted({row["x"] for row in rows})
+    cell = {(row["x"], row["distance"]): row for row in rows}
+    extra = "mask IoU" if x_name == "noise" else "observations"
+    table = []
+    for x in xs:
+        first = next(cell[(x, d)] for d in distances if (x, d) in cell)
+        table.append((f"{x:g}", f"{first['mask_iou']:.3f}" if x_name == "noise" else first["observations"],
+                      first["frames"],
+                      *[cell[(x, d)]["angle_error_deg"] if (x, d) in cell else None for d in distances],
+                      *[cell[(x, d)]["mpjpe_mm"] if (x, d) in cell else None for d in distances],
+                      _percent(min(cell[(x, d)]["fraction_estimated"] for d in distances if (x, d) in cell))))
+    header = (x_name, extra, "frames", *[f"{d} angle °" for d in distances], *[f"{d} MPJPE mm" for d in distances],
+              "estimated (min)")
+    return format_table(header, table)
+
+
+def format_paper(paper: dict, figure: str | None) -> str:
+    recipe = paper["recipe"]
+    lines = [f"Capture `{paper['capture']}`: clip {recipe['clip']}, body {recipe['body']}, {recipe['cameras']} "
+             f"cameras {recipe['size']}, true silhouettes; {100 * paper['outlier_fraction']:.0f} % outliers "
+             "uniform in the working volume added to every frame's observations. Angle error = mean absolute "
+             f"error of {', '.join(paper['limb_angles'])} (degrees), on exported frames."]
+    if figure:
+        lines += ["", f"![Fig. 4 redone]({figure})"]
+    base = paper["base"]
+    lines += ["", "(a) 28 fps, 1000 observations, no silhouette noise:", "",
+              format_table(("distance", "frames", "angle °", "MPJPE mm", "estimated", "tracking s"),
+                           [(r["distance"], r["frames"], r["angle_error_deg"], r["mpjpe_mm"],
+                             _percent(r["fraction_estimated"]), r["seconds"]) for r in base])]
+    for key, title in (("noise", "(b) silhouette noise strength (boundary ± up to 4 px, up to 6 holes)"),
+                       ("fps", "(c) frame rate (same 3.6 s of motion)"),
+                       ("observations", "(d) observations per frame")):
+        lines += ["", f"{title}:", "", format_sweep(paper[key], key)]
+    return "\n".join(lines)
+
+
+def format_results(results: dict, figure_links: dict[str, str] | None = None) -> str:
+    """The whole results.md from a results.json dictionary (``figure_links``: suite -> image path)."""
+    links = figure_links or {}
+    lines = ["# Benchmark results", "", "Written by `python -m pipeline bench` from results.json; each section "
+             "names the command that measured it.", "", "## Targets", "", format_targets(results)]
+    for suite, title, body in (("speed", "Speed", format_speed), ("unseen", "Accuracy on unseen captures",
+                                                                   format_unseen)):
+        if suite in results:
+            lines += ["", f"## {title}", "", _provenance(results[suite]), ""]
+            if suite in links:
+                lines += [f"![{suite}]({links[suite]})", ""]
+            lines.append(body(results[suite]))
+    if "paper" in results:
+        lines += ["", "## The paper's experiments (Horaud et al. 2009, Sec. 4.1, Fig. 4)", "",
+                  _provenance(results["paper"]), "", format_paper(results["paper"], links.get("paper"))]
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------------------------
+# Running
+
+
+def git_commit() -> str:
+    """Short hash of HEAD, with "+dirty" when tracked files differ from it (or "unknown")."""
+    root = Path(__file__).resolve().parents[2]
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
+                              check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+dirty" if dirty else "")
+
+
+def load_results(path: Path) -> dict:
+    """A previous results.json, or an empty dict when there is none or it is unreadable."""
+    try:
+        results = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+    return results if isinstance(results, dict) else {}
+
+
+def peak_memory_mb() -> dict:
+    """Peak resident memory of this process and of its largest reaped child (MB; Linux reports kB)."""
+    return {"self_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+            "children_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0}
+
+
+def suite_runners() -> dict[str, Callable[..., dict]]:
+    """Suite name -> ``run(out, captures, *, quick, workers) -> section`` (imported when needed)."""
+    from pipeline.bench.paper import run_paper
+    from pipeline.bench.speed import run_speed
+    from pipeline.bench.unseen import run_unseen
+
+    return {"speed": run_speed, "unseen": run_unseen, "paper": run_paper}
+
+
+def draw_figures(results: dict, options: BenchOptions) -> dict[str, Path]:
+    """The PNGs of the suites present in ``results`` (suite -> path)."""
+    drawn = {}
+    if "speed" in results and results["speed"].get("long", {}).get("ok"):
+        drawn["speed"] = figures.speed_figure(results["speed"], options.figures / "speed_stages.png")
+    if "unseen" in results and _scored(results["unseen"]):
+        drawn["unseen"] = figures.unseen_figure(results["unseen"], options.figures / "unseen_mpjpe.png",
+                                                target_mm=MPJPE_MM, worst_target_mm=WORST_FRAME_MM)
+    if "paper" in results:
+        drawn["paper"] = figures.paper_figure(results["paper"], options.figures / "paper_fig4.png")
+    return drawn
+
+
+def json_safe(value):
+    """Plain JSON data: tuples as lists, numpy scalars as numbers, NaN and infinities as None (null)."""
+    if isinstance(value, dict):
+        return {str(key): json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    if hasattr(value, "tolist"):
+        return json_safe(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_outputs(results: dict, options: BenchOptions) -> None:
+    """results.json, the figures and results.md (figure links relative to the markdown file)."""
+    atomic.write_text(options.out / RESULTS_JSON, json.dumps(results, indent=1, allow_nan=False) + "\n")
+    drawn = draw_figures(results, options)
+    links = {suite: os.path.relpath(path, options.out) for suite, path in drawn.items()}
+    (options.out / RESULTS_MD).write_text(format_results(results, links))
+
+
+def run_bench(suites: Sequence[str], options: BenchOptions, *, log: Callable[[str], None] = print) -> dict:
+    """Run ``suites`` in order; after each, merge its section into results.json and rewrite the outputs."""
+    runners = suite_runners()
+    options.out.mkdir(parents=True, exist_ok=True)
+    results = load_results(options.out / RESULTS_JSON)
+    for suite in suites:
+        log(f"bench: {suite} suite{' (quick)' if options.quick else ''} ...")
+        load_before, started = os.getloadavg()[0], time.perf_counter()
+        section = runners[suite](options.out, options.captures, quick=options.quick, workers=options.workers)
+        section |= {"quick": options.quick, "command": options.command(suite),
+                    "made": {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "commit": git_commit(),
+                             "seconds": time.perf_counter() - started, "load_before": load_before,
+                             "load_after": os.getloadavg()[0], "cpus": os.cpu_count(),
+                             "machine": platform.processor() or platform.machine(),
+                             "bench_memory": peak_memory_mb()}}
+        results[suite] = json_safe(section)
+        write_outputs(results, options)
+        log(f"bench: {suite} done in {section['made']['seconds']:.0f} s")
+    return results
