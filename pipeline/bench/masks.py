@@ -9,9 +9,9 @@ background push it out or in by a few pixels, coherently along stretches of the 
   :data:`MAX_BOUNDARY_PX` at strength 1: random erosion here, dilation there;
 - holes: up to :data:`MAX_HOLES` discs of radius up to :data:`MAX_HOLE_RADIUS_PX` cleared inside the person.
 
-Every random draw is made at full size whatever the strength, and the strength only scales them, so for one
-seed a stronger perturbation changes a superset of what a weaker one changes (the boundary part exactly; holes
-are cleared last): error curves over strength are not tangled with resampling noise.
+Every random draw is made at full size whatever the (non-zero) strength, and the strength only scales them,
+so for one seed a stronger perturbation changes a superset of what a weaker one changes (the boundary part
+exactly; holes are cleared last): error curves over strength are not tangled with resampling noise.
 """
 
 from __future__ import annotations
@@ -63,11 +63,11 @@ def perturb_mask(mask: np.ndarray, strength: float, rng: np.random.Generator) ->
     """
     if not 0.0 <= strength <= 1.0:
         raise ValueError(f"strength: expected a value in [0, 1], got {strength}")
+    if strength == 0.0:
+        return mask.copy()
     field = smooth_field(mask.shape, rng)
     inside = np.flatnonzero(mask > 0)
     picks = rng.integers(0, max(len(inside), 1), MAX_HOLES)
-    if strength == 0.0:
-        return mask.copy()
     noisy = np.where(signed_distance(mask) + strength * MAX_BOUNDARY_PX * field > 0, 255, 0).astype(np.uint8)
     holes = int(np.ceil(strength * MAX_HOLES))
     radius = max(1, int(round(strength * MAX_HOLE_RADIUS_PX)))

@@ -146,13 +146,16 @@ def fmt(value, digits: int = 1) -> str:
     return str(value)
 
 
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def format_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
-    """A GitHub-flavoured markdown table; numbers right-aligned."""
-    cells = [[fmt(value) for value in row] for row in rows]
-    numeric = [all(isinstance(row[k], (int, float)) and not isinstance(row[k], bool) for row in rows)
-               for k in range(len(header))] if rows else [False] * len(header)
+    """A GitHub-flavoured markdown table; columns of numbers (missing values aside) right-aligned."""
+    numeric = [any(_is_number(row[k]) for row in rows) and all(_is_number(row[k]) or row[k] is None for row in rows)
+               for k in range(len(header))]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---:" if n else "---" for n in numeric) + "|"]
-    lines += ["| " + " | ".join(row) + " |" for row in cells]
+    lines += ["| " + " | ".join(fmt(value) for value in row) + " |" for row in rows]
     return "\n".join(lines)
 
 
@@ -200,12 +203,13 @@ UNSEEN_COLUMNS = (("capture", "capture"), ("clip", "clip"), ("body", "body"), ("
                   ("size", "size"), ("noise", "noise"), ("distr.", "distractors"), ("media", "media"),
                   ("calibration", "calibration"), ("height", "height_known"), ("frames", "frames"),
                   ("estimated", "fraction_estimated"), ("MPJPE mm", "mpjpe_mm"), ("worst mm", "worst_frame_mm"),
-                  ("knee °", "knee_flexion_deg"), ("elbow °", "elbow_flexion_deg"))
+                  ("knee °", "knee_flexion_deg"), ("elbow °", "elbow_flexion_deg"), ("sil. IoU", "silhouette_iou"))
 
 
 def format_unseen(unseen: dict) -> str:
     def cells(row: dict) -> tuple:
-        return tuple(_percent(row.get(key)) if key == "fraction_estimated" else row.get(key)
+        return tuple(_percent(row.get(key)) if key == "fraction_estimated"
+                     else fmt(row.get(key), 3) if key == "silhouette_iou" else row.get(key)
                      for _, key in UNSEEN_COLUMNS)
 
     mean = unseen["mean"]

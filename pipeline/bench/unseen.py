@@ -21,7 +21,8 @@ from pipeline.capture import Capture
 from pipeline.evaluate import evaluate_run
 
 #: Row fields averaged into the "mean" row.
-MEAN_FIELDS = ("fraction_estimated", "mpjpe_mm", "worst_frame_mm", "knee_flexion_deg", "elbow_flexion_deg")
+MEAN_FIELDS = ("fraction_estimated", "mpjpe_mm", "worst_frame_mm", "knee_flexion_deg", "elbow_flexion_deg",
+               "silhouette_iou")
 
 
 def unseen_recipes(quick: bool) -> list[Recipe]:
@@ -46,13 +47,14 @@ def score_row(metrics: dict) -> dict:
         "knee_flexion_deg": float(np.mean([angles["l_knee_flexion"], angles["r_knee_flexion"]])),
         "elbow_flexion_deg": float(np.mean([angles["l_elbow_flexion"], angles["r_elbow_flexion"]])),
         "pck_100mm": metrics["pck"].get("100mm"),
+        "silhouette_iou": (metrics.get("silhouette_iou") or {}).get("mean"),
     }
 
 
 def mean_row(rows: list[dict]) -> dict:
     """Mean of :data:`MEAN_FIELDS` over the rows that were scored (a failed run has no score)."""
     scored = [row for row in rows if "mpjpe_mm" in row]
-    return {field: float(np.mean([row[field] for row in scored])) if scored else float("nan")
+    return {field: float(np.mean([row[field] for row in scored if row.get(field) is not None] or [np.nan]))
             for field in MEAN_FIELDS} | {"captures": len(scored), "failed": len(rows) - len(scored)}
 
 

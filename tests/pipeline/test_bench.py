@@ -1,0 +1,274 @@
+"""Benchmark helpers: recipes and their cache, mask noise, outliers, scoring, targets and tables (no timing)."""
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from pipeline.bench import paper, recipes, speed, suite, unseen
+from pipeline.bench.masks import perturb_mask
+from pipeline.bench.runs import run_command, stage_timings
+from pipeline.synth.writer import SynthParams
+from stages.export.metrics import mask_iou
+from stages.joints import JOINT_NAMES
+
+# ---------------------------------------------------------------------------------------------
+# Recipes
+
+
+def test_recipe_hash_ignores_key_order_and_sees_every_value():
+    spec = recipes.UNSEEN[1].spec()
+    assert recipes.recipe_hash(spec) == recipes.recipe_hash(dict(reversed(list(spec.items()))))
+    for key, value in spec.items():
+        changed = {**spec, key: "something else" if value != "something else" else 0}
+        assert recipes.recipe_hash(changed) != recipes.recipe_hash(spec), key
+
+
+def test_recipes_are_valid_generator_parameters_with_unique_names():
+    every = [recipes.SPEED, recipes.PAPER, *recipes.UNSEEN]
+    names = [r.name for r in every] + [r.quick().name for r in every]
+    assert len(set(names)) == len(names)
+    assert set(recipes.QUICK_UNSEEN) <= {r.name for r in recipes.UNSEEN}
+    for recipe in every:
+        params = recipe.synth_params()
+        assert isinstance(params, SynthParams) and params.clip.endswith(recipes.CLIPS[recipe.clip][0])
+        assert recipe.spec()["clip"] == recipes.CLIPS[recipe.clip][0]  # relative: the hash is portable
+
+
+def test_unseen_recipes_vary_what_the_brief_asks():
+    described = [recipes.describe(r) for r in recipes.UNSEEN]
+    assert {d["clip"] for d in described} == {"135_04", "135_07", "131_05", "md_walk", "09_01"}
+    assert {d["cameras"] for d in described} >= {5, 6, 8}
+    assert {d["body"] for d in described} == {"mesh", "capsules"}
+    assert {d["media"] for d in described} == {"video", "images"}
+    assert {d["height_known"] for d in described} == {True, False}
+    assert {d["calibration"].split()[0] for d in described} == {"colmap", "opencv", "anipose"}
+    assert len({d["size"] for d in described}) >= 3 and any(d["distractors"] for d in described)
+
+
+def test_quick_recipe_is_a_separate_short_capture():
+    quick = recipes.SPEED.quick()
+    assert quick.name == "speed-135_07-quick" and quick.seconds == recipes.SPEED.quick_seconds
+    assert recipes.recipe_hash(quick.spec()) != recipes.recipe_hash(recipes.SPEED.spec())
+
+
+def test_capture_is_current_only_with_the_same_recipe_and_a_complete_folder(tmp_path):
+    recipe = recipes.UNSEEN[0]
+    assert not recipes.is_current(tmp_path, recipe)
+    (tmp_path / recipe.name).mkdir()
+    (tmp_path / recipe.name / "capture.yaml").write_text("fps: 28\n")
+    stored = {"hash": recipes.recipe_hash(recipe.spec()), "recipe": recipe.spec()}
+    recipes.recipe_file(tmp_path, recipe.name).write_text(json.dumps(stored, default=list))
+    assert recipes.is_current(tmp_path, recipe)
+    other = recipes.Recipe(recipe.name, recipe.clip, recipe.start_s + 0.5, recipe.seconds, recipe.options)
+    assert not recipes.is_current(tmp_path, other)
+    recipes.recipe_file(tmp_path, recipe.name).write_text("{not json")
+    assert not recipes.is_current(tmp_path, recipe)
+
+
+# ---------------------------------------------------------------------------------------------
+# Silhouette noise
+
+
+@pytest.fixture(scope="module")
+def person_mask():
+    mask = np.zeros((240, 200), np.uint8)
+    cv2.ellipse(mask, (100, 120), (40, 90), 0, 0, 360, 255, -1)
+    cv2.rectangle(mask, (40, 60), (160, 75), 255, -1)  # arms
+    return mask
+
+
+def test_zero_strength_keeps_the_mask(person_mask):
+    assert np.array_equal(perturb_mask(person_mask, 0.0, np.random.default_rng(0)), person_mask)
+
+
+def test_perturbation_grows_with_strength(person_mask):
+    strengths = (0.0, 0.25, 0.5, 0.75, 1.0)
+    for seed in range(3):
+        noisy = [perturb_mask(person_mask, s, np.random.default_rng(seed)) for s in strengths]
+        ious = [mask_iou(m, person_mask) for m in noisy]
+        assert all(a > b for a, b in zip(ious, ious[1:], strict=False)), ious
+        assert all(set(np.unique(m)) <= {0, 255} and m.dtype == np.uint8 for m in noisy)
+
+
+def test_perturbation_is_reproducible_and_checks_strength(person_mask):
+    a = perturb_mask(person_mask, 0.5, np.random.default_rng(7))
+    assert np.array_equal(a, perturb_mask(person_mask, 0.5, np.random.default_rng(7)))
+    with pytest.raises(ValueError, match="strength"):
+        perturb_mask(person_mask, 1.5, np.random.default_rng(0))
+
+
+# ---------------------------------------------------------------------------------------------
+# Paper experiments
+
+
+def test_outliers_are_the_requested_share_inside_the_volume():
+    rng = np.random.default_rng(0)
+    volume = np.array([[-1.0, -2.0, 0.0], [1.0, 2.0, 2.5]])
+    points, normals = rng.normal(size=(800, 3)), np.tile([0.0, 0.0, 1.0], (800, 1))
+    y, n = paper.add_outliers(points, normals, 0.2, volume, rng)
+    assert len(y) == 1000 and np.array_equal(y[:800], points)
+    assert np.all((y[800:] >= volume[0]) & (y[800:] <= volume[1]))
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0)
+
+
+def test_frame_rates_subsample_the_same_stretch_of_time():
+    plan = paper.FULL_PLAN
+    for fps, step, count in ((7.0, 8, 25), (14.0, 4, 50), (28.0, 2, 100), (56.0, 1, 200)):
+        frames = paper.Condition(fps, 0.0, 1000).frames(plan, available=201)
+        assert frames == list(range(0, count * step, step))
+    assert paper.Condition(56.0, 0.0, 1000).frames(plan, available=150)[-1] == 149
+
+
+def test_conditions_are_shared_between_experiments():
+    conditions = paper.plan_conditions(paper.FULL_PLAN)
+    assert conditions[paper.BASE] == paper.DISTANCES  # (a), (b) at 0 and (c) at 28 fps: computed once
+    assert conditions[paper.Condition(28.0, 0.0, 50)] == ("normals", "points")
+    assert len(conditions) == 1 + 4 + 3 + 6
+
+
+def test_score_counts_only_exported_frames():
+    truth = np.random.default_rng(1).normal(size=(4, len(JOINT_NAMES), 3))
+    estimate = truth.copy()
+    estimate[3] += 1.0  # a lost frame's prediction, far off
+    result = paper.score(estimate, ["initialised", "tracked", "tracked", "lost"], truth)
+    assert result == {"angle_error_deg": 0.0, "mpjpe_mm": 0.0, "fraction_estimated": 0.75}
+    assert math.isnan(paper.score(estimate, ["lost"] * 4, truth)["mpjpe_mm"])
+
+
+# ---------------------------------------------------------------------------------------------
+# Runs, speed and unseen helpers
+
+
+def test_prefix_view_shows_the_first_frames_of_the_same_files(tmp_path):
+    capture = tmp_path / "capture"
+    (capture / "videos").mkdir(parents=True)
+    (capture / "capture.yaml").write_text(yaml.safe_dump({"fps": 28.0, "frames": {"start": 0, "step": 1}}))
+    view = speed.prefix_view(capture, tmp_path / "view", 56)
+    assert (view / "videos").is_symlink() and (view / "videos").resolve() == (capture / "videos").resolve()
+    assert yaml.safe_load((view / "capture.yaml").read_text())["frames"] == {"start": 0, "step": 1, "stop": 56}
+    assert speed.prefix_view(capture, tmp_path / "view", 10).is_dir()  # rebuilt, not refused
+
+
+def test_stage_timings_read_the_manifests(tmp_path):
+    (tmp_path / "tracking").mkdir()
+    (tmp_path / "tracking" / "manifest.json").write_text(json.dumps({"timing": {"seconds": 2.5, "frames": 10}}))
+    (tmp_path / "export").mkdir()
+    (tmp_path / "export" / "manifest.json").write_text("{broken")
+    timings = stage_timings(tmp_path)
+    assert timings["tracking"] == 2.5 and timings["export"] == 0.0 and timings["silhouettes"] == 0.0
+    command = run_command(tmp_path, tmp_path / "out", 2)
+    assert command[1:5] == ["-m", "pipeline", "run", str(tmp_path)]
+    assert command[command.index("--out") + 1] == str(tmp_path / "out")
+    assert command[command.index("--workers") + 1] == "2"
+
+
+def test_mean_row_skips_runs_that_were_not_scored():
+    rows = [{"mpjpe_mm": 10.0, "fraction_estimated": 1.0, "worst_frame_mm": 30.0, "knee_flexion_deg": 2.0,
+             "elbow_flexion_deg": 4.0, "silhouette_iou": None},
+            {"mpjpe_mm": 30.0, "fraction_estimated": 0.5, "worst_frame_mm": 90.0, "knee_flexion_deg": 4.0,
+             "elbow_flexion_deg": 6.0, "silhouette_iou": 0.9},
+            {"capture": "failed", "run": {"ok": False}}]
+    mean = unseen.mean_row(rows)
+    assert mean["mpjpe_mm"] == 20.0 and mean["fraction_estimated"] == 0.75 and mean["silhouette_iou"] == 0.9
+    assert mean["captures"] == 2 and mean["failed"] == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# Targets and tables
+
+
+def _sweep(errors: dict[float, dict[str, float]]) -> list[dict]:
+    return [{"x": x, "distance": d, "angle_error_deg": e, "mpjpe_mm": 10 * e, "fraction_estimated": 1.0,
+             "mask_iou": 1.0 - x / 10, "observations": 1000.0, "frames": 100, "seconds": 1.0}
+            for x, by_distance in errors.items() for d, e in by_distance.items()]
+
+
+@pytest.fixture()
+def results():
+    made = {"date": "2026-01-01T00:00:00+00:00", "commit": "abc1234", "seconds": 60.0, "load_before": 1.0,
+            "load_after": 1.5, "cpus": 2}
+    run = {"ok": True, "frames": 168, "seconds": 8.0, "peak_rss_mb": 500.0, "load": 1.0,
+           "stage_seconds": {"silhouettes": 3.0, "tracking": 4.0}}
+    row = {"capture": "walk", "clip": "md_walk", "body": "mesh", "cameras": 6, "size": "780x580", "noise": 2.0,
+           "distractors": 0, "media": "video", "calibration": "colmap m +z", "height_known": True, "frames": 84,
+           "fraction_estimated": 1.0, "mpjpe_mm": 20.0, "worst_frame_mm": 95.0, "knee_flexion_deg": 3.0,
+           "elbow_flexion_deg": 6.0, "silhouette_iou": 0.95, "run": run}
+    sweep = _sweep({0.0: {"normals": 2.0, "points": 3.0, "algebraic": 4.0},
+                    1.0: {"normals": 5.0, "points": 4.0, "algebraic": 6.0}})
+    return {
+        "speed": {"quick": False, "command": "python -m pipeline bench --suite speed", "made": made,
+                  "capture": "speed", "recipe": recipes.describe(recipes.SPEED), "fps_capture": 28.0, "workers": 2,
+                  "frames": 168, "short_frames": 56, "long": run, "short": {**run, "frames": 56},
+                  "fps_end_to_end": 21.0, "stage_ms_per_frame": {"silhouettes": 17.9, "tracking": 23.8},
+                  "memory_ratio": 1.0, "tracker": {"frames": 100, "observations_mean": 990.0, "fps_tracked": 120.0,
+                                                   "fps_all": 90.0, "ms_initialisation": 900.0,
+                                                   "statuses": {"tracked": 99, "initialised": 1}}},
+        "unseen": {"quick": True, "command": "python -m pipeline bench --suite unseen --quick", "made": made,
+                   "rows": [row, {"capture": "broken", "run": {**run, "ok": False, "log_tail": "boom"}}],
+                   "mean": unseen.mean_row([row])},
+        "paper": {"quick": False, "command": "python -m pipeline bench --suite paper", "made": made,
+                  "capture": "paper", "recipe": recipes.describe(recipes.PAPER), "frames": 100,
+                  "outlier_fraction": 0.2, "limb_angles": list(paper.LIMB_ANGLES),
+                  "trajectories": {"time_s": [0.0, 0.1], **{name: {"truth": [1.0, 2.0], "estimate": [1.5, 2.5]}
+                                                            for name in paper.TRAJECTORY_ANGLES}},
+                  "base": [r for r in sweep if r["x"] == 0.0], "noise": sweep, "fps": sweep,
+                  "observations": [r for r in sweep if r["distance"] != "algebraic"]},
+    }
+
+
+def test_targets_are_judged_on_the_measured_numbers(results):
+    verdicts = {(t["suite"], t["target"]): t for t in suite.judge_targets(results)}
+    assert len(verdicts) == len(suite.TARGETS)
+    assert not verdicts[("speed", "end-to-end frames/s (6 cameras 780x580, video, 2 workers)")]["met"]
+    assert verdicts[("speed", "tracker alone, frames/s at ~1000 observations")]["met"]
+    assert verdicts[("unseen", "mean MPJPE over captures")]["met"]
+    assert not verdicts[("unseen", "fraction of frames estimated (worst capture)")]["met"]  # the failed run
+    assert not verdicts[("unseen", "worst frame (worst capture)")]["met"]
+    share = verdicts[("paper", "points+normals beat points alone (share of noise levels)")]
+    assert share["value"] == 0.5 and not share["met"]
+
+
+def test_a_missing_number_is_a_miss_not_a_crash(results):
+    del results["speed"]["tracker"]
+    verdict = next(t for t in suite.judge_targets(results) if "tracker" in t["target"])
+    assert math.isnan(verdict["value"]) and not verdict["met"]
+
+
+def test_format_table_aligns_numbers_and_shows_missing_values():
+    table = suite.format_table(("name", "value"), [("a", 1.25), ("b", float("nan")), ("c", None)])
+    assert table.splitlines() == ["| name | value |", "|---|---:|", "| a | 1.2 |", "| b | – |", "| c | – |"]
+    assert suite.fmt(True) == "yes" and suite.fmt(3) == "3" and suite.fmt(0.12345, 3) == "0.123"
+
+
+def test_results_markdown_has_every_section_command_and_verdict(results):
+    text = suite.format_results(results, {"paper": "figures/paper_fig4.png"})
+    for heading in ("## Targets", "## Speed", "## Accuracy on unseen captures", "## The paper's experiments"):
+        assert heading in text
+    for section in results.values():
+        assert section["command"] in text
+    assert "**MISSED**" in text and "| met |" in text
+    assert "`broken` was not scored: boom" in text and "![Fig. 4 redone](figures/paper_fig4.png)" in text
+
+
+def test_results_round_trip_through_strict_json(results, tmp_path):
+    results["unseen"]["mean"]["elbow_flexion_deg"] = float("nan")
+    safe = suite.json_safe({**results, "extra": (np.float64(1.5), np.array([1, 2]))})
+    assert safe["unseen"]["mean"]["elbow_flexion_deg"] is None and safe["extra"] == [1.5, [1, 2]]
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(safe, allow_nan=False))
+    assert suite.load_results(path) == safe
+    assert suite.format_results(suite.load_results(path))
+    path.write_text("[1, 2]")
+    assert suite.load_results(path) == {} and suite.load_results(tmp_path / "missing.json") == {}
+
+
+def test_command_names_only_options_that_differ_from_the_defaults(tmp_path):
+    options = suite.BenchOptions(out=tmp_path, captures=tmp_path / "captures", figures=tmp_path / "figures",
+                                 quick=False, workers=2)
+    assert options.command("speed") == f"python -m pipeline bench --out {tmp_path} --suite speed"
+    quick = suite.BenchOptions(out=tmp_path, captures=tmp_path, figures=tmp_path / "docs", quick=True, workers=1)
+    assert quick.command("paper").endswith(f"--suite paper --figures {tmp_path / 'docs'} --workers 1 --quick")
