@@ -2,13 +2,17 @@
 
 A recipe is a name plus the :class:`~pipeline.synth.writer.SynthParams` that make the capture, with the clip
 given relative to the mocap folders (``clips/135_04.amc``) so that the recipe, and its hash, do not depend
-on where the repository lives. :func:`ensure_capture` keeps ``<root>/<name>/`` and writes the recipe next to
-it as ``<root>/<name>.recipe.json`` once the capture is complete; the capture is rendered again only when the
+on where the repository lives, plus the generator's version (a hash of the synth and mocap sources): a
+changed renderer makes a different capture from the same parameters.
+
+:func:`ensure_capture` keeps ``<root>/<name>/`` and writes the recipe next to it as
+``<root>/<name>.recipe.json`` once the capture is complete; the capture is rendered again only when the
 recipe's hash changes (or a previous rendering was interrupted, which leaves no recipe file).
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import shutil
@@ -27,6 +31,18 @@ CLIPS: dict[str, tuple[str, str | None]] = {
     "09_01": ("clips/09_01.bvh", None),
 }
 RECIPE_SUFFIX = ".recipe.json"
+#: Sources that decide what a recipe renders (the generator's version).
+GENERATOR_SOURCES = ("synth/*.py", "mocap.py")
+
+
+@functools.cache
+def generator_version() -> str:
+    """SHA-256 (hex, 12 digits) of the generator's source files."""
+    package = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for path in sorted(p for pattern in GENERATOR_SOURCES for p in package.glob(pattern)):
+        digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:12]
 
 
 @dataclass(frozen=True)
@@ -52,7 +68,7 @@ class Recipe:
         """Plain-data description: what is hashed and stored next to the capture."""
         clip, skeleton = CLIPS[self.clip]
         return {"name": self.name, "clip": clip, "skeleton": skeleton, "start_s": self.start_s,
-                "seconds": self.seconds, **dict(self.options)}
+                "seconds": self.seconds, **dict(self.options), "generator": generator_version()}
 
     def synth_params(self) -> SynthParams:
         """The generator's parameters, clip paths resolved in this checkout."""
