@@ -3,14 +3,24 @@
 Every pixel is one ray through the pixel centre (through the lens distortion, via
 ``Camera.pixel_rays``). The room is a box (planked floor, walls with skirting, doors and pictures,
 ceiling) intersected analytically, rendered once per camera: it is also the clean plate. The body is
-ray-cast per frame with open3d's ``RaycastingScene``, only inside the bounding box of its projection,
-and shaded with Lambert's law under a fixed key light and an ambient term (no shadows). Clothing takes
-one colour per material; the shirt is close to the wall colour and the shoes to the skirting, so
-background subtraction meets real camouflage. The composite is blurred a little (lens, sensor
-integration: edges are no longer binary) and Gaussian sensor noise is added. The true mask is the set
-of pixels whose centre ray hits the body.
+ray-cast per frame with open3d's ``RaycastingScene``, only inside the bounding box of its projection.
 
-Colours are RGB floats in [0, 1] until ``to_uint8_bgr`` (OpenCV's channel order for writing).
+Light is computed in linear units, as a studio lights a room: a key light high on one side, a weaker fill
+light from the other side and an ambient term for the light bounced by walls, floor and ceiling (stronger
+from above than from below), each surface reflecting it with Lambert's law (no cast shadows). Room and
+body share this model, so a surface turned away from the key light is dimmer but never black. Colours are
+chosen as sRGB (how they look on a screen) and converted to linear albedos.
+
+The camera then does what a real one does: each camera's exposure is metered once on the empty room and
+locked (mid-grey at 18 % linear, as a light meter does), the lens blurs a little and darkens the corners
+(vignetting), a tone curve maps linear light to 8-bit sRGB with a soft shoulder (highlights roll off
+instead of clipping), and Gaussian sensor noise is added. The true mask is the set of pixels whose centre
+ray hits the body.
+
+Clothing takes one colour per material: the shirt is a light grey-blue close to the cool walls, the shoes
+close to the skirting boards, so background subtraction meets real (partial) camouflage.
+
+Colours are RGB floats until ``finish_image`` (which returns OpenCV's BGR channel order for writing).
 """
 
 from __future__ import annotations
@@ -25,23 +35,47 @@ from scipy import ndimage
 from calib.camera import Camera
 from pipeline.synth.posed import MATERIALS, PosedBody
 
-# Clothing and skin, RGB, in MATERIALS order.
+# Clothing and skin, sRGB, in MATERIALS order.
 CLOTHING_COLOURS = {
     "skin": (0.80, 0.60, 0.48),
-    "shirt": (0.78, 0.73, 0.64),  # close to the walls: silhouettes get holes against them
+    "shirt": (0.68, 0.72, 0.76),  # close to the cool walls: silhouettes get holes against them
     "trousers": (0.17, 0.19, 0.27),
     "shoes": (0.09, 0.09, 0.09),  # close to the skirting boards
     "hair": (0.17, 0.11, 0.07),
 }
+# Room surfaces, sRGB; walls in the order +x, -x, +y, -y.
 WALL_COLOURS = ((0.80, 0.76, 0.67), (0.74, 0.76, 0.72), (0.82, 0.78, 0.70), (0.70, 0.72, 0.74))
 FLOOR_COLOUR = (0.45, 0.36, 0.27)
 SKIRTING_COLOUR = (0.11, 0.10, 0.10)
 CEILING_COLOUR = (0.88, 0.88, 0.86)
 
-#: Direction towards the key light (world, unnormalised): high, from one side.
-KEY_LIGHT = (0.4, -0.5, 1.0)
-AMBIENT = 0.45
-DIFFUSE = 0.65
+
+@dataclass(frozen=True)
+class Light:
+    """A distant light: the direction towards it (world, need not be unit) and its irradiance."""
+
+    direction: tuple[float, float, float]
+    intensity: float
+
+
+#: The studio lights: a key light high on one side and a fill light, half as strong, from the other side
+#: (the usual 2:1 key-to-fill ratio of a lit set).
+LIGHTS = (Light((0.4, -0.5, 1.0), 0.8), Light((-0.6, 0.7, 0.5), 0.4))
+#: Irradiance bounced by the room onto a surface facing up; a surface facing the floor gets
+#: ``AMBIENT_FROM_BELOW`` of it (the ceiling is lit and pale, the floor darker).
+AMBIENT = 0.3
+AMBIENT_FROM_BELOW = 0.6
+#: Inward normals of the room's surfaces, in the order of ``_room_colours``: walls +x, -x, +y, -y, floor,
+#: ceiling.
+ROOM_NORMALS = np.array([(-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, 1), (0, 0, -1)], dtype=float)
+#: Exposure: the median luminance of the empty room is metered to this linear value, a little above the
+#: 18 % grey a light meter assumes, so that images average near the middle of the 8-bit range (level 124
+#: after the sRGB curve) with headroom for highlights.
+METERED_GREY = 0.2
+#: Rec. 709 luminance weights of linear RGB.
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+#: Linear exposure above which the tone curve rolls off smoothly towards white instead of clipping.
+SHOULDER = 0.8
 #: Optical blur of the whole image (Gaussian sigma, pixels).
 LENS_BLUR_PX = 0.6
 #: Rays per pixel along each axis for the (static) room.
@@ -88,7 +122,7 @@ def _value_noise(u: np.ndarray, v: np.ndarray, scale: float, rng: np.random.Gene
 
 
 def render_room(camera: Camera, rays: np.ndarray, room: Room) -> np.ndarray:
-    """(H, W, 3) RGB image of the empty room seen by ``camera`` (the clean plate, before noise).
+    """(H, W, 3) linear RGB radiance of the empty room seen by ``camera`` (the clean plate, before the camera).
 
     Rendered with ``ROOM_SUPERSAMPLING`` x ``ROOM_SUPERSAMPLING`` rays per pixel (the pixel rays
     interpolated bilinearly: they vary smoothly) and averaged, so plank seams do not alias.
@@ -98,12 +132,11 @@ def render_room(camera: Camera, rays: np.ndarray, room: Room) -> np.ndarray:
     fine = cv2.resize(rays, (width * s, height * s), interpolation=cv2.INTER_LINEAR)  # sub-pixel centres
     fine /= np.linalg.norm(fine, axis=2, keepdims=True)
     image = _room_colours(camera, fine, room)
-    image = cv2.resize(image.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
-    return image * _vignetting(camera)[:, :, None]
+    return cv2.resize(image.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
 
 
 def _room_colours(camera: Camera, rays: np.ndarray, room: Room) -> np.ndarray:
-    """(H, W, 3) RGB colours of the room surfaces hit by ``rays`` (H, W, 3) from the camera centre."""
+    """(H, W, 3) linear RGB radiance of the room surfaces hit by ``rays`` (H, W, 3) from the camera centre."""
     rng = np.random.default_rng(room.seed)
     centre = camera.centre
     d = rays.reshape(-1, 3).astype(np.float64)
@@ -124,8 +157,7 @@ def _room_colours(camera: Camera, rays: np.ndarray, room: Room) -> np.ndarray:
     candidates = np.where(candidates > 0, candidates, np.inf)
     surface = np.argmin(candidates, axis=0)  # 0..3 walls (+x, -x, +y, -y), 4 floor, 5 ceiling
     hit = centre + np.min(candidates, axis=0)[:, None] * d
-    colour = np.zeros_like(hit)
-    shade = np.ones(len(hit))
+    colour = np.zeros_like(hit)  # (N, 3) sRGB albedo
 
     floor = surface == 4
     x, y = hit[floor, 0], hit[floor, 1]
@@ -140,7 +172,6 @@ def _room_colours(camera: Camera, rays: np.ndarray, room: Room) -> np.ndarray:
     floor_colour = np.asarray(FLOOR_COLOUR) * (plank_tone + grain)[:, None]
     floor_colour[seam] *= 0.55
     colour[floor] = floor_colour
-    shade[floor] = 0.95
 
     for wall in range(4):
         on_wall = surface == wall
@@ -152,12 +183,10 @@ def _room_colours(camera: Camera, rays: np.ndarray, room: Room) -> np.ndarray:
         wall_colour = _wall_features(wall_colour, along, z, rng, room)
         wall_colour[z < 0.12] = SKIRTING_COLOUR
         colour[on_wall] = wall_colour
-        shade[on_wall] = (0.92, 0.8, 0.88, 0.75)[wall]
 
-    ceiling = surface == 5
-    colour[ceiling] = CEILING_COLOUR
-    shade[ceiling] = 0.9
-    return (colour * shade[:, None]).reshape(rays.shape)
+    colour[surface == 5] = CEILING_COLOUR
+    shade = irradiance(ROOM_NORMALS)[surface]  # (N,) every surface is a plane: one irradiance each
+    return (srgb_to_linear(colour) * shade[:, None]).reshape(rays.shape)
 
 
 def _wall_features(colour: np.ndarray, along: np.ndarray, z: np.ndarray, rng, room: Room) -> np.ndarray:
@@ -186,6 +215,32 @@ def _wall_features(colour: np.ndarray, along: np.ndarray, z: np.ndarray, rng, ro
             colour[inside] = tint * (0.6 + 0.4 * pattern)[:, None]
             colour[border] = (0.12, 0.10, 0.08)
     return colour
+
+
+def irradiance(normals: np.ndarray) -> np.ndarray:
+    """(N,) Light received by surfaces with unit normals (N, 3): hemispherical ambient plus Lambert lights.
+
+    The ambient term blends from ``AMBIENT`` facing up to ``AMBIENT * AMBIENT_FROM_BELOW`` facing down
+    (a hemisphere light); each of ``LIGHTS`` adds its intensity times the cosine of incidence.
+    """
+    up = normals[:, 2]
+    ambient = AMBIENT * (AMBIENT_FROM_BELOW + (1.0 - AMBIENT_FROM_BELOW) * (1.0 + up) / 2.0)
+    direct = sum(
+        light.intensity * np.clip(normals @ (np.asarray(light.direction) / np.linalg.norm(light.direction)), 0, None)
+        for light in LIGHTS
+    )
+    return ambient + direct
+
+
+def srgb_to_linear(colour: np.ndarray) -> np.ndarray:
+    """Linear values of sRGB-encoded colours in [0, 1] (IEC 61966-2-1)."""
+    colour = np.asarray(colour, dtype=float)
+    return np.where(colour <= 0.04045, colour / 12.92, ((colour + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(value: np.ndarray) -> np.ndarray:
+    """sRGB encoding of linear values in [0, 1] (IEC 61966-2-1), same dtype as the input."""
+    return np.where(value <= 0.0031308, 12.92 * value, 1.055 * np.power(np.maximum(value, 0.0031308), 1 / 2.4) - 0.055)
 
 
 def _vignetting(camera: Camera) -> np.ndarray:
@@ -222,7 +277,8 @@ def render_body(
 ) -> BodyLayer:
     """Ray-cast the posed body from ``camera`` (pixel rays (H, W, 3)) and shade it.
 
-    ``colours`` (len(MATERIALS), 3) are the RGB albedos of the materials.
+    ``colours`` (len(MATERIALS), 3) are the sRGB albedos of the materials; the layer's colours are linear
+    radiance.
     """
     width, height = camera.size
     mask = np.zeros((height, width), dtype=bool)
@@ -249,10 +305,8 @@ def render_body(
     view = box_rays[hit].astype(np.float64)
     normals = np.where((np.einsum("nd,nd->n", normals, view) > 0)[:, None], -normals, normals)  # inner side
     materials = posed.vertex_materials[corners[np.arange(len(corners)), np.argmax(weights, axis=1)]]
-    light = np.asarray(KEY_LIGHT) / np.linalg.norm(KEY_LIGHT)
-    lambert = AMBIENT + DIFFUSE * np.clip(normals @ light, 0.0, None)
     facing = 0.85 + 0.15 * np.clip(-np.einsum("nd,nd->n", normals, view), 0.0, 1.0)  # soft rim darkening
-    shaded = colours[materials] * (lambert * facing)[:, None]
+    shaded = srgb_to_linear(colours[materials]) * (irradiance(normals) * facing)[:, None]
 
     box_mask = hit.reshape(v1 - v0 + 1, u1 - u0 + 1)
     mask[v0 : v1 + 1, u0 : u1 + 1] = box_mask
@@ -263,14 +317,51 @@ def render_body(
 
 
 def clothing_colours(rng: np.random.Generator) -> np.ndarray:
-    """(len(MATERIALS), 3) RGB albedos: the standard outfit, each colour jittered by a few percent."""
+    """(len(MATERIALS), 3) sRGB albedos: the standard outfit, each colour jittered by a few percent."""
     base = np.array([CLOTHING_COLOURS[name] for name in MATERIALS])
     return np.clip(base * rng.uniform(0.94, 1.06, base.shape), 0.0, 1.0)
 
 
-def finish_image(linear_rgb: np.ndarray, noise_sigma: float, rng: np.random.Generator) -> np.ndarray:
-    """(H, W, 3) uint8 BGR: lens blur, then Gaussian sensor noise of ``noise_sigma`` grey levels."""
-    image = cv2.GaussianBlur(linear_rgb.astype(np.float32), (0, 0), LENS_BLUR_PX) * 255.0
+@dataclass(frozen=True, eq=False)
+class Exposure:
+    """One camera's locked exposure: linear gain per pixel (exposure times the lens's vignetting)."""
+
+    gain: np.ndarray  # (H, W) float32
+
+
+def meter_exposure(camera: Camera, plate: np.ndarray) -> Exposure:
+    """The exposure that brings the median luminance of the empty room ``plate`` (H, W, 3) to ``METERED_GREY``.
+
+    Metered once per camera on the clean plate and then kept for every frame, as a studio locks its
+    cameras' exposure: the person entering the view does not change the background's levels.
+    """
+    vignetting = _vignetting(camera)
+    luminance = (plate @ LUMINANCE) * vignetting
+    gain = METERED_GREY / max(float(np.median(luminance)), 1e-6)
+    return Exposure((gain * vignetting).astype(np.float32))
+
+
+def tone_curve(value: np.ndarray) -> np.ndarray:
+    """8-bit-ready display values in [0, 1] of exposed linear values: a soft shoulder, then sRGB.
+
+    Above ``SHOULDER`` the value is compressed by a tanh that joins the identity with equal slope and
+    tends to 1, so highlights (the pale ceiling, a lit white door) roll off instead of clipping flat.
+    """
+    span = 1.0 - SHOULDER
+    rolled = SHOULDER + span * np.tanh((value - SHOULDER) / span)
+    return linear_to_srgb(np.clip(np.where(value > SHOULDER, rolled, value), 0.0, 1.0))
+
+
+def finish_image(
+    radiance: np.ndarray, exposure: Exposure, noise_sigma: float, rng: np.random.Generator
+) -> np.ndarray:
+    """(H, W, 3) uint8 BGR of linear ``radiance`` (H, W, 3) RGB, as the camera records it.
+
+    Exposure and vignetting, lens blur (in linear light, where optics acts), the tone curve, then
+    Gaussian sensor noise of ``noise_sigma`` grey levels.
+    """
+    exposed = radiance.astype(np.float32) * exposure.gain[:, :, None]
+    image = tone_curve(cv2.GaussianBlur(exposed, (0, 0), LENS_BLUR_PX)).astype(np.float32) * 255.0
     if noise_sigma > 0:
         image = image + rng.normal(0.0, noise_sigma, image.shape).astype(np.float32)
     return cv2.cvtColor(np.clip(np.rint(image), 0, 255).astype(np.uint8), cv2.COLOR_RGB2BGR)

@@ -35,6 +35,7 @@ from pipeline.synth.render import (
     body_scene,
     clothing_colours,
     finish_image,
+    meter_exposure,
     pixel_grid_rays,
     render_body,
     render_room,
@@ -161,10 +162,12 @@ def synthesise(params: SynthParams, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     rays = {camera.name: pixel_grid_rays(camera) for camera in rig}
     plates = {camera.name: render_room(camera, rays[camera.name], room) for camera in rig}
+    exposures = {camera.name: meter_exposure(camera, plates[camera.name]) for camera in rig}
     (out / "background").mkdir()
     for camera in rig:
         # a studio's clean plate is the mean of many empty frames: less noise than one frame
-        background = finish_image(plates[camera.name], params.noise_sigma / CLEAN_PLATE_FRAMES**0.5, noise_rng)
+        noise = params.noise_sigma / CLEAN_PLATE_FRAMES**0.5
+        background = finish_image(plates[camera.name], exposures[camera.name], noise, noise_rng)
         cv2.imwrite(str(out / "background" / f"{camera.name}.png"), background)
 
     sinks = {camera.name: _FrameSink(out, camera.name, params) for camera in rig}
@@ -175,7 +178,8 @@ def synthesise(params: SynthParams, out: Path) -> None:
             layer = render_body(camera, rays[camera.name], scene, posed, colours)
             image = np.where(layer.mask[:, :, None], layer.colour, plates[camera.name])
             paint_distractors(image, distractors, index, frame)
-            sinks[camera.name].write(frame, finish_image(image, params.noise_sigma, noise_rng), layer.mask)
+            recorded = finish_image(image, exposures[camera.name], params.noise_sigma, noise_rng)
+            sinks[camera.name].write(frame, recorded, layer.mask)
         if frame % 20 == 0:
             log.info("rendered frame %d / %d", frame + 1, motion.n_frames)
     for sink in sinks.values():

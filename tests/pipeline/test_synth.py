@@ -16,6 +16,7 @@ from pipeline.cli import main as cli_main
 from pipeline.mocap import load_clip
 from pipeline.synth import build_body, pose_body, posed_mesh, sample_body_surface
 from pipeline.synth.distractors import paint_distractors, random_distractors
+from pipeline.synth.render import AMBIENT, AMBIENT_FROM_BELOW, irradiance, linear_to_srgb, srgb_to_linear, tone_curve
 from pipeline.synth.rig import RingParams, check_rig_sees, ring_rig
 from pipeline.synth.writer import SynthParams, count_video_frames, standing_height, synthesise
 from stages.joints import JOINT_NAMES, SCORED_JOINTS
@@ -214,6 +215,32 @@ def test_capture_layout_and_contents(small_capture):
         difference = np.abs(image.astype(int) - background.astype(int)).max(axis=2)
         assert np.median(difference[mask == 255]) > np.median(difference[mask == 0]) + 10
     assert (small_capture / "groundtruth" / "synth.yaml").is_file()
+
+
+def test_images_are_exposed_mid_grey_with_a_lit_body_and_few_clipped_pixels(small_capture):
+    capture = Capture.open(small_capture)
+    for camera in capture.rig.names:
+        _, image = next(iter(capture.iter_images(camera, [2])))
+        mask = cv2.imread(str(small_capture / "groundtruth" / "masks" / camera / "000002.png"), 0)
+        assert 100 < image.mean() < 150  # metered on the room: near the middle of the 8-bit range
+        assert (image >= 250).mean() < 0.002 and (image <= 5).mean() < 0.002
+        assert np.percentile(image[mask == 255].max(axis=1), 10) > 25  # shadowed side lit by fill and ambient
+
+
+def test_every_surface_receives_at_least_the_ambient_light():
+    directions = np.random.default_rng(0).normal(size=(2000, 3))
+    normals = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    received = irradiance(normals)
+    assert received.min() >= AMBIENT * AMBIENT_FROM_BELOW - 1e-12
+    assert irradiance(np.array([[0.0, 0.0, 1.0]]))[0] > irradiance(np.array([[0.0, 0.0, -1.0]]))[0]
+
+
+def test_tone_curve_is_srgb_below_the_shoulder_and_never_clips_highlights():
+    values = np.linspace(0.0, 0.5, 51)
+    np.testing.assert_allclose(tone_curve(values), linear_to_srgb(values), atol=1e-12)
+    np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(values)), values, atol=1e-12)
+    bright = tone_curve(np.array([0.9, 1.5, 3.0]))
+    assert np.all(np.diff(bright) > 0) and bright[-1] < 1.0
 
 
 def test_video_capture_decodes_with_matching_frame_counts(tmp_path):
