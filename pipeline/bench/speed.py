@@ -91,7 +91,7 @@ def run_speed(out: Path, captures: Path, *, quick: bool, workers: int) -> dict:
     result = {
         "capture": recipe.name, "recipe": describe(recipe), "fps_capture": capture.fps, "workers": workers,
         "frames": n_frames, "short_frames": n_short, "long": long.to_dict(), "short": short.to_dict(),
-        "fps_end_to_end": n_frames / long.seconds if long.ok else 0.0,
+        "fps_end_to_end": n_frames / long.seconds if long.ok else float("nan"),
         "stage_ms_per_frame": ms_per_frame(long),
         "memory_ratio": long.peak_rss_mb / short.peak_rss_mb if short.peak_rss_mb else float("nan"),
     }

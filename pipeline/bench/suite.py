@@ -41,21 +41,20 @@ FLEXION_DEG = 5.0
 class BenchOptions:
     """Where the benchmark writes and how big it is.
 
-    ``captures``: cache of rendered synthetic captures; ``figures``: where the PNGs go; ``workers``: processes
-    for the pipeline runs, renderings and paper sweeps.
+    ``captures``: cache of rendered synthetic captures; ``workers``: processes for the pipeline runs,
+    renderings and paper sweeps.
     """
 
     out: Path
     captures: Path
-    figures: Path
     quick: bool
     workers: int
 
     def command(self, suite: str) -> str:
         """The command line that reproduces one suite's section."""
         parts = ["python -m pipeline bench", f"--out {self.out}", f"--suite {suite}"]
-        if self.figures != self.out / "figures":
-            parts.append(f"--figures {self.figures}")
+        if self.captures != self.out / "captures":
+            parts.append(f"--captures {self.captures}")
         if self.workers != 2:
             parts.append(f"--workers {self.workers}")
         if self.quick:
@@ -185,8 +184,12 @@ def format_speed(speed: dict) -> str:
              f"`python -m pipeline run` on a fresh output directory, {speed['workers']} workers.", ""]
     lines.append(format_table(
         ("run", "frames", "ok", "wall s", "frames/s", "peak RSS MB", "load before"),
-        [(name, run["frames"], run["ok"], run["seconds"], run["frames"] / run["seconds"], run["peak_rss_mb"],
-          run["load"]) for name, run in (("long", long), ("short (memory check)", short))]))
+        [(name, run["frames"], run["ok"], run["seconds"], run["frames"] / run["seconds"] if run["ok"] else None,
+          run["peak_rss_mb"], run["load"]) for name, run in (("long", long), ("short (memory check)", short))]))
+    for name, run in (("long", long), ("short", short)):
+        if not run["ok"]:
+            lines += ["", f"The {name} run failed (exit status {run['returncode']}); the end of its log:", "",
+                      "```", run.get("log_tail", ""), "```"]
     lines += ["", format_table(("stage", "ms/frame"), list(speed["stage_ms_per_frame"].items()) +
                                [("**total (stages)**", sum(speed["stage_ms_per_frame"].values()))])]
     if tracker:
@@ -226,11 +229,11 @@ def format_sweep(rows: list[dict], x_name: str) -> str:
     distances = [d for d in ("normals", "points", "algebraic") if any(r["distance"] == d for r in rows)]
     xs = sorted({row["x"] for row in rows})
     cell = {(row["x"], row["distance"]): row for row in rows}
-    extra = "mask IoU" if x_name == "noise" else "observations"
+    extra = "mask IoU" if x_name == "noise" else "reconstructed"
     table = []
     for x in xs:
         first = next(cell[(x, d)] for d in distances if (x, d) in cell)
-        table.append((f"{x:g}", f"{first['mask_iou']:.3f}" if x_name == "noise" else first["observations"],
+        table.append((f"{x:g}", f"{first['mask_iou']:.3f}" if x_name == "noise" else round(first["observations"]),
                       first["frames"],
                       *[cell[(x, d)]["angle_error_deg"] if (x, d) in cell else None for d in distances],
                       *[cell[(x, d)]["mpjpe_mm"] if (x, d) in cell else None for d in distances],
@@ -260,21 +263,53 @@ def format_paper(paper: dict, figure: str | None) -> str:
     return "\n".join(lines)
 
 
-def format_results(results: dict, figure_links: dict[str, str] | None = None) -> str:
-    """The whole results.md from a results.json dictionary (``figure_links``: suite -> image path)."""
+SPEED_NOTES = (
+    "How: the wall time of `python -m pipeline run <capture> --out <fresh folder> --workers 2`, measured from "
+    "outside (interpreter start, imports, video decoding, all five stages, every output written). Stage ms/frame "
+    "= the seconds in the stage's manifest / the capture's frames. Peak memory = `ru_maxrss` of the run's process "
+    "tree (`os.wait4`: the largest single process, workers included). The machine is shared with other work; "
+    "the load average before each run says how busy it was.")
+UNSEEN_NOTES = (
+    "How: each capture is synthetic (`pipeline.synth`: a body driven by CMU motion capture, ray-cast into a "
+    "textured room), rendered once and cached by recipe; `python -m pipeline run` processes it (2 workers) and "
+    "`pipeline.evaluate.evaluate_run` scores `export/joints.csv` against `groundtruth/joints.csv`: MPJPE over the "
+    "15 scored joints, frames estimated / frames, the worst frame's MPJPE, mean absolute knee and elbow flexion "
+    "errors, and the silhouette stage's IoU with the true masks. What is unseen: the tracker's ellipsoid sizes "
+    "were measured on the MakeHuman mesh posed by md_walk and 135_04, and its initialisation pose library was "
+    "sampled from 135_04, md_walk and 09_01, so for those clips the *poses* are not new (the spans, cameras, "
+    "noise and the capsule body are); 135_07 and 131_05 and the capsule body were never used for tuning.")
+PAPER_NOTES = (
+    "How: in memory, calling the stage functions (`stages.reconstruction.reconstruct`, "
+    "`stages.tracking.tracker.track_frame`) on the true silhouettes of a 56 fps rendering, perturbed "
+    "(`pipeline.bench.masks.perturb_mask`: random smooth erosion/dilation of the outline and holes, growing "
+    "with the strength), then 20 % outliers added uniformly in the working volume. Every sequence starts from "
+    "the data alone (automatic initialisation); the subject's height is given. The paper plots radians; this "
+    "page degrees.")
+
+
+def format_results(results: dict, figure_links: dict[str, str] | None = None, *, source: Path | None = None) -> str:
+    """The whole results page from a results.json dictionary (``figure_links``: suite -> image path)."""
     links = figure_links or {}
-    lines = ["# Benchmark results", "", "Written by `python -m pipeline bench` from results.json; each section "
-             "names the command that measured it.", "", "## Targets", "", format_targets(results)]
-    for suite, title, body in (("speed", "Speed", format_speed), ("unseen", "Accuracy on unseen captures",
-                                                                   format_unseen)):
-        if suite in results:
-            lines += ["", f"## {title}", "", _provenance(results[suite]), ""]
-            if suite in links:
-                lines += [f"![{suite}]({links[suite]})", ""]
-            lines.append(body(results[suite]))
-    if "paper" in results:
-        lines += ["", "## The paper's experiments (Horaud et al. 2009, Sec. 4.1, Fig. 4)", "",
-                  _provenance(results["paper"]), "", format_paper(results["paper"], links.get("paper"))]
+    origin = f" from `{source}`" if source is not None else ""
+    lines = ["# Benchmark results", "",
+             f"Drawn by `python -m pipeline bench`{origin}; each section names the command that measured it. "
+             "`make bench` runs every suite (`ARGS=\"--suite speed|unseen|paper\"` for one, `--quick` for a "
+             "smoke run); `python -m pipeline bench --report-only --docs docs` redraws docs/results.md and "
+             "docs/figures/ from the stored results without measuring again.",
+             "", "## Targets", "", format_targets(results)]
+    sections = (("speed", "Speed", SPEED_NOTES, format_speed),
+                ("unseen", "Accuracy on unseen captures", UNSEEN_NOTES, format_unseen),
+                ("paper", "The paper's experiments (Horaud et al. 2009, Sec. 4.1, Fig. 4)", PAPER_NOTES, None))
+    for suite, title, notes, body in sections:
+        if suite not in results:
+            continue
+        lines += ["", f"## {title}", "", _provenance(results[suite]), "", notes, ""]
+        if body is None:
+            lines.append(format_paper(results[suite], links.get(suite)))
+            continue
+        if suite in links:
+            lines += [f"![{suite}]({links[suite]})", ""]
+        lines.append(body(results[suite]))
     return "\n".join(lines) + "\n"
 
 
@@ -319,17 +354,25 @@ def suite_runners() -> dict[str, Callable[..., dict]]:
     return {"speed": run_speed, "unseen": run_unseen, "paper": run_paper}
 
 
-def draw_figures(results: dict, options: BenchOptions) -> dict[str, Path]:
-    """The PNGs of the suites present in ``results`` (suite -> path)."""
+def draw_figures(results: dict, folder: Path) -> dict[str, Path]:
+    """The PNGs of the suites present in ``results``, drawn into ``folder`` (suite -> path)."""
     drawn = {}
     if "speed" in results and results["speed"].get("long", {}).get("ok"):
-        drawn["speed"] = figures.speed_figure(results["speed"], options.figures / "speed_stages.png")
+        drawn["speed"] = figures.speed_figure(results["speed"], folder / "speed_stages.png")
     if "unseen" in results and _scored(results["unseen"]):
-        drawn["unseen"] = figures.unseen_figure(results["unseen"], options.figures / "unseen_mpjpe.png",
+        drawn["unseen"] = figures.unseen_figure(results["unseen"], folder / "unseen_mpjpe.png",
                                                 target_mm=MPJPE_MM, worst_target_mm=WORST_FRAME_MM)
     if "paper" in results:
-        drawn["paper"] = figures.paper_figure(results["paper"], options.figures / "paper_fig4.png")
+        drawn["paper"] = figures.paper_figure(results["paper"], folder / "paper_fig4.png")
     return drawn
+
+
+def write_report(results: dict, markdown: Path, *, source: Path) -> None:
+    """``markdown`` from ``results`` (read from ``source``), figures in ``figures/`` beside it."""
+    markdown = Path(markdown)
+    drawn = draw_figures(results, markdown.parent / "figures")
+    links = {suite: os.path.relpath(path, markdown.parent) for suite, path in drawn.items()}
+    atomic.write_text(markdown, format_results(results, links, source=source))
 
 
 def json_safe(value):
@@ -346,11 +389,9 @@ def json_safe(value):
 
 
 def write_outputs(results: dict, options: BenchOptions) -> None:
-    """results.json, the figures and results.md (figure links relative to the markdown file)."""
+    """``<out>/results.json``, ``<out>/results.md`` and ``<out>/figures/``."""
     atomic.write_text(options.out / RESULTS_JSON, json.dumps(results, indent=1, allow_nan=False) + "\n")
-    drawn = draw_figures(results, options)
-    links = {suite: os.path.relpath(path, options.out) for suite, path in drawn.items()}
-    (options.out / RESULTS_MD).write_text(format_results(results, links))
+    write_report(results, options.out / RESULTS_MD, source=options.out / RESULTS_JSON)
 
 
 def run_bench(suites: Sequence[str], options: BenchOptions, *, log: Callable[[str], None] = print) -> dict:

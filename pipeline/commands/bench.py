@@ -3,10 +3,11 @@
 Examples:
   python -m pipeline bench --out runs/bench                      # every suite (make bench)
   python -m pipeline bench --out runs/bench --suite speed --quick  # smoke run, a few frames
-  python -m pipeline bench --out runs/bench --suite paper --figures docs/figures
+  python -m pipeline bench --out runs/bench --report-only --docs docs   # redraw docs/results.md, docs/figures
 
 Writes <out>/results.json (one section per suite; running a suite replaces only its own), <out>/results.md
-(tables, targets met or missed) and PNG figures (default <out>/figures). Synthetic captures are rendered
+(tables, targets met or missed) and <out>/figures/*.png; with --docs DIR also DIR/results.md and
+DIR/figures/*.png. Synthetic captures are rendered
 once into <out>/captures/<name>/ with their recipe beside them (<name>.recipe.json) and rendered again only
 when the recipe changes. Suites:
   speed   the paper's studio (6 cameras 780x580 28 fps): end-to-end frames/s of `python -m pipeline run`,
@@ -23,7 +24,7 @@ import argparse
 from pathlib import Path
 
 from calib.errors import InputError
-from pipeline.bench.suite import SUITES, BenchOptions, run_bench
+from pipeline.bench.suite import RESULTS_JSON, RESULTS_MD, SUITES, BenchOptions, load_results, run_bench, write_report
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,15 +33,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="few frames per capture: a smoke run of a few minutes")
     parser.add_argument("--workers", type=int, default=2, help="worker processes (pipeline runs, rendering, sweeps)")
     parser.add_argument("--captures", type=Path, help="cache of synthetic captures (default <out>/captures)")
-    parser.add_argument("--figures", type=Path, help="where the PNG figures go (default <out>/figures)")
+    parser.add_argument("--docs", type=Path, metavar="DIR", help="also write DIR/results.md and DIR/figures/")
+    parser.add_argument("--report-only", action="store_true",
+                        help="measure nothing: redraw the tables and figures from <out>/results.json")
 
 
 def main(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise InputError(f"--workers {args.workers}: expected at least 1")
-    options = BenchOptions(out=args.out, captures=args.captures or args.out / "captures",
-                           figures=args.figures or args.out / "figures", quick=args.quick, workers=args.workers)
-    suites = SUITES if args.suite == "all" else (args.suite,)
-    run_bench(suites, options)
-    print(f"written: {args.out / 'results.json'}, {args.out / 'results.md'}")
+    source = args.out / RESULTS_JSON
+    if args.report_only:
+        results = load_results(source)
+        if not results:
+            raise InputError(f"{source}: no results to report (expected a previous `python -m pipeline bench` run)")
+        write_report(results, args.out / RESULTS_MD, source=source)
+    else:
+        options = BenchOptions(out=args.out, captures=args.captures or args.out / "captures", quick=args.quick,
+                               workers=args.workers)
+        results = run_bench(SUITES if args.suite == "all" else (args.suite,), options)
+    written = [source, args.out / RESULTS_MD]
+    if args.docs is not None:
+        write_report(results, args.docs / RESULTS_MD, source=source)
+        written.append(args.docs / RESULTS_MD)
+    print("written: " + ", ".join(str(path) for path in written))
     return 0

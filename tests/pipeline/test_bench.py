@@ -267,8 +267,15 @@ def test_results_round_trip_through_strict_json(results, tmp_path):
 
 
 def test_command_names_only_options_that_differ_from_the_defaults(tmp_path):
-    options = suite.BenchOptions(out=tmp_path, captures=tmp_path / "captures", figures=tmp_path / "figures",
-                                 quick=False, workers=2)
+    options = suite.BenchOptions(out=tmp_path, captures=tmp_path / "captures", quick=False, workers=2)
     assert options.command("speed") == f"python -m pipeline bench --out {tmp_path} --suite speed"
-    quick = suite.BenchOptions(out=tmp_path, captures=tmp_path, figures=tmp_path / "docs", quick=True, workers=1)
-    assert quick.command("paper").endswith(f"--suite paper --figures {tmp_path / 'docs'} --workers 1 --quick")
+    quick = suite.BenchOptions(out=tmp_path, captures=tmp_path / "cache", quick=True, workers=1)
+    assert quick.command("paper").endswith(f"--suite paper --captures {tmp_path / 'cache'} --workers 1 --quick")
+
+
+def test_report_draws_every_figure_and_links_it_from_the_page(results, tmp_path):
+    suite.write_report(results, tmp_path / "docs" / "results.md", source=tmp_path / "results.json")
+    text = (tmp_path / "docs" / "results.md").read_text()
+    for name in ("speed_stages.png", "unseen_mpjpe.png", "paper_fig4.png"):
+        assert (tmp_path / "docs" / "figures" / name).stat().st_size > 0
+        assert f"(figures/{name})" in text
