@@ -198,7 +198,10 @@ def format_speed(speed: dict) -> str:
                       f"{tracker['fps_tracked']:.1f} frames/s over tracked frames, {tracker['fps_all']:.1f} over all; "
                       f"an initialisation takes {tracker['ms_initialisation']:.0f} ms; statuses "
                       f"{tracker['statuses']}."]
-    lines += ["", f"Peak memory long / short: {speed['memory_ratio']:.2f}."]
+    bench = speed["made"]["bench_memory"]
+    lines += ["", f"Peak memory long / short: {fmt(speed['memory_ratio'], 2)}. For the record, `getrusage` in the "
+                  f"benchmark process after the suite: RUSAGE_SELF {bench['self_mb']:.0f} MB (includes the in-process "
+                  f"tracker timing), RUSAGE_CHILDREN {bench['children_mb']:.0f} MB (largest child so far)."]
     return "\n".join(lines)
 
 
@@ -220,7 +223,7 @@ def format_unseen(unseen: dict) -> str:
     lines = [format_table([header for header, _ in UNSEEN_COLUMNS], rows)]
     failed = [row for row in unseen["rows"] if "mpjpe_mm" not in row]
     for row in failed:
-        reason = row.get("error") or row["run"].get("log_tail", "")
+        reason = row.get("error") or row.get("run", {}).get("log_tail", "")
         lines += ["", f"`{row['capture']}` was not scored: {reason}"]
     return "\n".join(lines)
 

@@ -29,12 +29,20 @@ def unseen_recipes(quick: bool) -> list[Recipe]:
     return [recipe.quick() for recipe in UNSEEN if recipe.name in QUICK_UNSEEN] if quick else list(UNSEEN)
 
 
-def ensure_captures(captures: Path, recipes: list[Recipe], workers: int) -> list[Path]:
+def render(captures: Path, recipe: Recipe) -> Path | str:
+    """The capture's directory, or why the generator refused the recipe (the row then reports it)."""
+    try:
+        return ensure_capture(captures, recipe)
+    except (InputError, RuntimeError) as error:
+        return f"capture not rendered: {error}"
+
+
+def ensure_captures(captures: Path, recipes: list[Recipe], workers: int) -> list[Path | str]:
     """Render the missing captures, ``workers`` at a time (each rendering is single-threaded)."""
     if workers <= 1:
-        return [ensure_capture(captures, recipe) for recipe in recipes]
+        return [render(captures, recipe) for recipe in recipes]
     with ProcessPoolExecutor(workers) as pool:
-        return list(pool.map(ensure_capture, [captures] * len(recipes), recipes))
+        return list(pool.map(render, [captures] * len(recipes), recipes))
 
 
 def score_row(metrics: dict) -> dict:
@@ -64,6 +72,9 @@ def run_unseen(out: Path, captures: Path, *, quick: bool, workers: int) -> dict:
     paths = ensure_captures(captures, recipes, workers)
     rows = []
     for recipe, path in zip(recipes, paths, strict=True):
+        if isinstance(path, str):
+            rows.append({"capture": recipe.name, **describe(recipe), "error": path})
+            continue
         frames = len(Capture.open(path).frame_numbers)
         measure = run_pipeline(path, out / "unseen" / recipe.name, workers=workers, frames=frames, fresh=False)
         row = {"capture": recipe.name, **describe(recipe), "frames": frames, "run": measure.to_dict()}

@@ -190,7 +190,7 @@ def _sweep(errors: dict[float, dict[str, float]]) -> list[dict]:
 @pytest.fixture()
 def results():
     made = {"date": "2026-01-01T00:00:00+00:00", "commit": "abc1234", "seconds": 60.0, "load_before": 1.0,
-            "load_after": 1.5, "cpus": 2}
+            "load_after": 1.5, "cpus": 2, "bench_memory": {"self_mb": 900.0, "children_mb": 850.0}}
     run = {"ok": True, "frames": 168, "seconds": 8.0, "peak_rss_mb": 500.0, "load": 1.0,
            "stage_seconds": {"silhouettes": 3.0, "tracking": 4.0}}
     row = {"capture": "walk", "clip": "md_walk", "body": "mesh", "cameras": 6, "size": "780x580", "noise": 2.0,
@@ -208,7 +208,8 @@ def results():
                                                    "fps_all": 90.0, "ms_initialisation": 900.0,
                                                    "statuses": {"tracked": 99, "initialised": 1}}},
         "unseen": {"quick": True, "command": "python -m pipeline bench --suite unseen --quick", "made": made,
-                   "rows": [row, {"capture": "broken", "run": {**run, "ok": False, "log_tail": "boom"}}],
+                   "rows": [row, {"capture": "broken", "run": {**run, "ok": False, "log_tail": "boom"}},
+                            {"capture": "unrendered", "error": "capture not rendered: no camera sees it"}],
                    "mean": unseen.mean_row([row])},
         "paper": {"quick": False, "command": "python -m pipeline bench --suite paper", "made": made,
                   "capture": "paper", "recipe": recipes.describe(recipes.PAPER), "frames": 100,
@@ -251,7 +252,8 @@ def test_results_markdown_has_every_section_command_and_verdict(results):
     for section in results.values():
         assert section["command"] in text
     assert "**MISSED**" in text and "| met |" in text
-    assert "`broken` was not scored: boom" in text and "![Fig. 4 redone](figures/paper_fig4.png)" in text
+    assert "`broken` was not scored: boom" in text and "`unrendered` was not scored: capture not" in text
+    assert "![Fig. 4 redone](figures/paper_fig4.png)" in text
 
 
 def test_results_round_trip_through_strict_json(results, tmp_path):
