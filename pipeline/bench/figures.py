@@ -78,12 +78,12 @@ def unseen_figure(unseen: dict, path: Path, *, target_mm: float, worst_target_mm
     rows = [row for row in unseen["rows"] if "mpjpe_mm" in row]
     figure, axes = plt.subplots(figsize=(10, 4.5))
     names = [row["capture"] for row in rows]
-    axes.bar(names, [row["mpjpe_mm"] for row in rows], color="tab:blue", label="MPJPE")
+    bars = axes.bar(names, [row["mpjpe_mm"] for row in rows], color="tab:blue", label="MPJPE")
+    axes.bar_label(bars, fmt="%.0f", fontsize=8)
     axes.plot(names, [row["worst_frame_mm"] for row in rows], "v", color="tab:red", label="worst frame")
     axes.axhline(target_mm, color="tab:blue", ls="--", lw=1, label=f"target MPJPE {target_mm:g} mm")
     axes.axhline(worst_target_mm, color="tab:red", ls=":", lw=1, label=f"target worst {worst_target_mm:g} mm")
-    axes.set_yscale("log")
-    axes.set_ylabel("mm (log scale)")
+    axes.set_ylabel("mm")
     axes.set_title("Unseen captures: joint position error over the 15 scored joints")
     axes.tick_params(axis="x", labelrotation=30)
     axes.legend(fontsize=8)
