@@ -1,6 +1,6 @@
 """Build the tracker's pose library (stages/tracking/data/poses.npz) from motion-capture clips.
 
-    python -m pipeline.poselib [--out stages/tracking/data/poses.npz] [--count 150]
+    python -m pipeline.poselib [--out stages/tracking/data/poses.npz] [--count 120]
 
 Poses come from clips that are NOT evaluation samples (135_07 taekwondo and 131_05 leaning are kept
 out): 135_04 (front kicks), md_walk (walking) and 09_01 (running). Each frame's 17 joints are made
@@ -8,6 +8,12 @@ body-independent: turned to face +y (hip line along +x), pelvis above the origin
 divided by the subject's standing height (estimated by fitting the default body with its size free).
 Farthest-point sampling then keeps `count` poses that differ most from each other (mean joint
 distance), so that rare poses (the top of a kick) are as present as common ones (standing).
+
+The file holds these joints (`joints` (M, 17, 3), `source`) and, for every body configuration in
+BODIES, the same poses retargeted to it by inverse kinematics as pose vectors, after the generic
+standing, bending and squatting poses of `stages.tracking.init.generic_poses` (`poses_<body>` (G + M, D):
+joint angles, root at x = y = 0, yaw 0, root height as a fraction of standing height). Joint angles do
+not depend on the subject's size, so the tracker's initialisation uses them as they are.
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ import numpy as np
 
 from pipeline.mocap import load_clip
 from stages.tracking.body import load_body
-from stages.tracking.init import heading, retarget
+from stages.tracking.init import heading, library_poses, retarget
 
 MOCAP = Path(__file__).resolve().parent / "data"
 CLIPS = (
@@ -28,6 +34,7 @@ CLIPS = (
     ("clips/09_01.bvh", None),
 )
 SHARED_MOCAP = Path("/work/shared/mocap")
+BODIES = ("default", "paper")
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "stages" / "tracking" / "data" / "poses.npz"
 SAMPLE_FPS = 20.0  # consecutive poses at 120 Hz are near-duplicates
 HEIGHT_FRAMES = 12  # frames used to estimate a subject's height
@@ -80,7 +87,11 @@ def build(count: int) -> dict[str, np.ndarray]:
         print(f"{clip}: {len(joints)} frames at {SAMPLE_FPS} fps, subject height {height:.3f} m")
     joints = np.concatenate(all_joints)
     keep = farthest_poses(joints, count)
-    return {"joints": joints[keep].astype(np.float64), "source": np.array(sources)[keep]}
+    library = {"joints": joints[keep].astype(np.float64), "source": np.array(sources)[keep]}
+    for name in BODIES:
+        library[f"poses_{name}"] = library_poses(load_body(name), library["joints"])
+        print(f"retargeted {len(keep)} poses to the {name!r} body")
+    return library
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -16,6 +16,7 @@ dR/dθ = [w]× R; a translational DOF moves them by dx/dθ = w.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, replace
 from importlib import resources
 
@@ -119,6 +120,14 @@ class BodyModel:
         Segment carrying each joint of `JOINT_NAMES`.
     joint_offset : (17, 3) float
         Joint centre in its segment's frame, metres.
+    length_groups : tuple of str
+        Names of the segment-length factors (e.g. "thigh" for both thighs), possibly empty.
+    length_group : (S,) int
+        Length factor stretching each segment, −1 for segments of fixed length.
+    length_axis : (S, 3) float
+        Unit direction, in the segment's frame, along which its length factor stretches it.
+    length_factors : (G,) float
+        Current length factors (1 = the configuration's proportions).
     """
 
     name: str
@@ -141,6 +150,10 @@ class BodyModel:
     standing_root: np.ndarray
     joint_segment: np.ndarray
     joint_offset: np.ndarray
+    length_groups: tuple[str, ...]
+    length_group: np.ndarray
+    length_axis: np.ndarray
+    length_factors: np.ndarray
 
     @property
     def pose_size(self) -> int:
@@ -179,16 +192,28 @@ class BodyModel:
         R_seg = kin.R[self.joint_segment]
         return kin.t[self.joint_segment] + np.einsum("jab,jb->ja", R_seg, self.joint_offset)
 
+    def segment_twists(self, kin: Kinematics) -> np.ndarray:
+        """Rigid velocity of every segment per unit change of every DOF, T (S, 6, D).
+
+        A segment moving with angular velocity ω and linear velocity v (of the world origin) moves its
+        point x by ω × x + v; column d of T[s] is (ω, v) = (w_d, o_d × w_d) for a revolute DOF with
+        world axis w_d through o_d, (0, w_d) for a translation along w_d, and zero when d does not
+        move s.
+        """
+        T = np.zeros((len(self.segment_names), 6, self.pose_size))
+        w = kin.axis.T  # (3,D)
+        v = np.where(self.dof_revolute[None, :], np.cross(kin.origin, kin.axis).T, w)
+        T[:, :3, :] = np.where(self.dof_revolute[None, :], w, 0.0)[None]
+        T[:, 3:, :] = v[None]
+        return T * self.moves.T[:, None, :]
+
     def point_jacobian(self, kin: Kinematics, x: np.ndarray, segment: np.ndarray) -> np.ndarray:
         """Derivatives (N, 3, D) of body-fixed world points x (N, 3) riding on `segment` (N,).
 
-        dx/dθ_d = w_d × (x − o_d) for revolute DOFs, w_d for translations, zero for DOFs that do not
-        move the point's segment.
+        dx/dθ_d = ω_d × x + v_d with (ω_d, v_d) the segment's rigid velocity (`segment_twists`).
         """
-        J = np.cross(kin.axis[None, :, :], x[:, None, :] - kin.origin[None, :, :])  # (N,D,3)
-        J[:, ~self.dof_revolute, :] = kin.axis[~self.dof_revolute]
-        J *= self.moves[:, segment].T[:, :, None]
-        return J.transpose(0, 2, 1)
+        B = np.concatenate([-skew(x), np.broadcast_to(np.eye(3), x.shape + (3,))], axis=2)  # (N,3,6)
+        return B @ self.segment_twists(kin)[segment]
 
     def joint_jacobian(self, pose_or_kin: np.ndarray | Kinematics) -> np.ndarray:
         """Derivatives (17, 3, D) of `joint_positions` with respect to the pose."""
@@ -203,6 +228,34 @@ class BodyModel:
         return replace(self, height_m=float(height_m), offset=self.offset * s,
                        ellipsoid_centre=self.ellipsoid_centre * s, semi_axes=self.semi_axes * s,
                        standing_root=self.standing_root * s, joint_offset=self.joint_offset * s)
+
+    def with_lengths(self, factors: np.ndarray) -> BodyModel:
+        """The same body with segment-length factors `factors` (G,) (absolute, 1 = as configured).
+
+        Segment s of a length group is stretched by S = I + (ℓ − 1) u uᵀ along its axis u (in its
+        frame): the offsets of its child joints, the joint centres and ellipsoid centres it carries,
+        and the shapes of its ellipsoids (an ellipsoid (x − t)ᵀ A⁻¹ (x − t) = 1 with A = R diag(a²) Rᵀ
+        maps to A' = S A Sᵀ). Stretches along one axis compose, so the change from the current
+        factors is the stretch by their ratio.
+        """
+        factors = np.asarray(factors, dtype=float)
+        if factors.shape != self.length_factors.shape or not np.all(factors > 0):
+            raise ValueError(f"length factors: expected {len(self.length_groups)} positive numbers, "
+                             f"got {factors.tolist()}")
+        ratio = np.ones(len(self.segment_names))
+        grouped = self.length_group >= 0
+        ratio[grouped] = factors[self.length_group[grouped]] / self.length_factors[self.length_group[grouped]]
+        u = self.length_axis
+        S = np.eye(3) + (ratio - 1.0)[:, None, None] * u[:, :, None] * u[:, None, :]  # (S,3,3)
+        offset = self.offset.copy()
+        offset[1:] = np.einsum("sab,sb->sa", S[self.parent[1:]], self.offset[1:])
+        S_e = S[self.ellipsoid_segment]
+        A = np.einsum("eab,eb,ecb->eac", self.ellipsoid_rotation, self.semi_axes**2, self.ellipsoid_rotation)
+        rotation, semi_axes = _principal_axes(S_e @ A @ S_e.transpose(0, 2, 1), self.ellipsoid_rotation)
+        return replace(self, offset=offset, ellipsoid_rotation=rotation, semi_axes=semi_axes,
+                       ellipsoid_centre=np.einsum("eab,eb->ea", S_e, self.ellipsoid_centre),
+                       joint_offset=np.einsum("jab,jb->ja", S[self.joint_segment], self.joint_offset),
+                       length_factors=factors.copy())
 
     def _kinematics(self, pose_or_kin: np.ndarray | Kinematics) -> Kinematics:
         return pose_or_kin if isinstance(pose_or_kin, Kinematics) else self.fk(pose_or_kin)
@@ -224,6 +277,23 @@ def skew(v: np.ndarray) -> np.ndarray:
     K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
     K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
     return K
+
+
+def _principal_axes(A: np.ndarray, like: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Axes (E, 3, 3) and semi-axes (E, 3) of ellipsoid matrices A = R diag(semi²) Rᵀ (E, 3, 3).
+
+    The eigenvectors are ordered and signed like the columns of `like` (E, 3, 3), so that a stretch
+    along an ellipsoid's own axis keeps its frame.
+    """
+    values, vectors = np.linalg.eigh(A)
+    match = np.abs(np.einsum("eai,eaj->eij", like, vectors))  # |cos| between old axis i and new j
+    permutations = np.array(list(itertools.permutations(range(3))))  # (6,3)
+    fit = match[:, np.arange(3), permutations].sum(axis=2)  # (E,6); a permutation even when b = c
+    order = permutations[np.argmax(fit, axis=1)]  # (E,3): new axis for old axis i
+    R = np.take_along_axis(vectors, order[:, None, :], axis=2)
+    R *= np.sign(np.einsum("eai,eai->ei", like, R))[:, None, :]
+    R[:, :, 2] = np.cross(R[:, :, 0], R[:, :, 1])  # keep it a rotation
+    return R, np.sqrt(np.take_along_axis(values, order, axis=1))
 
 
 def _forward_kinematics(body: BodyModel, pose: np.ndarray) -> Kinematics:
@@ -330,6 +400,13 @@ def _body_from_dict(spec: dict) -> BodyModel:
         e_centre.append(0.5 * (start + end) - joint[s])
         e_axes.append(semi)
 
+    groups = spec.get("lengths", {})
+    length_group, length_axis = np.full(len(names), -1), np.zeros((len(names), 3))
+    for g, entry in enumerate(groups.values()):
+        for seg in entry["segments"]:
+            length_group[index[seg]] = g
+            length_axis[index[seg]] = _AXIS_WORDS[entry["axis"]]
+
     j_seg, j_off = [], []
     for name in JOINT_NAMES:
         j = spec["joints"][name]
@@ -344,7 +421,8 @@ def _body_from_dict(spec: dict) -> BodyModel:
         prior_weight=np.array(prior), moves=moves, ellipsoid_segment=np.array(e_seg),
         ellipsoid_rotation=np.array(e_rot), ellipsoid_centre=np.array(e_centre),
         semi_axes=np.array(e_axes), standing_root=joint[0], joint_segment=np.array(j_seg),
-        joint_offset=np.array(j_off))
+        joint_offset=np.array(j_off), length_groups=tuple(groups), length_group=length_group,
+        length_axis=length_axis, length_factors=np.ones(len(groups)))
 
 
 def _ellipsoid_frame(long_axis: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

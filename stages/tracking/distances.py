@@ -13,11 +13,15 @@ Three ways to measure how far datum i (point y_i, unit outward normal n_i) is fr
   to the surface near a limb's side; residual 1-D, metres.
 
 The pose derivatives come from one identity: moving ellipsoid p rigidly is the same as moving the
-datum the opposite way in the ellipsoid's frame. For a revolute DOF with world axis w through o,
+datum the opposite way in the ellipsoid's frame. For a rigid velocity (ω, v) of the ellipsoid (a point
+x of it moves by ω × x + v),
 
-    dx/dθ = w × (x − o) − (∂x/∂y) (w × (y − o)) − (∂x/∂n) (w × n),
+    dx = ω × x + v − (∂x/∂y) (ω × y + v) − (∂x/∂n) (ω × n),
 
-and for a translation along w, dx/dθ = w − (∂x/∂y) w; DOFs that do not move p's segment give zero.
+which is linear in (ω, v): de = B (ω, v) with B (k, 6) per pair. The pose Jacobian is then
+de/dΛ = B T_s with T_s (6, D) the rigid velocities of the ellipsoid's segment per DOF
+(`BodyModel.segment_twists`), so a least-squares solver can sum 6 × 6 blocks per ellipsoid instead
+of forming (K, k, D) Jacobians.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.tracking.body import BodyModel, Ellipsoids, Kinematics
+from stages.tracking.body import Ellipsoids, Kinematics, skew
 
 DISTANCES = ("normals", "points", "algebraic")
 # q_p(y) is the squared "ellipsoidal radius" of y; at the ellipsoid's centre the radial projection is
@@ -42,15 +46,21 @@ class Residuals:
     ----------
     e : (K, k) float
         Residual of each pair (k = 3 for point distances, 1 for the algebraic one), metres.
-    J : (K, k, D) float or None
-        de/dΛ, or None when not asked for.
+    B : (K, k, 6) float or None
+        de/d(ω, v) for a rigid velocity of each pair's ellipsoid (module docstring), or None when not
+        asked for; de/dΛ = B T_s (`pose_jacobian`).
     J_scale : (K, k) float or None
         de/d(ln s) for a uniform scaling s of the whole body about its root joint, when asked for.
     """
 
     e: np.ndarray
-    J: np.ndarray | None
+    B: np.ndarray | None
     J_scale: np.ndarray | None = None
+
+
+def pose_jacobian(B: np.ndarray, twists: np.ndarray) -> np.ndarray:
+    """de/dΛ (K, k, D) from the rigid derivatives B (K, k, 6) and each pair's segment twists (K, 6, D)."""
+    return B @ twists
 
 
 def residual_size(distance: str) -> int:
@@ -58,8 +68,8 @@ def residual_size(distance: str) -> int:
     return 1 if distance == "algebraic" else 3
 
 
-def residuals(y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, body: BodyModel,
-              kin: Kinematics, ellipsoids: Ellipsoids, *, distance: str = "normals",
+def residuals(y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, kin: Kinematics,
+              ellipsoids: Ellipsoids, *, distance: str = "normals",
               jacobian: bool = False, scale: bool = False) -> Residuals:
     """Residuals (and optionally their pose Jacobians) of the pairs (i[k], p[k]).
 
@@ -69,11 +79,11 @@ def residuals(y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, body: 
         Observed points (metres) and unit outward normals.
     i, p : (K,) int
         Observation and ellipsoid index of every pair.
-    body, kin, ellipsoids
-        The body, its kinematics and posed ellipsoids at the current pose.
+    kin, ellipsoids
+        The body's kinematics and posed ellipsoids at the current pose.
     distance : {"normals", "points", "algebraic"}
     jacobian : bool
-        Also return de/dΛ (K, k, D).
+        Also return the rigid derivatives B (K, k, 6) (see `Residuals`).
     scale : bool
         Also return de/d(ln s) (K, k) for the body's height: scaling every ellipsoid by s about the
         root c is scaling the datum by 1/s about c, so dx/d(ln s) = (x − c) − (∂x/∂y)(y − c).
@@ -83,20 +93,19 @@ def residuals(y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, body: 
     y_k, n_k, t = y[i], n[i], ellipsoids.t[p]
     if distance == "algebraic":
         Q = _shape(ellipsoids, -2.0)[p]
-        return _algebraic(y_k, Q, t, ellipsoids.semi_axes[p], body, kin, p, jacobian, scale)
+        return _algebraic(y_k, Q, t, ellipsoids.semi_axes[p], kin, jacobian, scale)
     if distance == "normals":
         x, A_y, A_n = _normal_point(n_k, _shape(ellipsoids, 2.0)[p], t, jacobian)
     else:
         x, A_y, A_n = _radial_point(y_k, _shape(ellipsoids, -2.0)[p], t)
     e = y_k - x
     if not jacobian:
-        return Residuals(e=e, J=None)
-    J_x = _point_jacobian(x, y_k, n_k, A_y, A_n, body, kin, body.ellipsoid_segment[p])
+        return Residuals(e=e, B=None)
     J_scale = None
     if scale:
         c = kin.t[0]
         J_scale = -(x - c) if A_y is None else -(x - c) + np.einsum("kab,kb->ka", A_y, y_k - c)
-    return Residuals(e=e, J=-J_x, J_scale=J_scale)
+    return Residuals(e=e, B=-_rigid_derivative(x, y_k, n_k, A_y, A_n), J_scale=J_scale)
 
 
 def all_residuals(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
@@ -107,19 +116,17 @@ def all_residuals(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
     """
     if distance not in DISTANCES:
         raise ValueError(f"distance={distance!r}, expected one of {DISTANCES}")
-    t = ellipsoids.t[:, None, :]  # (P,1,3)
+    P = len(ellipsoids.t)
     if distance == "normals":
-        u = np.matmul(n[None], _shape(ellipsoids, 2.0))  # (P,I,3): nᵀM = (Mn)ᵀ, M symmetric
-        lam = 1.0 / np.sqrt(np.einsum("ia,pia->pi", n, u))  # eq. (4)
-        e = y[None] - (lam[:, :, None] * u + t)
-    else:
-        v = y[None] - t  # (P,I,3)
-        q = np.einsum("pia,pia->pi", v, np.matmul(v, _shape(ellipsoids, -2.0)))
-        if distance == "points":
-            e = v * (1.0 - 1.0 / np.sqrt(np.maximum(q, _Q_MIN)))[:, :, None]  # y − (t + v/√q)
-        else:
-            e = (0.5 * ellipsoids.semi_axes.min(axis=1)[:, None] * (q - 1.0))[:, :, None]
-    return e.transpose(1, 0, 2)
+        M = _shape(ellipsoids, 2.0)  # (P,3,3) symmetric, so (nᵀ M)ᵀ = M n
+        u = (n @ M.transpose(1, 0, 2).reshape(3, 3 * P)).reshape(-1, P, 3)  # (I,P,3): one matrix product
+        lam = 1.0 / np.sqrt(np.einsum("ipa,ia->ip", u, n))  # eq. (4)
+        return y[:, None, :] - ellipsoids.t[None] - lam[:, :, None] * u
+    v = y[:, None, :] - ellipsoids.t[None]  # (I,P,3)
+    q = np.einsum("ipa,ipa->ip", v, np.einsum("ipa,pab->ipb", v, _shape(ellipsoids, -2.0)))
+    if distance == "points":
+        return v * (1.0 - 1.0 / np.sqrt(np.maximum(q, _Q_MIN)))[:, :, None]  # y − (t + v/√q)
+    return (0.5 * ellipsoids.semi_axes.min(axis=1)[None, :] * (q - 1.0))[:, :, None]
 
 
 def ellipsoid_point(n: np.ndarray, R: np.ndarray, t: np.ndarray, semi_axes: np.ndarray) -> np.ndarray:
@@ -163,36 +170,31 @@ def _radial_point(y, Q, t):
     return x, A_y, None
 
 
-def _point_jacobian(x, y, n, A_y, A_n, body, kin, segment):
-    """dx/dΛ (K, 3, D) from the rigid-motion identity in the module docstring."""
-    w, o = kin.axis[None, :, :], kin.origin[None, :, :]  # (1,D,3)
-    J = np.cross(w, x[:, None, :] - o)  # (K,D,3)
+def _rigid_derivative(x, y, n, A_y, A_n):
+    """dx/d(ω, v) (K, 3, 6) from the rigid-motion identity in the module docstring.
+
+    dx = −[x]× ω + v − A_y (−[y]× ω + v) − A_n (−[n]× ω).
+    """
+    D = np.empty(x.shape + (6,))
+    D[:, :, :3] = -skew(x)
+    D[:, :, 3:] = np.eye(3)
     if A_y is not None:
-        J -= np.einsum("kab,kdb->kda", A_y, np.cross(w, y[:, None, :] - o))
+        D[:, :, :3] += A_y @ skew(y)
+        D[:, :, 3:] -= A_y
     if A_n is not None:
-        J -= np.einsum("kab,kdb->kda", A_n, np.cross(w, n[:, None, :]))
-    translation = ~body.dof_revolute
-    if np.any(translation):
-        w_t = kin.axis[translation]  # (T,3)
-        J[:, translation, :] = w_t[None] if A_y is None else w_t[None] - np.einsum("kab,tb->kta", A_y, w_t)
-    J *= body.moves[:, segment].T[:, :, None]
-    return J.transpose(0, 2, 1)
+        D[:, :, :3] += A_n @ skew(n)
+    return D
 
 
-def _algebraic(y, Q, t, semi, body, kin, p, jacobian, scale):
+def _algebraic(y, Q, t, semi, kin, jacobian, scale):
     """Plänkers & Fua's algebraic distance q(Y) = YᵀQY (eq. 1) in metres: r = (ρ/2) q, Q = R D Rᵀ."""
     v = y - t
     g = np.einsum("kab,kb->ka", Q, v)
     rho = semi.min(axis=1)
     r = 0.5 * rho * (np.einsum("ka,ka->k", v, g) - 1.0)
     if not jacobian:
-        return Residuals(e=r[:, None], J=None)
-    # Moving the ellipsoid by δ is moving y by −δ in its frame: dr = ρ gᵀ (−dy_equiv).
-    w, o = kin.axis[None, :, :], kin.origin[None, :, :]
-    dy = np.cross(w, y[:, None, :] - o)  # (K,D,3)
-    translation = ~body.dof_revolute
-    dy[:, translation, :] = kin.axis[translation][None]
-    J = -rho[:, None] * np.einsum("ka,kda->kd", g, dy)
-    J *= body.moves[:, body.ellipsoid_segment[p]].T
+        return Residuals(e=r[:, None], B=None)
+    # Moving the ellipsoid by (ω, v) is moving y by −(ω × y + v) in its frame: dr = −ρ gᵀ(ω × y + v).
+    B = -rho[:, None] * np.concatenate([np.cross(y, g), g], axis=1)  # ω·(y × g) = gᵀ(ω × y)
     J_scale = (r - rho * np.einsum("ka,ka->k", g, y - kin.t[0]))[:, None] if scale else None
-    return Residuals(e=r[:, None], J=J[:, None, :], J_scale=J_scale)
+    return Residuals(e=r[:, None], B=B[:, None, :], J_scale=J_scale)

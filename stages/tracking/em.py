@@ -9,7 +9,10 @@ cannot collapse), plus a uniform outlier component 1/V over the working volume (
 `e_step` computes the posteriors t_ip (eq. 13) and the log-likelihood (eq. 12); `m_step` decreases the
 expected complete-data negative log-likelihood (eq. 14) over the pose Λ by a damped Gauss-Newton
 (Levenberg-Marquardt) step with the analytic Jacobians of `distances`, then updates Σ and π with the
-paper's formulas. `fit` owns the loop. The names follow the paper: y, n, x, Σ (`Sigma`), π (`pi`),
+paper's formulas (a generalised EM: one step per M-step is enough for the likelihood to grow). `fit`
+owns the loop and stops when the likelihood gain or the joints' motion becomes negligible. Besides the
+pose, an M-step may estimate the body's overall size and its segment-length factors (with a prior
+towards the configured proportions). The names follow the paper: y, n, x, Σ (`Sigma`), π (`pi`),
 t_ip (`t`).
 """
 
@@ -35,6 +38,14 @@ PRUNE_POSTERIOR = 1e-3
 # Prior strength: a DOF with prior weight 1 is held to its predicted value with this standard
 # deviation (radians) when the data say nothing about it; data dominate it whenever they see it.
 PRIOR_SIGMA_RAD = 0.25
+# Segment-length factors vary between adults by a few per cent of the population's proportions; this
+# is the standard deviation of the prior on ln ℓ towards 0 (the body file's proportions).
+LENGTH_PRIOR_SD = 0.06
+# Length factors a segment may take (people, not caricatures).
+LENGTH_RANGE = (0.75, 1.33)
+# Forward-difference step on ln ℓ for de/d ln ℓ: the stretch acts on ellipsoid shapes, where an
+# analytic derivative would be per distance; residuals are smooth in ℓ, so 1e-5 loses < 1e-5 relative.
+LENGTH_STEP = 1e-5
 # Levenberg-Marquardt: initial damping (relative to the diagonal), growth on a rejected step, and
 # the number of tries before the M-step keeps the current pose (a GEM step never increases eq. 14).
 LM_DAMPING = 1e-3
@@ -59,17 +70,23 @@ class EMParams:
         EM iterations at most.
     tolerance : float
         Stop when the log-likelihood gain per observation falls below this (nats).
+    displacement_m : float
+        Stop when no joint centre moved more than this in the last iteration (metres).
     gauss_newton_steps : int
         Damped Gauss-Newton steps per M-step (1 is a generalised EM step).
     estimate_scale : bool
         Also estimate the body's overall size (standing height) with the pose.
+    estimate_lengths : bool
+        Also estimate the body's segment-length factors with the pose.
     """
 
     distance: str = "normals"
     max_iterations: int = 20
     tolerance: float = 1e-3
+    displacement_m: float = 0.0
     gauss_newton_steps: int = 1
     estimate_scale: bool = False
+    estimate_lengths: bool = False
 
 
 @dataclass(frozen=True)
@@ -114,11 +131,11 @@ class EStep:
 
 @dataclass(frozen=True)
 class MStep:
-    """New parameters from one M-step: pose Λ (D,), mixture (Σ, π) and the body's height (metres)."""
+    """New parameters from one M-step: pose Λ (D,), mixture (Σ, π) and the body (its size and lengths)."""
 
     pose: np.ndarray
     mixture: Mixture
-    height_m: float
+    body: BodyModel
 
 
 @dataclass(frozen=True)
@@ -129,14 +146,14 @@ class FitResult:
     ----------
     pose : (D,) float
         Estimated pose Λ.
-    height_m : float
-        Standing height of the fitted body (the starting body's unless the scale was estimated).
+    body : BodyModel
+        The fitted body (the starting body unless its size or segment lengths were estimated).
     mixture : Mixture
         Final Σ and π.
     iterations : int
         EM iterations run.
     converged : bool
-        The log-likelihood gain fell below the tolerance.
+        The log-likelihood gain or the joints' motion fell below its tolerance.
     log_likelihood : tuple of float
         ln P(Y | Λ) before each iteration and after the last one (length iterations + 1).
     outlier_fraction : float
@@ -144,12 +161,17 @@ class FitResult:
     """
 
     pose: np.ndarray
-    height_m: float
+    body: BodyModel
     mixture: Mixture
     iterations: int
     converged: bool
     log_likelihood: tuple[float, ...]
     outlier_fraction: float
+
+    @property
+    def height_m(self) -> float:
+        """Standing height of the fitted body, metres."""
+        return self.body.height_m
 
 
 def volume_size(volume: np.ndarray) -> float:
@@ -178,44 +200,44 @@ def e_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixt
         return EStep(t=np.zeros((0, P)), t_outlier=np.zeros(0), log_likelihood=0.0)
     e = all_residuals(y, n, body.ellipsoids(pose), distance=distance)  # (I,P,k)
     log_joint = np.empty((I, P + 1))
-    log_joint[:, :P] = np.log(mixture.pi[:P]) + _log_gaussian(e, mixture.Sigma)  # ln π_p N(y_i | x_ip, Σ)
+    log_joint[:, :P] = np.log(mixture.pi[:P]) + log_gaussian(e, mixture.Sigma)  # ln π_p N(y_i | x_ip, Σ)
     log_joint[:, P] = np.log(mixture.pi[P]) - np.log(V)  # ln π_{P+1} / V
     peak = log_joint.max(axis=1, keepdims=True)
-    log_evidence = peak[:, 0] + np.log(np.exp(log_joint - peak).sum(axis=1))  # ln P(y_i | n_i)
-    posterior = np.exp(log_joint - log_evidence[:, None])
-    return EStep(t=posterior[:, :P], t_outlier=posterior[:, P], log_likelihood=float(log_evidence.sum()))
+    joint = np.exp(log_joint - peak)
+    evidence = joint.sum(axis=1, keepdims=True)
+    posterior = joint / evidence  # (I,P+1)
+    log_likelihood = float(np.sum(peak + np.log(evidence)))  # Σ_i ln P(y_i | n_i)
+    return EStep(t=posterior[:, :P], t_outlier=posterior[:, P], log_likelihood=log_likelihood)
 
 
 def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixture: Mixture,
            estep: EStep, *, distance: str = "normals", prior_pose: np.ndarray | None = None,
-           gauss_newton_steps: int = 1, estimate_scale: bool = False) -> MStep:
+           gauss_newton_steps: int = 1, estimate_scale: bool = False, estimate_lengths: bool = False) -> MStep:
     """M-step of Horaud et al. 2009 (Sec. 3, step 3): pose by damped Gauss-Newton, then Σ and π.
 
     The pose minimises ½ Σ_i Σ_p t_ip (y_i − x_ip(Λ))ᵀ Σ⁻¹ (y_i − x_ip(Λ)) (eq. 14 for fixed t_ip)
     plus, for DOFs with a prior weight, ½ w_d ((Λ_d − Λ̂_d) / PRIOR_SIGMA_RAD)² towards `prior_pose`;
     joint limits are enforced by clipping each step. Then Σ = Σ t_ip e_ip e_ipᵀ / Σ t_ip at the new
-    pose and π_p = (1/I) Σ_i t_ip. With `estimate_scale` the body's height is a further unknown of the
-    least squares.
+    pose and π_p = (1/I) Σ_i t_ip. With `estimate_scale` the body's height, with `estimate_lengths`
+    its segment-length factors ln ℓ (prior ½ (ln ℓ / LENGTH_PRIOR_SD)²) are further unknowns.
     """
     I, P = estep.t.shape
     if I == 0:
-        return MStep(pose=pose, mixture=mixture, height_m=body.height_m)
-    i, p = np.nonzero(estep.t > PRUNE_POSTERIOR)
+        return MStep(pose=pose, mixture=mixture, body=body)
+    p, i = np.nonzero(estep.t.T > PRUNE_POSTERIOR)  # pairs grouped by ellipsoid
     t = estep.t[i, p]  # (K,)
-    W = np.linalg.inv(mixture.Sigma)  # Σ⁻¹
-    prior_pose = pose if prior_pose is None else prior_pose
-    prior = body.prior_weight / PRIOR_SIGMA_RAD**2  # (D,)
+    L = np.linalg.cholesky(np.linalg.inv(mixture.Sigma))  # Σ⁻¹ = L Lᵀ: whitened residual Lᵀ e
+    problem = _Problem(y, n, i, p, np.sqrt(t)[:, None], L, distance, prior_pose if prior_pose is not None
+                       else pose, body.prior_weight / PRIOR_SIGMA_RAD**2, estimate_scale,
+                       estimate_lengths and len(body.length_groups) > 0)
+    e = None
     for _ in range(gauss_newton_steps):
-        pose, body = _gauss_newton_step(y, n, i, p, t, W, body, pose, prior, prior_pose, distance,
-                                        estimate_scale)
-    kin = body.fk(pose)
-    e = residuals(y, n, i, p, body, kin, body.ellipsoids(kin), distance=distance).e
-    Sigma = np.einsum("k,ka,kb->ab", t, e, e) / max(t.sum(), np.finfo(float).tiny)
+        pose, body, e = _gauss_newton_step(problem, body, pose)
+    Sigma = (e * t[:, None]).T @ e / max(t.sum(), np.finfo(float).tiny)
     pi = np.empty(P + 1)
     pi[:P] = estep.t.sum(axis=0) / I
     pi[P] = estep.t_outlier.sum() / I
-    return MStep(pose=pose, mixture=Mixture(Sigma=_floor_covariance(Sigma), pi=_floor_priors(pi)),
-                 height_m=body.height_m)
+    return MStep(pose=pose, mixture=Mixture(Sigma=_floor_covariance(Sigma), pi=_floor_priors(pi)), body=body)
 
 
 def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume: np.ndarray,
@@ -243,64 +265,144 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
     history = [estep.log_likelihood]
     converged = len(y) == 0
     iterations = 0
+    joints = body.joint_positions(pose)
     while not converged and iterations < params.max_iterations:
         mstep = m_step(y, n, body, pose, mixture, estep, distance=params.distance, prior_pose=prior_pose,
-                       gauss_newton_steps=params.gauss_newton_steps, estimate_scale=params.estimate_scale)
-        pose, mixture = mstep.pose, mstep.mixture
-        if mstep.height_m != body.height_m:
-            body = body.scaled(mstep.height_m)
+                       gauss_newton_steps=params.gauss_newton_steps, estimate_scale=params.estimate_scale,
+                       estimate_lengths=params.estimate_lengths)
+        pose, mixture, body = mstep.pose, mstep.mixture, mstep.body
         estep = e_step(y, n, body, pose, mixture, V, distance=params.distance)
         iterations += 1
         history.append(estep.log_likelihood)
-        converged = abs(history[-1] - history[-2]) < params.tolerance * len(y)
+        moved = joints
+        joints = body.joint_positions(pose)
+        displacement = np.linalg.norm(joints - moved, axis=1).max()
+        converged = abs(history[-1] - history[-2]) < params.tolerance * len(y) or displacement < params.displacement_m
     outliers = float(estep.t_outlier.mean()) if len(y) else 1.0
-    return FitResult(pose=pose, height_m=body.height_m, mixture=mixture, iterations=iterations,
-                     converged=converged, log_likelihood=tuple(history), outlier_fraction=outliers)
+    return FitResult(pose=pose, body=body, mixture=mixture, iterations=iterations, converged=converged,
+                     log_likelihood=tuple(history), outlier_fraction=outliers)
 
 
-def _log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
+def log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
     """ln N(e | 0, Σ) for residuals e (..., k)."""
     k = Sigma.shape[0]
     L = np.linalg.cholesky(Sigma)
-    z = e @ np.linalg.inv(L).T  # L⁻¹ e, row by row
+    z = (e.reshape(-1, k) @ np.linalg.inv(L).T).reshape(e.shape)  # L⁻¹ e, row by row
     log_det = 2.0 * np.log(np.diag(L)).sum()
     return -0.5 * (np.einsum("...a,...a->...", z, z) + log_det + k * np.log(2.0 * np.pi))
 
 
-def _gauss_newton_step(y, n, i, p, t, W, body, pose, prior, prior_pose, distance, estimate_scale):
-    """One Levenberg-Marquardt step on eq. (14) for fixed posteriors; returns the accepted pose, body.
+@dataclass(frozen=True)
+class _Problem:
+    """The weighted least squares of one M-step (eq. 14 for fixed t_ip): data, pairs and priors.
 
-    The unknowns are Λ and, with `estimate_scale`, ln s of the body's size (an extra last column).
+    Pairs (i[k], p[k]) are sorted by ellipsoid p; `sqrt_t` (K, 1) is √t_ip, L (k, k) whitens
+    (Σ⁻¹ = L Lᵀ), `prior` (D,) the prior precisions of the DOFs towards `prior_pose`.
     """
-    kin = body.fk(pose)
-    res = residuals(y, n, i, p, body, kin, body.ellipsoids(kin), distance=distance, jacobian=True,
-                    scale=estimate_scale)
-    J = res.J if not estimate_scale else np.concatenate([res.J, res.J_scale[:, :, None]], axis=2)
-    L = np.linalg.cholesky(W)  # W = L Lᵀ: whitened residual Lᵀ e
-    sqrt_t = np.sqrt(t)[:, None]
-    r = (res.e @ L) * sqrt_t  # (K,k)
-    Jw = (np.einsum("ba,kbd->kad", L, J) * sqrt_t[:, :, None]).reshape(-1, J.shape[2])  # Lᵀ J
-    prior = np.append(prior, 0.0) if estimate_scale else prior
-    offset = np.append(pose - prior_pose, 0.0) if estimate_scale else pose - prior_pose
-    H = Jw.T @ Jw + np.diag(prior)
-    g = Jw.T @ r.reshape(-1) + prior * offset
-    cost = 0.5 * (r**2).sum() + 0.5 * (prior * offset**2).sum()
+
+    y: np.ndarray
+    n: np.ndarray
+    i: np.ndarray
+    p: np.ndarray
+    sqrt_t: np.ndarray
+    L: np.ndarray
+    distance: str
+    prior_pose: np.ndarray
+    prior: np.ndarray
+    estimate_scale: bool
+    estimate_lengths: bool
+
+    def residuals(self, body, pose, *, jacobian=False):
+        kin = body.fk(pose)
+        return kin, residuals(self.y, self.n, self.i, self.p, kin, body.ellipsoids(kin), distance=self.distance,
+                              jacobian=jacobian, scale=jacobian and self.estimate_scale)
+
+    def cost(self, body, pose, e):
+        """Eq. (14) for fixed t_ip plus the priors on the weakly observed DOFs and the segment lengths."""
+        r = (e @ self.L) * self.sqrt_t
+        ln_l = np.log(body.length_factors) if self.estimate_lengths else np.zeros(0)
+        return 0.5 * ((r**2).sum() + (self.prior * (pose - self.prior_pose) ** 2).sum()
+                      + (ln_l**2).sum() / LENGTH_PRIOR_SD**2)
+
+
+def _gauss_newton_step(problem: _Problem, body: BodyModel, pose: np.ndarray):
+    """One Levenberg-Marquardt step on eq. (14) for fixed posteriors.
+
+    Returns the accepted pose, body and the pairs' residuals there. The unknowns are Λ (D), then
+    ln s of the body's size with `estimate_scale`, then ln ℓ of the length factors with
+    `estimate_lengths`. The normal equations are summed per ellipsoid in rigid-velocity coordinates
+    (H_p = Σ_k t_k B_kᵀ Σ⁻¹ B_k, 6 × 6) and mapped to the DOFs by the segment twists: H = Σ_p T_pᵀ H_p T_p.
+    """
+    kin, res = problem.residuals(body, pose, jacobian=True)
+    L, sqrt_t, D = problem.L, problem.sqrt_t, body.pose_size
+    K, k = res.e.shape
+    r = (res.e @ L) * sqrt_t  # (K,k) whitened Lᵀ e √t
+    Bw = (res.B.transpose(0, 2, 1).reshape(-1, k) @ L).reshape(K, 6, k) * sqrt_t[:, :, None]  # (Lᵀ B √t)ᵀ
+    starts = np.flatnonzero(np.r_[True, problem.p[1:] != problem.p[:-1]])
+    ends = np.r_[starts[1:], K]
+    T = body.segment_twists(kin)[body.ellipsoid_segment[problem.p[starts]]]  # (P',6,D)
+    H6 = np.empty((len(starts), 6, 6))
+    for q, (a, b) in enumerate(zip(starts, ends, strict=True)):
+        block = Bw[a:b].transpose(1, 0, 2).reshape(6, -1)
+        H6[q] = block @ block.T
+    g6 = np.add.reduceat(np.einsum("kia,ka->ki", Bw, r), starts)  # (P',6)
+    TH = T.transpose(0, 2, 1) @ H6  # (P',D,6)
+    extra = _extra_columns(problem, body, pose, res)  # (K,k,X)
+    X = extra.shape[2]
+    H = np.zeros((D + X, D + X))
+    g = np.zeros(D + X)
+    H[:D, :D] = np.einsum("pdj,pje->de", TH, T)
+    g[:D] = np.einsum("pid,pi->d", T, g6)
+    if X:
+        Xw = np.einsum("ba,kbx->kax", L, extra) * sqrt_t[:, :, None]
+        H[:D, D:] = np.einsum("pid,pix->dx", T, np.add.reduceat(np.einsum("kia,kax->kix", Bw, Xw), starts))
+        H[D:, :D] = H[:D, D:].T
+        H[D:, D:] = np.einsum("kax,kay->xy", Xw, Xw)
+        g[D:] = np.einsum("kax,ka->x", Xw, r)
+    prior = np.zeros(D + X)
+    prior[:D] = problem.prior
+    g[:D] += problem.prior * (pose - problem.prior_pose)
+    if problem.estimate_lengths:
+        G = len(body.length_groups)
+        prior[-G:] = 1.0 / LENGTH_PRIOR_SD**2
+        g[-G:] += np.log(body.length_factors) / LENGTH_PRIOR_SD**2
+    H += np.diag(prior)
+    cost = problem.cost(body, pose, res.e)
     diag = np.diag(H) + RIDGE
     damping = LM_DAMPING
     for _ in range(LM_TRIES):
         step = np.linalg.solve(H + np.diag(damping * diag + RIDGE), -g)
-        candidate = body.clip(pose + step[: body.pose_size])
-        body_c = body
-        if estimate_scale:
-            body_c = body.scaled(float(np.clip(body.height_m * np.exp(step[-1]), *HEIGHT_RANGE_M)))
-        kin_c = body_c.fk(candidate)
-        e_c = residuals(y, n, i, p, body_c, kin_c, body_c.ellipsoids(kin_c), distance=distance).e
-        r_c = (e_c @ L) * sqrt_t
-        cost_c = 0.5 * (r_c**2).sum() + 0.5 * (prior[: body.pose_size] * (candidate - prior_pose) ** 2).sum()
-        if cost_c <= cost:
-            return candidate, body_c
+        candidate = body.clip(pose + step[:D])
+        body_c = _updated_body(problem, body, step[D:])
+        e_c = problem.residuals(body_c, candidate)[1].e
+        if problem.cost(body_c, candidate, e_c) <= cost:
+            return candidate, body_c, e_c
         damping *= LM_GROWTH
-    return pose, body
+    return pose, body, res.e
+
+
+def _extra_columns(problem: _Problem, body: BodyModel, pose: np.ndarray, res) -> np.ndarray:
+    """de/d ln s (analytic) and de/d ln ℓ (forward differences) as columns (K, k, X)."""
+    columns = []
+    if problem.estimate_scale:
+        columns.append(res.J_scale[:, :, None])
+    if problem.estimate_lengths:
+        for g in range(len(body.length_groups)):
+            factors = body.length_factors.copy()
+            factors[g] *= np.exp(LENGTH_STEP)
+            e_g = problem.residuals(body.with_lengths(factors), pose)[1].e
+            columns.append(((e_g - res.e) / LENGTH_STEP)[:, :, None])
+    return np.concatenate(columns, axis=2) if columns else np.zeros(res.e.shape + (0,))
+
+
+def _updated_body(problem: _Problem, body: BodyModel, step: np.ndarray) -> BodyModel:
+    """The body after a step on ln s (first, with `estimate_scale`) and ln ℓ (then, with `estimate_lengths`)."""
+    if problem.estimate_scale:
+        body = body.scaled(float(np.clip(body.height_m * np.exp(step[0]), *HEIGHT_RANGE_M)))
+        step = step[1:]
+    if problem.estimate_lengths:
+        body = body.with_lengths(np.clip(body.length_factors * np.exp(step), *LENGTH_RANGE))
+    return body
 
 
 def _floor_covariance(Sigma: np.ndarray) -> np.ndarray:

@@ -1,24 +1,35 @@
 """Automatic initialisation from the data alone (what Horaud et al. 2009 leave open).
 
-On the first frame, and whenever tracking is lost, the pose is found without any prior: a library of
-real poses (sampled from motion-capture clips and stored as body-independent joint positions) is
-retargeted to the body by inverse kinematics, every library pose is placed on the point cloud and
-turned to several headings, the hypotheses are scored by the mixture likelihood (eq. 12), and the
-best few are refined by EM (with the body's size as a further unknown when the height is not given).
-A capture may start mid-kick: the library holds kicks, bends and walking poses, not only a T-pose.
+On the first frame, and whenever tracking is lost, the pose is found without any prior. Candidate
+poses come from a library of joint-angle vectors for the body (real poses sampled from motion-capture
+clips and retargeted offline by `pipeline/poselib.py`, plus generic standing, bending and crouching
+poses); joint angles do not depend on the subject's size, so no inverse kinematics runs here. Every
+candidate is placed on the point cloud and turned to several headings, all hypotheses are scored at
+once by the mixture likelihood (eq. 12) on a subsample of the data, the best few get a short EM
+refinement on that subsample, and the best of those is fitted to all the data by EM (with the body's
+size as a further unknown when the height is not given). A capture may start mid-kick or bent over:
+the library holds kicks, bends, crouches and walking poses, not only a T-pose.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import resources
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from stages.joints import JOINT_NAMES
-from stages.tracking.body import BodyModel
-from stages.tracking.distances import residual_size
-from stages.tracking.em import HEIGHT_RANGE_M, EMParams, FitResult, Mixture, e_step, fit, volume_size
+from stages.tracking.body import BodyModel, Ellipsoids
+from stages.tracking.distances import all_residuals, residual_size
+from stages.tracking.em import (
+    HEIGHT_RANGE_M,
+    EMParams,
+    FitResult,
+    Mixture,
+    fit,
+    volume_size,
+)
 
 _J = {name: k for k, name in enumerate(JOINT_NAMES)}
 # IK weights per joint: toes are optional in the ground truth and loosely defined.
@@ -27,13 +38,16 @@ _IK_WEIGHTS = np.array([0.5 if name.endswith("_toe") else 1.0 for name in JOINT_
 # joint positions barely see when a limb is straight) from wandering.
 _IK_DAMPING = 1e-4
 _IK_ITERATIONS = 60
-# The cloud's top (to guess a hypothesis' height when it is not given) as a high quantile of the
-# points' heights rather than the maximum, which one outlier would set.
-_CLOUD_TOP_QUANTILE = 0.99
-# Points used to score hypotheses: the likelihood ranking needs the cloud's shape, not every point.
-_SCORE_POINTS = 300
+# The cloud's top (to guess a hypothesis' height when it is not given) is the highest point with a few
+# neighbours this close: the body's surface is sampled densely, outliers in the volume are isolated.
+_TOP_RADIUS_M = 0.06
+_TOP_NEIGHBOURS = 2
 # Σ while scoring and at the start of the refinement: hypotheses are off by several centimetres.
 _SCORE_SIGMA_M = 0.06
+# Each round of the refinement keeps the best quarter of its hypotheses (24 → 6 → 1 by default).
+_KEEP_DIVISOR = 4
+# Hypotheses scored together: bounds the (data × ellipsoids) residual arrays to a few megabytes.
+_SCORE_CHUNK = 8
 
 
 @dataclass(frozen=True)
@@ -45,33 +59,50 @@ class InitParams:
     headings : int
         Headings tried per library pose, evenly spread over 360°.
     refine : int
-        Best-scoring hypotheses refined by EM.
+        Best-scoring library poses (each at its best heading) refined by EM on the subsample, by
+        successive halving: all get `refine_iterations` iterations, the best quarter as many more,
+        and so on until one is left.
+    score_points : int
+        Observations used to score the hypotheses (the cloud's shape, not every point).
+    refine_points : int
+        Observations used to refine the best hypotheses (a superset of the scoring ones).
+    refine_iterations : int
+        EM iterations per round of the refinement.
     iterations : int
-        EM iterations per refinement.
+        EM iterations at most of the final fit to all observations.
     """
 
     headings: int = 12
-    refine: int = 4
-    iterations: int = 40
+    refine: int = 24
+    score_points: int = 120
+    refine_points: int = 400
+    refine_iterations: int = 4
+    iterations: int = 15
 
 
 @dataclass(frozen=True)
 class InitResult:
-    """The chosen initial pose (D,), the body height (metres) and the refining EM fit."""
+    """The chosen initial pose (D,), the fitted body (its height, metres) and the final EM fit."""
 
     pose: np.ndarray
     height_m: float
     fit: FitResult
 
 
-def load_pose_library() -> np.ndarray:
-    """Library poses (M, 17, 3): joints at standing height 1, facing +y, pelvis above the origin.
+def load_pose_library(body: BodyModel) -> np.ndarray:
+    """Library poses for `body` (M, D): root at x = y = 0, yaw 0, root height as a fraction of height.
 
-    Built by `pipeline/poselib.py` from motion-capture clips; stored as `data/poses.npz`.
+    Read from `data/poses.npz` (built by `pipeline/poselib.py`) when it holds pose vectors for this
+    body configuration; a body it does not know (an edited configuration) gets the library's joint
+    positions retargeted by inverse kinematics (`library_poses`), which takes seconds.
     """
     path = resources.files("stages.tracking") / "data" / "poses.npz"
     with path.open("rb") as f, np.load(f, allow_pickle=False) as data:
-        return np.asarray(data["joints"], dtype=float)
+        key = f"poses_{body.name}"
+        if key in data and data[key].shape[1] == body.pose_size:
+            return np.asarray(data[key], dtype=float)
+        joints = np.asarray(data["joints"], dtype=float)
+    return library_poses(body, joints)
 
 
 def heading(joints: np.ndarray) -> float:
@@ -92,7 +123,7 @@ def retarget(body: BodyModel, joints: np.ndarray, *, start: np.ndarray | None = 
     if start is not None:
         return _retarget_from(body, joints, body.clip(start.astype(float)), estimate_scale)[:2]
     best = None
-    for pose in _generic_poses(body):
+    for pose in generic_poses(body)[:2]:
         pose[:3] = joints[_J["pelvis"]]
         pose[3] = heading(joints)
         result = _retarget_from(body, joints, pose, estimate_scale)
@@ -138,27 +169,67 @@ def _retarget_from(body, joints, pose, estimate_scale):
     return pose, body.height_m, cost
 
 
-def _generic_poses(body: BodyModel) -> list[np.ndarray]:
-    """Standing with the arms down (the zero pose) and with the arms out, (D,) each."""
-    arms_out = body.zero_pose()
-    for k, name in enumerate(body.dof_names):
-        if name.endswith("upperarm.abduct"):
-            arms_out[k] = np.radians(80.0)
-    return [body.zero_pose(), arms_out]
+# Generic poses (degrees per DOF-name suffix; "thigh.flex" sets both thighs): standing with the arms
+# down or out, bending forward at the hips and the lower back with the arms hanging or along the
+# body, and squatting. The bends are split between the pelvis (root pitch, legs kept vertical) and
+# the lumbar joint (where the body has one), as people bend; a body without a lumbar joint bends at
+# the pelvis only.
+_GENERIC = (
+    {},
+    {"upperarm.abduct": 80},
+    {"upperarm.flex": 90},
+    {"pitch": 20, "chest.flex": 20, "upperarm.flex": 40},
+    {"pitch": 35, "chest.flex": 35},
+    {"pitch": 35, "chest.flex": 35, "upperarm.flex": 70},
+    {"pitch": 50, "chest.flex": 45, "upperarm.flex": 95},
+    {"pitch": 50, "chest.flex": 45, "upperarm.flex": 40, "forearm.flex": 60},
+    {"thigh.flex": 50, "shank.flex": 60, "pitch": 20, "upperarm.flex": 40},
+    {"thigh.flex": 95, "shank.flex": 110, "pitch": 35, "chest.flex": 15, "upperarm.flex": 60},
+)
+
+
+def generic_poses(body: BodyModel) -> list[np.ndarray]:
+    """The generic poses of `_GENERIC` for `body` (D,) each, standing on the floor at the origin.
+
+    Root pitch is compensated at the hips so that the thighs keep their flexion relative to the
+    vertical; the root height puts the lower ankle at its standing height.
+    """
+    poses = []
+    standing_ankle = body.joint_positions(body.zero_pose())[_J["l_ankle"], 2]
+    for spec in _GENERIC:
+        pose = body.zero_pose()
+        for key, degrees in {**spec, "thigh.flex": spec.get("thigh.flex", 0) + spec.get("pitch", 0)}.items():
+            for d, name in enumerate(body.dof_names):
+                if _matches(name, key):
+                    pose[d] += np.radians(degrees)
+        pose = body.clip(pose)
+        ankles = body.joint_positions(pose)[[_J["l_ankle"], _J["r_ankle"]], 2]
+        pose[2] += standing_ankle - ankles.min()
+        poses.append(pose)
+    return poses
+
+
+def _matches(dof_name: str, key: str) -> bool:
+    """Whether "<segment>.<dof>" is named by `key` ("<segment suffix>.<dof>" or "<dof>")."""
+    segment, dof = dof_name.split(".")
+    key_segment, key_dof = key.split(".") if "." in key else ("", key)
+    return dof == key_dof and segment.endswith(key_segment)
 
 
 def library_poses(body: BodyModel, library: np.ndarray) -> np.ndarray:
-    """Retarget every library pose (M, 17, 3) (height 1) to `body`: joint angles (M + 2, D).
+    """Pose vectors (M + G, D) for `body`: the generic poses, then library joints (M, 17, 3) retargeted.
 
-    Two generic poses are added: standing with the arms down (the zero pose) and with the arms out.
-    Rows have the root at x = y = 0, yaw 0, and the root height of the pose at the body's height.
+    The library joints are at standing height 1 (`pipeline/poselib.py`). Rows have the root at
+    x = y = 0, yaw 0, and the root height as a fraction of the body's height.
     """
-    poses = _generic_poses(body)
+    poses = generic_poses(body)
     for joints in library:
         pose, _ = retarget(body, joints * body.height_m)
         poses.append(pose)
     poses = np.array(poses)
     poses[:, :2] = 0.0
+    poses[:, 3] = 0.0
+    poses[:, 2] /= body.height_m
     return poses
 
 
@@ -174,49 +245,99 @@ def initialise(y: np.ndarray, n: np.ndarray, body: BodyModel, volume: np.ndarray
     volume : (2, 3) float
         Working volume (the outlier density's support).
     candidates : (M, D) float
-        Library poses for this body (`library_poses`), root at x = y = 0, any heading.
+        Library poses for this body (`load_pose_library`).
     estimate_height : bool
         Also estimate the body's height (from the cloud's top, then by EM).
     """
     rng = np.random.default_rng(0) if rng is None else rng
     em = EMParams() if em is None else em
     V = volume_size(volume)
+    sample = rng.permutation(len(y))
+    ys, ns = y[sample[: params.refine_points]], n[sample[: params.refine_points]]
     centre = np.median(y[:, :2], axis=0)
-    top = np.quantile(y[:, 2], _CLOUD_TOP_QUANTILE)
-    sample = rng.choice(len(y), min(len(y), _SCORE_POINTS), replace=False)
-    mixture = Mixture.initial(body.n_ellipsoids, _SCORE_SIGMA_M, residual_size(em.distance))
-    scored = []
+    top = _cloud_top(y)
+    bodies, poses = [], []
     for base in candidates:
-        base_yaw = base[3]
         height = body.height_m
         if estimate_height:
             height = float(np.clip(top / _top_ratio(body, base), *HEIGHT_RANGE_M))
-        sized = body.scaled(height)
-        for yaw in np.linspace(0.0, 2 * np.pi, params.headings, endpoint=False):
-            pose = base.copy()
-            pose[2] *= height / body.height_m
-            pose[3] = base_yaw + yaw
-            pose[:2] = centre - _pelvis_offset(sized, pose)
-            score = e_step(y[sample], n[sample], sized, pose, mixture, V, distance=em.distance)
-            scored.append((score.log_likelihood, height, pose))
-    scored.sort(key=lambda s: -s[0])
-    best = None
-    refine = EMParams(distance=em.distance, max_iterations=params.iterations, tolerance=em.tolerance,
-                      estimate_scale=estimate_height)
-    for _, height, pose in scored[: params.refine]:
-        result = fit(y, n, body.scaled(height), pose, volume, refine, sigma_m=_SCORE_SIGMA_M)
-        if best is None or result.log_likelihood[-1] > best.log_likelihood[-1]:
-            best = result
-    return InitResult(pose=best.pose, height_m=best.height_m, fit=best)
+        pose = base.copy()
+        pose[2] *= height
+        bodies.append(body.scaled(height))
+        poses.append(pose)
+    yaws = np.linspace(0.0, 2 * np.pi, params.headings, endpoint=False)
+    mixture = Mixture.initial(body.n_ellipsoids, _SCORE_SIGMA_M, residual_size(em.distance))
+    scored = sample[: params.score_points]
+    scores = _score(y[scored], n[scored], centre, bodies, poses, yaws, mixture, V, em.distance)  # (M, H)
+    short = EMParams(distance=em.distance, max_iterations=params.refine_iterations, tolerance=em.tolerance,
+                     estimate_scale=estimate_height)
+    order = np.argsort(-scores.max(axis=1))[: params.refine]  # distinct poses, each at its best heading
+    fits = [fit(ys, ns, bodies[m], _placed(bodies[m], poses[m], yaws[np.argmax(scores[m])], centre), volume,
+                short, sigma_m=_SCORE_SIGMA_M) for m in order]
+    while len(fits) > 1:  # successive halving: the better quarter gets more iterations
+        fits = sorted(fits, key=lambda r: -r.log_likelihood[-1])[: max(1, len(fits) // _KEEP_DIVISOR)]
+        if len(fits) > 1:
+            fits = [fit(ys, ns, r.body, r.pose, volume, short, mixture=r.mixture) for r in fits]
+    best = fits[0]
+    final = replace(em, max_iterations=params.iterations, estimate_scale=estimate_height)
+    result = fit(y, n, best.body, best.pose, volume, final, mixture=replace(best.mixture))
+    return InitResult(pose=result.pose, height_m=result.height_m, fit=result)
+
+
+def _placed(body: BodyModel, pose: np.ndarray, yaw: float, centre: np.ndarray) -> np.ndarray:
+    """The pose turned by `yaw` with the horizontal centroid of its ellipsoid centres on `centre` (2,)."""
+    pose = pose.copy()
+    pose[3] = yaw
+    pose[:2] = 0.0
+    pose[:2] = centre - body.ellipsoids(pose).t[:, :2].mean(axis=0)
+    return pose
+
+
+def _score(y, n, centre, bodies, poses, yaws, mixture, V, distance) -> np.ndarray:
+    """Log-likelihood (eq. 12) (M, H) of every candidate pose at every heading, computed at once.
+
+    `mixture` is the initial one (Σ = σ² I, equal priors), so the Gaussians need no whitening.
+    Turning a hypothesis by ψ about the vertical through `centre` is turning the data by −ψ, so the
+    data are turned once per heading (H × I rows) and every candidate's ellipsoids (facing +y, centred
+    on the origin) are compared with all of them.
+    """
+    c, s = np.cos(-yaws), np.sin(-yaws)
+    Rz = np.zeros((len(yaws), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+    offset = np.array([centre[0], centre[1], 0.0])
+    y_turned = np.einsum("hab,ib->hia", Rz, y - offset).reshape(-1, 3)  # (H·I, 3)
+    n_turned = np.einsum("hab,ib->hia", Rz, n).reshape(-1, 3)
+    ellipsoids = [b.ellipsoids(_placed(b, q, 0.0, np.zeros(2))) for b, q in zip(bodies, poses, strict=True)]
+    P, I, H = bodies[0].n_ellipsoids, len(y), len(yaws)
+    k = len(mixture.Sigma)
+    sigma2 = mixture.Sigma[0, 0]
+    log_pi = np.log(mixture.pi[:P])
+    log_outlier = np.log(mixture.pi[P]) - np.log(V)
+    scores = np.empty((len(poses), H))
+    for start in range(0, len(poses), _SCORE_CHUNK):
+        chunk = ellipsoids[start: start + _SCORE_CHUNK]
+        stacked = Ellipsoids(R=np.concatenate([e.R for e in chunk]), t=np.concatenate([e.t for e in chunk]),
+                             semi_axes=np.concatenate([e.semi_axes for e in chunk]))
+        e = all_residuals(y_turned, n_turned, stacked, distance=distance)  # (H·I, C·P, k)
+        squared = np.einsum("...a,...a->...", e, e).reshape(H, I, len(chunk), P)
+        log_joint = log_pi - 0.5 * (squared / sigma2 + k * np.log(2.0 * np.pi * sigma2))  # Σ = σ² I
+        peak = np.maximum(log_joint.max(axis=3), log_outlier)  # (H,I,C)
+        evidence = np.exp(log_joint - peak[..., None]).sum(axis=3) + np.exp(log_outlier - peak)
+        scores[start: start + len(chunk)] = (peak + np.log(evidence)).sum(axis=1).T
+    return scores
+
+
+def _cloud_top(y: np.ndarray) -> float:
+    """Height (metres) of the highest observation with `_TOP_NEIGHBOURS` others within `_TOP_RADIUS_M`."""
+    neighbours = cKDTree(y).query_ball_point(y, _TOP_RADIUS_M, return_length=True) - 1
+    dense = neighbours >= _TOP_NEIGHBOURS
+    return float(y[dense, 2].max()) if np.any(dense) else float(y[:, 2].max())
 
 
 def _top_ratio(body: BodyModel, pose: np.ndarray) -> float:
-    """Highest point of the posed body (with its root at the pose's height) over the body's height."""
+    """Highest point of the posed body (root height as a fraction of height) over the body's height."""
+    pose = pose.copy()
+    pose[2] *= body.height_m
     ell = body.ellipsoids(pose)
     z_extent = np.sqrt(np.sum((ell.R[:, 2, :] * ell.semi_axes) ** 2, axis=1))
     return float(np.max(ell.t[:, 2] + z_extent)) / body.height_m
-
-
-def _pelvis_offset(body: BodyModel, pose: np.ndarray) -> np.ndarray:
-    """Horizontal offset (2,) from the root to the centroid of the posed ellipsoid centres."""
-    return body.ellipsoids(pose).t[:, :2].mean(axis=0) - pose[:2]

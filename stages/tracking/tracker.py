@@ -6,6 +6,8 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
 
 - first frame and after a loss: automatic initialisation from the data (`init.initialise`);
 - unknown height: estimated at the initialisation and refined over the next `scale_frames` frames;
+  the segment-length factors of the body (thigh, shank, upper arm, forearm, trunk, neck) are estimated
+  with the pose over the same frames (prior towards the body file's proportions), then frozen;
 - failure detection: an outlier fraction above `max_outlier_fraction`, or a log-likelihood per
   observation far below the running level, triggers a re-initialisation, and the better of the two
   fits (by likelihood) is kept;
@@ -16,13 +18,14 @@ Nothing here produces NaN: unusable rows of the input are dropped and every outp
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from stages.tracking.body import BodyModel
-from stages.tracking.em import HEIGHT_RANGE_M, EMParams, fit, volume_size
-from stages.tracking.init import InitParams, initialise, library_poses, load_pose_library
+from stages.tracking.distances import residual_size
+from stages.tracking.em import HEIGHT_RANGE_M, EMParams, Mixture, fit, volume_size
+from stages.tracking.init import InitParams, initialise, load_pose_library
 
 STATUSES = ("tracked", "initialised", "predicted", "lost")
 
@@ -41,8 +44,12 @@ class TrackerParams:
         EM iterations per frame at most.
     tolerance : float
         EM stops when the log-likelihood gain per observation is below this (nats).
+    displacement_m : float
+        EM stops when no joint centre moved more than this in an iteration (metres).
+    estimate_lengths : bool
+        Estimate the body's segment-length factors over the first `scale_frames` frames.
     sigma_m : float
-        Standard deviation of Σ = σ² I at the start of every frame's EM: about the prediction error.
+        Prediction error (metres): every frame's EM starts from the previous frame's Σ + σ² I.
     min_observations : int
         Fewer observations than this: the frame is predicted, not fitted.
     max_outlier_fraction : float
@@ -55,15 +62,17 @@ class TrackerParams:
     max_predicted_frames : int
         After this many frames without a fit, the subject is lost and the next data re-initialise.
     scale_frames : int
-        With an unknown height, frames over which the height keeps being estimated.
+        Frames over which the height (when unknown) and the segment lengths keep being estimated.
     init_headings, init_refine : int
         Initialisation: headings per library pose, hypotheses refined by EM.
     """
 
     height_m: float | None = None
     distance: str = "normals"
-    max_iterations: int = 10
+    max_iterations: int = 3
     tolerance: float = 1e-3
+    displacement_m: float = 0.002
+    estimate_lengths: bool = False
     sigma_m: float = 0.02
     min_observations: int = 30
     max_outlier_fraction: float = 0.6
@@ -72,7 +81,7 @@ class TrackerParams:
     max_predicted_frames: int = 10
     scale_frames: int = 10
     init_headings: int = 12
-    init_refine: int = 4
+    init_refine: int = 24
 
 
 @dataclass(frozen=True)
@@ -120,8 +129,14 @@ class TrackerState:
         Last estimated pose and its last frame-to-frame change.
     height_m : float
         Current body height, metres.
+    length_factors : (G,) float
+        Current segment-length factors of the body (`BodyModel.length_groups`).
     height_weight : int
-        Frames that contributed to the height estimate (it is frozen at `scale_frames`).
+        Frames that contributed to the height and length estimates (frozen at `scale_frames`).
+    Sigma : (k, k) float
+        Covariance Σ of the last fit, m² (the next frame's EM starts from it).
+    pi : (P + 1,) float
+        Mixture priors π of the last fit.
     likelihood_level : float
         Running level of the log-likelihood per observation of good fits (nats).
     frames_without_fit : int
@@ -133,7 +148,10 @@ class TrackerState:
     pose: np.ndarray
     velocity: np.ndarray
     height_m: float
+    length_factors: np.ndarray
     height_weight: int
+    Sigma: np.ndarray
+    pi: np.ndarray
     likelihood_level: float
     frames_without_fit: int
     lost: bool
@@ -142,13 +160,17 @@ class TrackerState:
         """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
         level = self.likelihood_level if np.isfinite(self.likelihood_level) else None
         return {**asdict(self), "pose": self.pose.tolist(), "velocity": self.velocity.tolist(),
-                "likelihood_level": level}
+                "length_factors": self.length_factors.tolist(), "Sigma": self.Sigma.tolist(),
+                "pi": self.pi.tolist(), "likelihood_level": level}
 
     @staticmethod
     def from_dict(data: dict) -> TrackerState:
         return TrackerState(pose=np.asarray(data["pose"], dtype=float),
                             velocity=np.asarray(data["velocity"], dtype=float),
-                            height_m=float(data["height_m"]), height_weight=int(data["height_weight"]),
+                            height_m=float(data["height_m"]),
+                            length_factors=np.asarray(data["length_factors"], dtype=float),
+                            height_weight=int(data["height_weight"]),
+                            Sigma=np.asarray(data["Sigma"], dtype=float), pi=np.asarray(data["pi"], dtype=float),
                             likelihood_level=np.nan if data["likelihood_level"] is None
                             else float(data["likelihood_level"]),
                             frames_without_fit=int(data["frames_without_fit"]), lost=bool(data["lost"]))
@@ -180,21 +202,20 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     volume_size(volume)
     y, n = _usable(obs)
     if state is None:
-        height = params.height_m if params.height_m is not None else body.height_m
-        state = TrackerState(pose=body.scaled(height).zero_pose(), velocity=np.zeros(body.pose_size),
-                             height_m=height, height_weight=0, likelihood_level=np.nan,
-                             frames_without_fit=0, lost=True)
-        state = TrackerState(**{**state.__dict__, "pose": _centre_pose(state.pose, volume)})
-    sized = body.scaled(state.height_m)
+        state = _first_state(body, params, volume)
+    sized = body.scaled(state.height_m).with_lengths(state.length_factors)
     if len(y) < params.min_observations:
         return _predict(state, sized, params)
-    em = EMParams(distance=params.distance, max_iterations=params.max_iterations, tolerance=params.tolerance)
+    em = EMParams(distance=params.distance, max_iterations=params.max_iterations, tolerance=params.tolerance,
+                  displacement_m=params.displacement_m)
     if state.lost:
         return _initialise(state, y, n, sized, params, volume, em)
     prediction = sized.clip(state.pose + state.velocity)
-    estimate_scale = params.height_m is None and state.height_weight < params.scale_frames
-    tracked = fit(y, n, sized, prediction, volume, EMParams(**{**em.__dict__, "estimate_scale": estimate_scale}),
-                  sigma_m=params.sigma_m)
+    learning = state.height_weight < params.scale_frames
+    mixture = Mixture(Sigma=state.Sigma + params.sigma_m**2 * np.eye(len(state.Sigma)), pi=state.pi)
+    tracked = fit(y, n, sized, prediction, volume,
+                  replace(em, estimate_scale=learning and params.height_m is None,
+                          estimate_lengths=learning and params.estimate_lengths), mixture=mixture)
     per_obs = tracked.log_likelihood[-1] / len(y)
     dropped = np.isfinite(state.likelihood_level) and (
         per_obs < state.likelihood_level - params.max_likelihood_drop)
@@ -203,22 +224,34 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
         result, new_state = _initialise(state, y, n, sized, params, volume, em)
         if result.log_likelihood > tracked.log_likelihood[-1] and result.status != "lost":
             return result, new_state
-    height = state.height_m
-    weight = state.height_weight
-    if estimate_scale:
-        weight += 1
-        height = float(np.clip(height + (tracked.height_m - height) / weight, *HEIGHT_RANGE_M))
     if tracked.outlier_fraction > params.max_outlier_fraction:
         return _predict(state, sized, params)
+    height, lengths, weight = state.height_m, state.length_factors, state.height_weight
+    if learning:  # running means of the per-frame estimates (of ln ℓ for the length factors)
+        weight += 1
+        height = float(np.clip(height + (tracked.body.height_m - height) / weight, *HEIGHT_RANGE_M))
+        lengths = lengths * (tracked.body.length_factors / lengths) ** (1.0 / weight)
     level = per_obs if not np.isfinite(state.likelihood_level) else (
         (1 - _LEVEL_RATE) * state.likelihood_level + _LEVEL_RATE * per_obs)
     velocity = tracked.pose - state.pose if state.frames_without_fit == 0 else np.zeros_like(state.velocity)
-    new_state = TrackerState(pose=tracked.pose, velocity=velocity, height_m=height, height_weight=weight,
+    new_state = TrackerState(pose=tracked.pose, velocity=velocity, height_m=height, length_factors=lengths,
+                             height_weight=weight, Sigma=tracked.mixture.Sigma, pi=tracked.mixture.pi,
                              likelihood_level=level, frames_without_fit=0, lost=False)
-    result = FrameResult(pose=tracked.pose, joints=body.scaled(tracked.height_m).joint_positions(tracked.pose),
+    result = FrameResult(pose=tracked.pose, joints=tracked.body.joint_positions(tracked.pose),
                          log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
                          outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m)
     return result, new_state
+
+
+def _first_state(body: BodyModel, params: TrackerParams, volume: np.ndarray) -> TrackerState:
+    """The state before any data: lost, standing at the volume's centre, the body's proportions."""
+    height = params.height_m if params.height_m is not None else body.height_m
+    pose = body.scaled(height).zero_pose()
+    pose[:2] = volume.mean(axis=0)[:2]  # a finite stand-in until data arrive
+    mixture = Mixture.initial(body.n_ellipsoids, params.sigma_m, residual_size(params.distance))
+    return TrackerState(pose=pose, velocity=np.zeros(body.pose_size), height_m=height,
+                        length_factors=body.length_factors.copy(), height_weight=0, Sigma=mixture.Sigma,
+                        pi=mixture.pi, likelihood_level=np.nan, frames_without_fit=0, lost=True)
 
 
 def _usable(obs) -> tuple[np.ndarray, np.ndarray]:
@@ -232,13 +265,6 @@ def _usable(obs) -> tuple[np.ndarray, np.ndarray]:
     return y[keep], n[keep] / length[keep, None]
 
 
-def _centre_pose(pose: np.ndarray, volume: np.ndarray) -> np.ndarray:
-    """The pose moved horizontally to the volume's centre (a finite stand-in before any data)."""
-    pose = pose.copy()
-    pose[:2] = volume.mean(axis=0)[:2]
-    return pose
-
-
 def _predict(state: TrackerState, body: BodyModel, params: TrackerParams) -> tuple[FrameResult, TrackerState]:
     """A frame without a fit: continue the motion (slowing down), flag it, declare a loss when long."""
     gap = state.frames_without_fit + 1
@@ -246,7 +272,8 @@ def _predict(state: TrackerState, body: BodyModel, params: TrackerParams) -> tup
     velocity = state.velocity * params.velocity_decay if not lost else np.zeros_like(state.velocity)
     pose = body.clip(state.pose + velocity)
     new_state = TrackerState(pose=pose, velocity=velocity, height_m=state.height_m,
-                             height_weight=state.height_weight, likelihood_level=state.likelihood_level,
+                             length_factors=state.length_factors, height_weight=state.height_weight,
+                             Sigma=state.Sigma, pi=state.pi, likelihood_level=state.likelihood_level,
                              frames_without_fit=gap, lost=lost)
     result = FrameResult(pose=pose, joints=body.joint_positions(pose), log_likelihood=0.0, iterations=0,
                          outlier_fraction=1.0, status="lost" if lost else "predicted", height_m=state.height_m)
@@ -256,25 +283,25 @@ def _predict(state: TrackerState, body: BodyModel, params: TrackerParams) -> tup
 def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, TrackerState]:
     """Initialise from the data alone (`init.initialise`) and start a fresh track."""
     estimate = params.height_m is None and state.height_weight < params.scale_frames
-    candidates = library_poses(body, load_pose_library())
-    init = initialise(y, n, body, volume, candidates, estimate_height=estimate, em=em,
+    init = initialise(y, n, body, volume, load_pose_library(body), estimate_height=estimate, em=em,
                       params=InitParams(headings=params.init_headings, refine=params.init_refine))
     fitted = init.fit
+    joints = fitted.body.joint_positions(fitted.pose)
     if fitted.outlier_fraction > params.max_outlier_fraction:
-        lost_state = TrackerState(**{**state.__dict__, "lost": True,
-                                     "frames_without_fit": state.frames_without_fit + 1})
-        result = FrameResult(pose=fitted.pose, joints=body.scaled(init.height_m).joint_positions(fitted.pose),
-                             log_likelihood=fitted.log_likelihood[-1], iterations=fitted.iterations,
-                             outlier_fraction=fitted.outlier_fraction, status="lost", height_m=init.height_m)
+        lost_state = replace(state, lost=True, frames_without_fit=state.frames_without_fit + 1)
+        result = FrameResult(pose=fitted.pose, joints=joints, log_likelihood=fitted.log_likelihood[-1],
+                             iterations=fitted.iterations, outlier_fraction=fitted.outlier_fraction,
+                             status="lost", height_m=init.height_m)
         return result, lost_state
     height, weight = state.height_m, state.height_weight
     if estimate:
         weight += 1
         height = init.height_m if weight == 1 else height + (init.height_m - height) / weight
-    new_state = TrackerState(pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
-                             height_weight=weight, likelihood_level=fitted.log_likelihood[-1] / len(y),
-                             frames_without_fit=0, lost=False)
-    result = FrameResult(pose=fitted.pose, joints=body.scaled(init.height_m).joint_positions(fitted.pose),
-                         log_likelihood=fitted.log_likelihood[-1], iterations=fitted.iterations,
-                         outlier_fraction=fitted.outlier_fraction, status="initialised", height_m=init.height_m)
+    new_state = replace(state, pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
+                        height_weight=weight, Sigma=fitted.mixture.Sigma, pi=fitted.mixture.pi,
+                        likelihood_level=fitted.log_likelihood[-1] / len(y),
+                        frames_without_fit=0, lost=False)
+    result = FrameResult(pose=fitted.pose, joints=joints, log_likelihood=fitted.log_likelihood[-1],
+                         iterations=fitted.iterations, outlier_fraction=fitted.outlier_fraction,
+                         status="initialised", height_m=init.height_m)
     return result, new_state

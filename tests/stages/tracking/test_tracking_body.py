@@ -6,7 +6,7 @@ import pytest
 from calib.errors import InputError
 from stages.joints import JOINT_NAMES
 from stages.tracking.body import load_body, rotation_about
-from stages.tracking.distances import DISTANCES, all_residuals, ellipsoid_point, residuals
+from stages.tracking.distances import DISTANCES, all_residuals, ellipsoid_point, pose_jacobian, residuals
 
 STEP = 1e-6  # central differences: truncation ~STEP², round-off ~1e-16/STEP
 
@@ -102,11 +102,12 @@ def test_residual_jacobian_matches_finite_differences(distance):
 
     def e(q):
         kin = body.fk(q)
-        return residuals(y, n, i, p, body, kin, body.ellipsoids(kin), distance=distance).e
+        return residuals(y, n, i, p, kin, body.ellipsoids(kin), distance=distance).e
 
     pose = _random_pose(body, 3)
     kin = body.fk(pose)
-    J = residuals(y, n, i, p, body, kin, body.ellipsoids(kin), distance=distance, jacobian=True).J
+    B = residuals(y, n, i, p, kin, body.ellipsoids(kin), distance=distance, jacobian=True).B
+    J = pose_jacobian(B, body.segment_twists(kin)[body.ellipsoid_segment[p]])
     numeric = _numeric_jacobian(e, pose)
     np.testing.assert_allclose(J, numeric, atol=1e-6 * max(1.0, np.abs(numeric).max()))
 
@@ -137,6 +138,27 @@ def test_dense_residuals_equal_pairwise_ones(distance):
     ell = body.ellipsoids(kin)
     i = np.repeat(np.arange(30), body.n_ellipsoids)
     p = np.tile(np.arange(body.n_ellipsoids), 30)
-    pairwise = residuals(y, n, i, p, body, kin, ell, distance=distance).e
+    pairwise = residuals(y, n, i, p, kin, ell, distance=distance).e
     dense = all_residuals(y, n, ell, distance=distance)
     np.testing.assert_allclose(dense.reshape(pairwise.shape), pairwise, atol=1e-12)
+
+
+def test_length_factor_stretches_the_segment_along_its_bone():
+    body = load_body("default")
+    g = body.length_groups.index("thigh")
+    factors = np.ones(len(body.length_groups))
+    factors[g] = 1.1
+    longer = body.with_lengths(factors)
+    j = {name: k for k, name in enumerate(JOINT_NAMES)}
+    before, after = body.joint_positions(body.zero_pose()), longer.joint_positions(longer.zero_pose())
+    thigh = before[j["l_knee"]] - before[j["l_hip"]]
+    np.testing.assert_allclose(after[j["l_knee"]] - after[j["l_hip"]], thigh * 1.1, atol=1e-12)
+    np.testing.assert_allclose(after[j["l_ankle"]] - after[j["l_knee"]],
+                               before[j["l_ankle"]] - before[j["l_knee"]], atol=1e-12)  # shank unchanged
+    np.testing.assert_allclose(after[j["neck"]], before[j["neck"]], atol=1e-12)
+    on_thigh = body.ellipsoid_segment == body.segment_names.index("l_thigh")
+    np.testing.assert_allclose(longer.semi_axes[on_thigh, 0], body.semi_axes[on_thigh, 0] * 1.1, rtol=2e-3)
+    np.testing.assert_allclose(longer.semi_axes[on_thigh, 1:], body.semi_axes[on_thigh, 1:], rtol=2e-3)
+    back = longer.with_lengths(np.ones(len(body.length_groups)))  # stretches compose: back to the start
+    np.testing.assert_allclose(back.joint_positions(back.zero_pose()), before, atol=1e-12)
+    np.testing.assert_allclose(back.semi_axes, body.semi_axes, atol=1e-12)

@@ -80,3 +80,15 @@ def test_em_estimates_the_body_height(body):
     y, n = sample_ellipsoids(tall, truth, 1000, rng, outlier_fraction=0.2)
     result = fit(y, n, body.scaled(1.70), truth, VOLUME, EMParams(estimate_scale=True, max_iterations=40))
     assert result.height_m == pytest.approx(1.85, abs=0.01)
+
+
+def test_em_estimates_segment_length_factors(body):
+    rng = np.random.default_rng(15)
+    truth = random_pose(body, rng, scale=0.3)
+    factors = np.ones(len(body.length_groups))
+    for name, value in [("thigh", 1.08), ("forearm", 0.92), ("trunk", 1.05)]:
+        factors[body.length_groups.index(name)] = value
+    y, n = sample_ellipsoids(body.with_lengths(factors), truth, 1500, rng, outlier_fraction=0.2)
+    result = fit(y, n, body, truth, VOLUME, EMParams(estimate_lengths=True, max_iterations=40))
+    # the prior towards 1 (LENGTH_PRIOR_SD) shrinks the estimates only slightly with this much data
+    np.testing.assert_allclose(result.body.length_factors, factors, atol=0.015)
