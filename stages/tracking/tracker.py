@@ -54,6 +54,9 @@ class TrackerParams:
         Fewer observations than this: the frame is predicted, not fitted.
     max_outlier_fraction : float
         A fit explaining more than this fraction of the data as outliers is a failure.
+    refit_drop, refit_iterations : float, int
+        A fit whose log-likelihood per observation is `refit_drop` nats below the running level gets up
+        to `refit_iterations` more EM iterations with a strict stopping rule before it is judged.
     max_likelihood_drop : float
         A fit whose log-likelihood per observation is this much (nats) below the running level is a
         failure.
@@ -69,13 +72,15 @@ class TrackerParams:
 
     height_m: float | None = None
     distance: str = "normals"
-    max_iterations: int = 3
-    tolerance: float = 1e-3
+    max_iterations: int = 10
+    tolerance: float = 0.01
     displacement_m: float = 0.002
     estimate_lengths: bool = False
     sigma_m: float = 0.02
     min_observations: int = 30
     max_outlier_fraction: float = 0.6
+    refit_drop: float = 0.1
+    refit_iterations: int = 20
     max_likelihood_drop: float = 2.0
     velocity_decay: float = 0.7
     max_predicted_frames: int = 10
@@ -178,6 +183,10 @@ class TrackerState:
 
 # Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
 _LEVEL_RATE = 0.1
+# Stopping rule of the extra EM iterations of a frame worse than usual: close to full convergence
+# (1e-3 nats per observation, joints still by half a millimetre), since such frames are few.
+_REFIT_TOLERANCE = 1e-3
+_REFIT_DISPLACEMENT_M = 5e-4
 # Normals shorter than this are not directions; such rows are dropped.
 _MIN_NORMAL = 1e-6
 
@@ -213,10 +222,17 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     prediction = sized.clip(state.pose + state.velocity)
     learning = state.height_weight < params.scale_frames
     mixture = Mixture(Sigma=state.Sigma + params.sigma_m**2 * np.eye(len(state.Sigma)), pi=state.pi)
-    tracked = fit(y, n, sized, prediction, volume,
-                  replace(em, estimate_scale=learning and params.height_m is None,
-                          estimate_lengths=learning and params.estimate_lengths), mixture=mixture)
+    frame_em = replace(em, estimate_scale=learning and params.height_m is None,
+                       estimate_lengths=learning and params.estimate_lengths)
+    tracked = fit(y, n, sized, prediction, volume, frame_em, mixture=mixture)
     per_obs = tracked.log_likelihood[-1] / len(y)
+    if np.isfinite(state.likelihood_level) and per_obs < state.likelihood_level - params.refit_drop:
+        # Worse than usual: fast motion, which the quick stopping rule can leave half-way. EM goes on.
+        more = fit(y, n, tracked.body, tracked.pose, volume,
+                   replace(frame_em, max_iterations=params.refit_iterations, tolerance=_REFIT_TOLERANCE,
+                           displacement_m=_REFIT_DISPLACEMENT_M), mixture=tracked.mixture, prior_pose=prediction)
+        tracked = replace(more, iterations=tracked.iterations + more.iterations)
+        per_obs = tracked.log_likelihood[-1] / len(y)
     dropped = np.isfinite(state.likelihood_level) and (
         per_obs < state.likelihood_level - params.max_likelihood_drop)
     failed = tracked.outlier_fraction > params.max_outlier_fraction or dropped
