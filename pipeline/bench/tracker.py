@@ -1,9 +1,11 @@
 """Benchmark of the articulated tracker on exact body-surface samples of real motion.
 
     python -m pipeline.bench.tracker [--clips taekwondo leaning ...] [--frames 90] [--fps 30]
-        [--distance normals|points|algebraic] [--body default|paper] [--known-height]
+        [--distance normals|points|algebraic] [--body default|paper] [--surface mesh|capsules]
+        [--known-height]
 
-For each clip, the synthetic body (MakeHuman mesh skinned to the clip's skeleton, `pipeline.synth`) is
+For each clip, the synthetic body (MakeHuman mesh skinned to the clip's skeleton, `pipeline.synth`, or
+with --surface capsules its tapered-capsule body, which the tracking body's shapes were not fitted to) is
 posed at every frame, 1000 points with their normals are drawn on its surface and 20 % uniform outliers
 are added over the working volume (as in Horaud et al. 2009, Sec. 4.1); the tracker runs on these
 observations and its joints are compared with the clip's ground-truth joints. Reported per clip: MPJPE
@@ -52,10 +54,11 @@ def flexion_degrees(joints: np.ndarray) -> np.ndarray:
     return np.stack(out, axis=1)
 
 
-def synthetic_observations(motion, count: int, outlier_fraction: float, volume: np.ndarray, seed: int):
+def synthetic_observations(motion, count: int, outlier_fraction: float, volume: np.ndarray, seed: int,
+                           surface: str = "mesh"):
     """Per frame: exact surface samples of the synthetic body plus uniform outliers in the volume."""
     rng = np.random.default_rng(seed)
-    body = build_body(motion)
+    body = build_body(motion, kind=surface)
     frames = []
     n_out = int(round(count * outlier_fraction / (1.0 - outlier_fraction)))
     for f in range(motion.n_frames):
@@ -77,7 +80,7 @@ def run_clip(name: str, args) -> dict:
     lo = motion.joints.reshape(-1, 3).min(axis=0) - 1.0
     hi = motion.joints.reshape(-1, 3).max(axis=0) + 1.0
     volume = np.array([[lo[0], lo[1], 0.0], [hi[0], hi[1], max(hi[2], 2.3)]])
-    observations = synthetic_observations(motion, args.observations, args.outliers, volume, args.seed)
+    observations = synthetic_observations(motion, args.observations, args.outliers, volume, args.seed, args.surface)
     body = load_body(args.body)
     truth_height = None
     params = TrackerParams(distance=args.distance, height_m=truth_height)
@@ -123,6 +126,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--outliers", type=float, default=0.2)
     parser.add_argument("--distance", default="normals", choices=["normals", "points", "algebraic"])
     parser.add_argument("--body", default="default")
+    parser.add_argument("--surface", default="mesh", choices=["mesh", "capsules"])
     parser.add_argument("--known-height", action="store_true")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--per-joint", action="store_true")

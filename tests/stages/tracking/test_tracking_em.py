@@ -86,7 +86,7 @@ def test_em_estimates_segment_length_factors(body):
     rng = np.random.default_rng(15)
     truth = random_pose(body, rng, scale=0.3)
     factors = np.ones(len(body.length_groups))
-    for name, value in [("thigh", 1.08), ("forearm", 0.92), ("trunk", 1.05)]:
+    for name, value in [("thigh", 1.08), ("upperarm", 0.92), ("trunk", 1.05)]:
         factors[body.length_groups.index(name)] = value
     y, n = sample_ellipsoids(body.with_lengths(factors), truth, 1500, rng, outlier_fraction=0.2)
     result = fit(y, n, body, truth, VOLUME, EMParams(estimate_lengths=True, max_iterations=40))
