@@ -4,6 +4,12 @@ The run is a child process, waited for with ``os.wait4``: its wall time is every
 (interpreter start, imports, video decoding, all five stages, writing), and its resource usage is that of
 the child and of every worker process it reaped, so ``ru_maxrss`` is the peak resident memory of the
 largest process of that run alone (Linux reports it in kilobytes) — not of the benchmark's other runs.
+
+One Linux subtlety decides how the child is started: a process's ``ru_maxrss`` starts at the resident size
+of the process it was forked from (the forked memory's high-water mark is carried through ``exec``). Forked
+straight from the benchmark, which holds hundreds of megabytes, every run would report at least that. So a
+tiny launcher interpreter (:data:`LAUNCHER`) starts the run and reports the wait4 numbers; its own size, a
+few megabytes, is the floor of the measurement.
 """
 
 from __future__ import annotations
@@ -13,7 +19,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +28,18 @@ from pipeline import graph
 REPO = Path(__file__).resolve().parents[2]
 #: Lines of a failed run's log kept in the results.
 LOG_TAIL_LINES = 8
+#: ``python -c LAUNCHER <report.json> <command...>``: run the command, write its exit status, wall seconds
+#: and peak resident memory (kB) as JSON. Kept to the standard library so that the launcher stays small.
+LAUNCHER = """
+import json, os, subprocess, sys, time
+started = time.perf_counter()
+child = subprocess.Popen(sys.argv[2:])
+_, status, usage = os.wait4(child.pid, 0)
+seconds = time.perf_counter() - started
+with open(sys.argv[1], "w") as report:
+    json.dump({"returncode": os.waitstatus_to_exitcode(status), "seconds": seconds, "maxrss_kb": usage.ru_maxrss},
+              report)
+"""
 
 
 @dataclass(frozen=True)
@@ -81,13 +98,14 @@ def run_pipeline(capture: Path, out: Path, *, workers: int, frames: int, fresh: 
         shutil.rmtree(out, ignore_errors=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     log_path = out.parent / f"{out.name}.log"
+    report_path = out.parent / f"{out.name}.measure.json"
+    report_path.unlink(missing_ok=True)
     load = os.getloadavg()[0]
     with open(log_path, "w") as log:
-        started = time.perf_counter()
-        child = subprocess.Popen(run_command(capture, out, workers), cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
-        _, status, usage = os.wait4(child.pid, 0)
-        seconds = time.perf_counter() - started
-    child.returncode = os.waitstatus_to_exitcode(status)
+        subprocess.run([sys.executable, "-c", LAUNCHER, str(report_path), *run_command(capture, out, workers)],
+                       cwd=REPO, stdout=log, stderr=subprocess.STDOUT, check=True)
+    report = json.loads(report_path.read_text())
     tail = "\n".join(log_path.read_text(errors="replace").splitlines()[-LOG_TAIL_LINES:])
-    return RunMeasure(returncode=child.returncode, seconds=seconds, peak_rss_mb=usage.ru_maxrss / 1024.0,
-                      frames=frames, stage_seconds=stage_timings(out), load=load, log_tail=tail)
+    return RunMeasure(returncode=report["returncode"], seconds=report["seconds"],
+                      peak_rss_mb=report["maxrss_kb"] / 1024.0, frames=frames, stage_seconds=stage_timings(out),
+                      load=load, log_tail=tail)

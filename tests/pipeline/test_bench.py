@@ -2,6 +2,8 @@
 
 import json
 import math
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -10,7 +12,7 @@ import yaml
 
 from pipeline.bench import paper, recipes, speed, suite, unseen
 from pipeline.bench.masks import perturb_mask
-from pipeline.bench.runs import run_command, stage_timings
+from pipeline.bench.runs import LAUNCHER, run_command, stage_timings
 from pipeline.synth.writer import SynthParams
 from stages.export.metrics import mask_iou
 from stages.joints import JOINT_NAMES
@@ -164,6 +166,20 @@ def test_stage_timings_read_the_manifests(tmp_path):
     assert command[1:5] == ["-m", "pipeline", "run", str(tmp_path)]
     assert command[command.index("--out") + 1] == str(tmp_path / "out")
     assert command[command.index("--workers") + 1] == "2"
+
+
+def _launched_peak_mb(tmp_path, code: str) -> float:
+    report = tmp_path / "measure.json"
+    subprocess.run([sys.executable, "-c", LAUNCHER, str(report), sys.executable, "-c", code], check=True)
+    measured = json.loads(report.read_text())
+    assert measured["returncode"] == 0 and measured["seconds"] > 0
+    return measured["maxrss_kb"] / 1024
+
+
+def test_peak_memory_is_the_runs_own_not_the_benchmarks(tmp_path):
+    ballast = np.ones(40_000_000)  # 320 MB in this process: must not show in a child's peak
+    assert _launched_peak_mb(tmp_path, "pass") < 100 < ballast.nbytes / 2**20
+    assert _launched_peak_mb(tmp_path, "x = bytearray(300 * 2**20); x[::4096] = bytes(len(x[::4096]))") > 290
 
 
 def test_mean_row_skips_runs_that_were_not_scored():
