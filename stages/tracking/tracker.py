@@ -6,7 +6,7 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
 
 - first frame and after a loss: automatic initialisation from the data (`init.initialise`);
 - unknown height: estimated at the initialisation and refined over the next `scale_frames` frames;
-  the segment-length factors of the body (the `lengths` of its file) are estimated
+  with `estimate_lengths`, the segment-length factors of the body (the `lengths` of its file) are estimated
   with the pose over the same frames (prior towards the body file's proportions), then frozen;
 - failure detection: an outlier fraction above `max_outlier_fraction`, or a log-likelihood per
   observation far below the running level, triggers a re-initialisation, and the better of the two
@@ -75,7 +75,7 @@ class TrackerParams:
     max_iterations: int = 10
     tolerance: float = 0.01
     displacement_m: float = 0.002
-    estimate_lengths: bool = True
+    estimate_lengths: bool = False
     sigma_m: float = 0.02
     min_observations: int = 30
     max_outlier_fraction: float = 0.6
