@@ -1,8 +1,8 @@
 """The benchmark suite behind ``python -m pipeline bench``: run suites, keep results, judge targets, write tables.
 
-``<out>/results.json`` holds one section per suite (``speed``, ``unseen``, ``paper``) plus ``meta``; running
-one suite replaces its own section and keeps the others, so the file always shows the latest measurement of
-each, and every section says how it was made (command, quick or full, date, commit, machine load).
+``<out>/results.json`` holds one section per suite (``speed``, ``unseen``, ``paper``); running one suite
+replaces its own section and keeps the others, so the file always shows the latest measurement of each, and
+every section says how it was made (``command``, ``quick``, and ``made``: date, commit, seconds, machine load).
 ``<out>/results.md`` is drawn from results.json by :func:`format_results` alone, with the targets the project
 is judged by (:data:`TARGETS`) marked met or missed.
 """
