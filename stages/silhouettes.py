@@ -1,20 +1,34 @@
 """Person silhouettes from colour images and a background model.
 
-A pixel is foreground when it differs from the background in a way that lighting cannot explain. We
-follow Horprasert, Harwood & Davis (ICCV Frame-Rate Workshop 1999): write the pixel colour I (3,) as
-a brightness-scaled copy of the background colour B (3,) plus a remainder,
+A pixel is foreground when it differs from the background by more than the noise, in a way that lighting
+cannot explain. We follow Horprasert, Harwood & Davis (ICCV Frame-Rate Workshop 1999): write the pixel
+colour I (3,) as a brightness-scaled copy of the background colour B (3,) plus a remainder,
 
     I = α B + r,   α = (I · B) / (B · B)   (brightness distortion),   ‖r‖ (chromaticity distortion),
 
-so a shadow or a change of exposure moves α (0.5 to 1.2, say) but leaves ‖r‖ small, while a person in
-front of the background changes the colour direction and makes ‖r‖ large. Pixels are foreground when
-‖r‖ is large, or when α is far outside the band a shadow or a highlight can produce and the colour
-difference is well above the noise. Sensor noise and compression are handled by a small blur first and
-by morphology and connected-component filtering after.
+so a shadow lowers α but leaves ‖r‖ small, while a person in front of the background changes the colour
+direction or the brightness. As in that paper, distortions are measured in units of the noise; with a
+clean plate instead of a training sequence, the noise is estimated from each frame:
 
-Everything is done with OpenCV's vectorised operations, at a reduced resolution when asked: the
-per-pixel score is computed on a downsampled image (averaging also cancels noise), interpolated back
-to full resolution and thresholded there, so the outline stays sub-pixel smooth.
+- the camera's exposure may drift from the plate's (and a codec may shift levels): the frame's exposure
+  ratio g is the median of α over the image (the person covers less than half of it), and the
+  background model is gB;
+- the noise level σ comes from the lower quartile of ‖I − gB‖ over the image, and grows where the
+  background is textured, because a sub-pixel shift or compression changes a textured pixel by about its
+  gradient times the shift: σ_p² = σ² + (κ ‖∇B‖)² / 3.
+
+The evidence is ‖I − gB‖ / σ_p, except in the shadow band (α / g between ``shadow_min`` and
+``shadow_max``: darker than the background by as much as a shadow darkens it), where only the
+chromaticity distortion counts. Pixels above ``strong_threshold`` seed the person; connected regions above
+``weak_threshold`` join them (hysteresis, as in Canny's edge detector), so clothing close to the
+background is kept without letting isolated noise in; a weak region must be more than a line, so that
+the rim of a shadow does not grow out of the feet. Morphology, connected components and hole filling
+clean the mask. Its outline is then placed where each pixel is half person: near the outline every pixel
+is a mix of the person's colour nearby and the (possibly shadowed) background, and its share of person
+is measured (a matting step). Everything runs with OpenCV's vectorised operations at a reduced working
+resolution (``downsample``; averaging also cancels noise); the person's share is interpolated back to
+full resolution, so the outline stays sub-pixel smooth. The per-camera part of the work can be done once
+with :func:`background_model`.
 """
 
 from __future__ import annotations
@@ -30,33 +44,61 @@ from calib.errors import InputError
 # Added to B·B before dividing, so a pure black background pixel gives α = 0 rather than a division
 # by zero (8-bit squared units: far below the B·B = 3 of the darkest non-black pixel).
 BACKGROUND_ENERGY_FLOOR = 1e-3
-# Radius (working-resolution pixels) of the neighbourhood whose largest distortion sets the half-contrast
-# threshold: wide enough to reach across a blurred edge, narrow enough not to erase faint detail nearby.
-CONTRAST_WINDOW = 2
-# Magnitude given to the score where the clean-up overruled the foreground test (a tenth of a threshold).
+# Every SAMPLE_STRIDE-th pixel along both axes enters the exposure and noise estimates: a few thousand
+# pixels fix a median or a quartile to well under a percent, at a sixteenth of the cost.
+SAMPLE_STRIDE = 4
+# The 25th percentile of a χ² variable with 3 degrees of freedom: ‖I − gB‖² / σ² of background pixels
+# under Gaussian noise of σ per channel, so σ² = (lower quartile of ‖I − gB‖²) / this.
+CHI2_3_LOWER_QUARTILE = 1.2125
+# Bounds on the per-channel noise σ (8-bit levels). Below: 8-bit quantisation, after blur and averaging,
+# is still about this much. Above: heavier than any usable camera's noise; a larger lower quartile means
+# the person (or a change of lighting) covers most of the image, and the quartile is no longer noise.
+NOISE_SIGMA_MIN = 0.5
+NOISE_SIGMA_MAX = 6.0
+# Bounds on the exposure ratio g between frame and background: drift and codec level shifts stay well
+# inside; outside, the median is not the background's (a person filling the view) and is not trusted.
+EXPOSURE_RATIO_RANGE = (0.7, 1.4)
+# OpenCV's 3x3 Sobel kernels answer 8 to a unit ramp.
+SOBEL_GAIN = 8.0
+# Matting (full-resolution pixels): the person's colour next to the outline is the mean of the mask's
+# pixels at least CORE_DEPTH_PX inside it (lens blur and compression mix the outermost ones) within
+# MATTE_RADIUS_PX, and the outline is measured on pixels up to MATTE_RADIUS_PX from it, on both sides.
+CORE_DEPTH_PX = 2
+MATTE_RADIUS_PX = 4
+# The person's share of a pixel is measured only where the person's colour differs from the background by
+# more than this (8-bit levels); closer colours make it too noisy, and the mask decides.
+MIN_MATTE_CONTRAST = 8.0
+# Magnitude (a share of the pixel) given to the outline score where the mask decides.
 SCORE_FLOOR = 0.1
 
 
 @dataclass(frozen=True)
 class SilhouetteParams:
-    """Thresholds of the foreground test and of the clean-up, in 8-bit intensity units and pixels.
+    """Thresholds of the foreground test and of the clean-up, in units of the noise and in pixels.
 
     Attributes
     ----------
     downsample : int
-        The per-pixel score is computed on an image this many times smaller in each direction (1 = full
-        resolution), then interpolated back; 2 halves the cost four times over and averages noise away.
+        The per-pixel test runs on an image this many times smaller in each direction (1 = full
+        resolution), then the outline is interpolated back; 2 halves the cost four times over and averages
+        noise away.
     blur_kernel_px : int
         Size of the Gaussian blur kernel (odd; at the working resolution) against sensor noise and
-        compression blocks; 1 = none.
-    chroma_threshold : float
-        Chromaticity distortion ‖I − αB‖ above which a pixel is foreground, in 8-bit levels.
-    brightness_min, brightness_max : float
-        Brightness distortions α outside [min, max] are foreground (darker than any shadow, brighter
-        than any highlight) provided the colour difference also exceeds ``difference_threshold``.
-    difference_threshold : float
-        ‖I − B‖ below which a pixel is never foreground by brightness alone (dark background pixels make
-        α noisy), in 8-bit levels.
+        compression blocks, for the foreground test only (the outline is measured on the unblurred image);
+        1 = none.
+    strong_threshold : float
+        Evidence ‖I − gB‖ / σ (in noise standard deviations) above which a pixel seeds the person: high
+        enough that noise alone practically never reaches it.
+    weak_threshold : float
+        Evidence above which a pixel is person when its region holds a seed: low enough to keep clothing
+        close to the background colour, high enough that the noise does not grow a halo.
+    shadow_min, shadow_max : float
+        Pixels whose brightness relative to the background, α / g, lies in [min, max] could be the
+        person's shadow (at darkest ``shadow_min``, at faintest ``shadow_max``): only their colour
+        direction counts as evidence. Darker, fainter or brighter changes count in full.
+    background_jitter_px : float
+        How far (pixels) the background may seem to move between the clean plate and a frame (camera
+        vibration, compression of fine texture): a textured pixel's noise grows by its gradient times this.
     opening_px, closing_px : int
         Radii of the morphological opening (removes specks) and closing (bridges thin gaps), at full
         resolution; 0 = skip.
@@ -73,10 +115,11 @@ class SilhouetteParams:
 
     downsample: int = 2
     blur_kernel_px: int = 3
-    chroma_threshold: float = 20.0
-    brightness_min: float = 0.5
-    brightness_max: float = 1.3
-    difference_threshold: float = 30.0
+    strong_threshold: float = 8.0
+    weak_threshold: float = 4.0
+    shadow_min: float = 0.5
+    shadow_max: float = 0.8
+    background_jitter_px: float = 0.2
     opening_px: int = 1
     closing_px: int = 2
     min_component_fraction: float = 0.05
@@ -86,18 +129,66 @@ class SilhouetteParams:
     def __post_init__(self) -> None:
         if not (isinstance(self.downsample, int) and self.downsample >= 1):
             raise InputError(f"silhouettes.downsample: expected an integer >= 1, got {self.downsample!r}")
-        if not 0 < self.brightness_min < 1 < self.brightness_max:
+        if not 0 < self.shadow_min < self.shadow_max <= 1:
             raise InputError(
-                "silhouettes.brightness_min/brightness_max: expected 0 < brightness_min < 1 < "
-                f"brightness_max, got {self.brightness_min} and {self.brightness_max}"
+                "silhouettes.shadow_min/shadow_max: expected 0 < shadow_min < shadow_max <= 1, "
+                f"got {self.shadow_min} and {self.shadow_max}"
             )
         kernel = self.blur_kernel_px
         if not (isinstance(kernel, int) and kernel >= 1 and kernel % 2):
             raise InputError(f"silhouettes.blur_kernel_px: expected an odd integer >= 1, got {kernel!r}")
-        for name in ("chroma_threshold", "difference_threshold", "min_component_fraction",
+        for name in ("weak_threshold", "background_jitter_px", "min_component_fraction",
                      "min_component_area_fraction", "max_hole_fraction", "opening_px", "closing_px"):
             if getattr(self, name) < 0:
                 raise InputError(f"silhouettes.{name}: expected a value >= 0, got {getattr(self, name)}")
+        if not self.strong_threshold >= self.weak_threshold:
+            raise InputError(
+                f"silhouettes.strong_threshold: expected a value >= weak_threshold ({self.weak_threshold}), "
+                f"got {self.strong_threshold}"
+            )
+
+
+@dataclass(frozen=True, eq=False)
+class BackgroundModel:
+    """One camera's background at the working resolution, with what every frame needs from it.
+
+    Built by :func:`background_model`; pass it to :func:`extract_silhouette` instead of the background
+    image to do this work once per camera rather than once per frame.
+    """
+
+    shape: tuple[int, int, int]  # (H, W, 3) of the full-resolution images
+    downsample: int
+    blur_kernel_px: int
+    B: np.ndarray  # (h, w, 3) float32 background colours at the working resolution, blurred
+    B_sharp: np.ndarray  # (h, w, 3) uint8 the same before the blur
+    BB: np.ndarray  # (h, w) float32 B·B (+ BACKGROUND_ENERGY_FLOOR)
+    texture_variance: np.ndarray  # (h, w) float32 (κ ‖∇B‖)² / 3, per-channel noise variance from texture
+
+
+def background_model(background: np.ndarray, params: SilhouetteParams) -> BackgroundModel:
+    """The per-camera part of :func:`extract_silhouette`, for a background (H, W, 3) uint8."""
+    background = np.asarray(background)
+    if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:
+        raise InputError(f"background: expected an (H, W, 3) uint8 array, got {background.dtype} {background.shape}")
+    B_sharp = _downsample(background, params.downsample)
+    B = _blur(B_sharp, params.blur_kernel_px)  # (h, w, 3)
+    channel_sum = np.ones((1, 3), np.float32)
+    BB = cv2.transform(cv2.multiply(B, B), channel_sum) + np.float32(BACKGROUND_ENERGY_FLOOR)
+    gradient_x = cv2.Sobel(B, cv2.CV_32F, 1, 0, scale=1.0 / SOBEL_GAIN)
+    gradient_y = cv2.Sobel(B, cv2.CV_32F, 0, 1, scale=1.0 / SOBEL_GAIN)
+    squared_gradient = cv2.transform(  # (h, w) ‖∇B‖², summed over the channels
+        cv2.multiply(gradient_x, gradient_x) + cv2.multiply(gradient_y, gradient_y), channel_sum
+    )
+    jitter = params.background_jitter_px
+    return BackgroundModel(
+        shape=background.shape,
+        downsample=params.downsample,
+        blur_kernel_px=params.blur_kernel_px,
+        B=B,
+        B_sharp=B_sharp,
+        BB=BB,
+        texture_variance=squared_gradient * np.float32(jitter * jitter / 3.0),
+    )
 
 
 def median_background(images: Iterable[np.ndarray], *, max_frames: int = 31) -> np.ndarray:
@@ -128,84 +219,152 @@ def median_background(images: Iterable[np.ndarray], *, max_frames: int = 31) -> 
     return np.median(stack, axis=0).round().astype(np.uint8)
 
 
-def extract_silhouette(image: np.ndarray, background: np.ndarray, params: SilhouetteParams) -> np.ndarray:
+def extract_silhouette(
+    image: np.ndarray, background: np.ndarray | BackgroundModel, params: SilhouetteParams
+) -> np.ndarray:
     """(H, W) uint8 mask of the person, 0 = background, 255 = person.
 
-    The foreground test, morphology and component filtering run at the working resolution
-    (``params.downsample``); the cleaned mask then decides the sign of the continuous foreground score,
-    which is interpolated to full resolution and thresholded there, so the outline keeps sub-pixel
-    detail while the costly steps run on a quarter of the pixels.
+    The foreground test, hysteresis, morphology and component filtering run at the working resolution
+    (``params.downsample``); the cleaned mask then decides the sign of a continuous outline score, which
+    is interpolated to full resolution and thresholded there, so the outline keeps sub-pixel detail while
+    the costly steps run on a quarter of the pixels.
 
     Parameters
     ----------
-    image, background : (H, W, 3) uint8
-        The frame and the background model of the same camera (colour order does not matter as long as
-        both use the same one).
+    image : (H, W, 3) uint8
+        The frame.
+    background : (H, W, 3) uint8 or BackgroundModel
+        The background of the same camera (colour order does not matter as long as both use the same
+        one), or its :func:`background_model` built with the same ``params``.
     params : SilhouetteParams
     """
     image = np.asarray(image)
-    background = np.asarray(background)
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise InputError(f"image: expected an (H, W, 3) uint8 array, got {image.dtype} {image.shape}")
-    if background.shape != image.shape or background.dtype != np.uint8:
-        raise InputError(
-            f"background: expected a uint8 array of the image's shape {image.shape}, "
-            f"got {background.dtype} {background.shape}"
-        )
+    if not isinstance(background, BackgroundModel):
+        background = np.asarray(background)
+        if background.shape != image.shape or background.dtype != np.uint8:
+            raise InputError(
+                f"background: expected a uint8 array of the image's shape {image.shape}, "
+                f"got {background.dtype} {background.shape}"
+            )
+        background = background_model(background, params)
+    elif background.shape != image.shape:
+        raise InputError(f"background: model of {background.shape} images, expected the image's {image.shape}")
+    elif (background.downsample, background.blur_kernel_px) != (params.downsample, params.blur_kernel_px):
+        raise InputError("background: model built with another downsample/blur_kernel_px than params")
     height, width = image.shape[:2]
-    I = _prepare(image, params.downsample, params.blur_kernel_px)
-    B = _prepare(background, params.downsample, params.blur_kernel_px)
-    score = _foreground_score(I, B, params)
-    raw = cv2.compare(score, 0.0, cv2.CMP_GT)
-    cleaned = _clean_mask(raw, params, params.downsample)
-    # Where cleaning overruled the test the score takes the cleaned sign, with a small magnitude so that
-    # interpolation still places the outline between pixels.
-    changed = cleaned != raw
-    score[changed] = np.where(cleaned[changed] > 0, SCORE_FLOOR, -SCORE_FLOOR)
+    I_sharp = _downsample(image, params.downsample)
+    I = _blur(I_sharp, params.blur_kernel_px)
+    evidence = _evidence(I, background, params)
+    raw = _hysteresis(evidence.evidence2, params)
+    mask = _clean_mask(raw, params, params.downsample)
+    score = _outline_score(mask, I_sharp, background.B_sharp, evidence, params.downsample)
     if params.downsample > 1:
         score = cv2.resize(score, (width, height), interpolation=cv2.INTER_LINEAR)
     return cv2.compare(score, 0.0, cv2.CMP_GT)
 
 
-def _prepare(image: np.ndarray, factor: int, blur_kernel: int) -> np.ndarray:
-    """The image averaged over factor x factor blocks and blurred, as float32.
+def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
+    """The uint8 image averaged over factor x factor blocks (OpenCV's fixed-point code: fast on uint8)."""
+    if factor == 1:
+        return image
+    height, width = image.shape[:2]
+    size = (max(1, round(width / factor)), max(1, round(height / factor)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
 
-    Both steps run on uint8, where OpenCV's fixed-point code is several times faster than on floats.
-    """
-    if factor > 1:
-        height, width = image.shape[:2]
-        size = (max(1, round(width / factor)), max(1, round(height / factor)))
-        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+def _blur(image: np.ndarray, blur_kernel: int) -> np.ndarray:
+    """The uint8 image blurred against noise (still on uint8, for speed), as float32."""
     if blur_kernel > 1:
         image = cv2.GaussianBlur(image, (blur_kernel, blur_kernel), 0)
     return image.astype(np.float32)
 
 
-def _foreground_score(I: np.ndarray, B: np.ndarray, params: SilhouetteParams) -> np.ndarray:
-    """(h, w) float32 score, > 0 for foreground: the largest margin by which a foreground test passes.
+@dataclass(frozen=True, eq=False)
+class _Evidence:
+    evidence2: np.ndarray  # (h, w) float32 squared distortion in units of the pixel's noise variance σ_p²
+    alpha: np.ndarray  # (h, w) float32 brightness distortion α
+    g: float  # exposure ratio of the frame to the background
 
-    Each test is scaled so that 0 is its threshold. A blurred edge between the person and the
-    background passes a fixed threshold well before the half-way point when the contrast is high, which
-    would grow every silhouette by a pixel or two; so each threshold is also raised to half the largest
-    distortion nearby (``CONTRAST_WINDOW``), which puts the outline at the half-contrast point.
+
+def _evidence(I: np.ndarray, model: BackgroundModel, params: SilhouetteParams) -> _Evidence:
+    """Squared evidence per pixel, in noise variances, the brightness distortion and the exposure ratio.
+
+    With α = I·B / B·B, ‖I − gB‖² splits into the chromaticity part ‖I − αB‖² = I·I − α I·B (orthogonal
+    to B) and the brightness part (α − g)² B·B. Shadow-band pixels keep only the first.
     """
+    B, BB = model.B, model.BB
     channel_sum = np.ones((1, 3), np.float32)
     II = cv2.transform(cv2.multiply(I, I), channel_sum)  # (h, w) I·I
     IB = cv2.transform(cv2.multiply(I, B), channel_sum)  # (h, w) I·B
-    BB = cv2.transform(cv2.multiply(B, B), channel_sum) + np.float32(BACKGROUND_ENERGY_FLOOR)  # (h, w) B·B
-    difference = cv2.sqrt(np.maximum(II - 2.0 * IB + BB, np.float32(0.0)))  # (h, w) ‖I − B‖
-    alpha = IB / BB  # brightness distortion α
-    # ‖I − αB‖² = I·I − (I·B)² / B·B, the remainder being orthogonal to B.
-    chroma = cv2.sqrt(np.maximum(II - IB * alpha, np.float32(0.0)))
-    window = _disk(CONTRAST_WINDOW)
-    chroma_threshold = np.maximum(np.float32(params.chroma_threshold), 0.5 * cv2.dilate(chroma, window))
-    difference_threshold = np.maximum(
-        np.float32(max(params.difference_threshold, 1e-6)), 0.5 * cv2.dilate(difference, window)
-    )
-    chroma_margin = chroma / chroma_threshold - 1.0
-    brightness_margin = np.maximum(params.brightness_min - alpha, alpha - params.brightness_max)
-    difference_margin = difference / difference_threshold - 1.0
-    return np.maximum(chroma_margin, np.minimum(brightness_margin, difference_margin))
+    alpha = cv2.divide(IB, BB)  # (h, w) α
+    chroma2 = cv2.max(II - IB * alpha, 0.0)  # (h, w) ‖I − αB‖²
+    g = float(np.clip(np.median(alpha[::SAMPLE_STRIDE, ::SAMPLE_STRIDE]), *EXPOSURE_RATIO_RANGE))
+    offset = alpha - np.float32(g)
+    difference2 = chroma2 + offset * offset * BB  # (h, w) ‖I − gB‖²
+    sample = difference2[::SAMPLE_STRIDE, ::SAMPLE_STRIDE].ravel()
+    quartile = np.partition(sample, sample.size // 4)[sample.size // 4]
+    sigma2 = np.clip(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2, NOISE_SIGMA_MAX**2)  # σ²
+    shadow = cv2.inRange(alpha, g * params.shadow_min, g * params.shadow_max)
+    cv2.copyTo(chroma2, shadow, difference2)  # shadow band: the colour direction alone
+    evidence2 = cv2.divide(difference2, model.texture_variance + np.float32(sigma2))
+    return _Evidence(evidence2, alpha, g)
+
+
+def _hysteresis(evidence2: np.ndarray, params: SilhouetteParams) -> np.ndarray:
+    """(h, w) uint8 mask: the regions above the weak threshold that hold a pixel above the strong one.
+
+    Weak regions are opened first (lines one or two pixels wide, such as the rim of a hard shadow,
+    vanish) and strong pixels are kept as they are (a thin limb is strong).
+    """
+    strong = cv2.compare(evidence2, float(params.strong_threshold**2), cv2.CMP_GT)
+    weak = cv2.compare(evidence2, float(params.weak_threshold**2), cv2.CMP_GT)
+    weak = cv2.morphologyEx(weak, cv2.MORPH_OPEN, _disk(1)) | strong
+    count, labels = cv2.connectedComponents(weak, connectivity=8)
+    seeded = np.zeros(count, np.uint8)  # (count,) 255 for the regions holding a strong pixel
+    seeded[labels[strong > 0]] = 255
+    seeded[0] = 0
+    return seeded[labels]
+
+
+def _outline_score(
+    mask: np.ndarray, I: np.ndarray, B: np.ndarray, evidence: _Evidence, downsample: int
+) -> np.ndarray:
+    """(h, w) float32, > 0 for the person: near the outline, the person's share of the pixel minus one half.
+
+    A pixel on a blurred edge mixes the person's colour F and the background's, λB:
+    I = φ F + (1 − φ) λB, so φ = (I − λB)·(F − λB) / ‖F − λB‖². F is the mean colour of the mask's core
+    nearby (pixels ``CORE_DEPTH_PX`` inside it) and λ the mean brightness distortion of the pixels just
+    outside (g, or less in the person's shadow). The true outline runs where φ = 1/2; a fixed threshold
+    would keep the whole blurred edge of a high-contrast outline and grow the silhouette. ``I`` and ``B``
+    (h, w, 3) uint8 are not blurred, so the edge is as sharp as the camera made it. This decides the
+    pixels within ``MATTE_RADIUS_PX`` of the outline, on both sides; elsewhere (and where F is too close to
+    the background to measure φ) the mask decides, with a small magnitude so that interpolation still
+    places the outline between pixels.
+    """
+    depth = _disk(max(1, round(CORE_DEPTH_PX / downsample)))
+    radius = max(1, round(MATTE_RADIUS_PX / downsample))
+    size = (2 * radius + 1, 2 * radius + 1)
+    core = cv2.erode(mask, depth, borderType=cv2.BORDER_REPLICATE)
+    outside = cv2.compare(cv2.dilate(mask, depth), 0, cv2.CMP_EQ)
+    band = cv2.dilate(mask, _disk(radius)) > cv2.erode(mask, _disk(radius), borderType=cv2.BORDER_REPLICATE)
+    rows, cols = np.nonzero(band)  # (n,) pixels whose share is measured
+    n_core = cv2.boxFilter(core, cv2.CV_32F, size, normalize=False)[rows, cols] / 255.0  # (n,)
+    F_sum = cv2.boxFilter(cv2.bitwise_and(I, I, mask=core), cv2.CV_32F, size, normalize=False)[rows, cols]
+    n_outside = cv2.boxFilter(outside, cv2.CV_32F, size, normalize=False)[rows, cols] / 255.0  # (n,)
+    alpha_sum = cv2.boxFilter(cv2.bitwise_and(evidence.alpha, evidence.alpha, mask=outside), -1, size,
+                              normalize=False)[rows, cols]
+    lam = np.where(n_outside > 0, alpha_sum / np.maximum(n_outside, 1.0), evidence.g)  # (n,) λ
+    background = lam[:, None] * B[rows, cols]  # (n, 3) λB
+    E = F_sum / np.maximum(n_core, 1.0)[:, None] - background  # (n, 3) F − λB
+    D = I[rows, cols] - background  # (n, 3) I − λB
+    EE = np.einsum("nc,nc->n", E, E)
+    phi = np.einsum("nc,nc->n", D, E) / np.maximum(EE, 1e-6)  # (n,) φ
+    measured = (n_core > 0) & (EE > MIN_MATTE_CONTRAST**2)
+    score = np.where(mask > 0, np.float32(SCORE_FLOOR), np.float32(-SCORE_FLOOR))
+    score[rows[measured], cols[measured]] = phi[measured] - 0.5
+    return score
 
 
 def _disk(radius: int) -> np.ndarray:

@@ -112,6 +112,6 @@ def test_extract_silhouette_rejects_mismatched_background():
         extract_silhouette(image[..., 0], image, SilhouetteParams())
 
 
-def test_params_reject_inverted_brightness_band():
-    with pytest.raises(InputError, match="brightness_min"):
-        SilhouetteParams(brightness_min=1.2)
+def test_params_reject_inverted_shadow_band():
+    with pytest.raises(InputError, match="shadow_min"):
+        SilhouetteParams(shadow_min=0.9, shadow_max=0.8)
