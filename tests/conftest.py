@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from calib_testing import ring_rig
 
 from calib.camera import Camera, Rig
 from calib.formats import save_rig
@@ -118,3 +119,9 @@ def write_video(path: Path, n_frames: int, size: tuple[int, int] = TINY_SIZE) ->
 def tiny_capture(tmp_path: Path) -> Path:
     """A valid 3-camera, 4-frame image capture with an anipose calibration."""
     return make_capture(tmp_path / "capture")
+
+
+@pytest.fixture
+def rig12() -> Rig:
+    """Twelve varied cameras named cam_0 .. cam_11 (numeric and text order differ)."""
+    return ring_rig(12)
