@@ -16,22 +16,17 @@ from calib.camera import Camera
 MIN_DEPTH_M = 1e-3
 
 
-def inside_along_rays(camera: Camera, mask: np.ndarray, origins: np.ndarray, directions: np.ndarray,
-                      t: np.ndarray) -> np.ndarray:
-    """(M, S) bool: which points ``origins + t directions`` of rays (M, 3) at ``t`` (M, S) are inside the view.
+def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """(N,) bool: which world points ``X`` (3, N) float32 are inside the view of ``camera`` with ``mask``.
 
-    In float32 and without building world points: in the camera frame a ray is
-    ``A + t B`` with ``A = R o + t_cam`` and ``B = R d``, so no (M, S, 3) world array is needed, and
-    float32 keeps millimetre precision at these distances while halving the memory traffic.
+    Points are stored by coordinate (3, N) so that picking a subset gathers three contiguous rows, and
+    in float32, which keeps millimetre precision at these distances while halving the memory traffic.
     """
-    A = (origins @ camera.R.T + camera.t).astype(np.float32)  # (M, 3)
-    B = (directions @ camera.R.T).astype(np.float32)
-    t = t.astype(np.float32)
-    z = A[:, 2:3] + t * B[:, 2:3]  # (M, S) depth
+    x, y, z = camera.R.astype(np.float32) @ X + camera.t.astype(np.float32)[:, None]
     seen = z > MIN_DEPTH_M
     inverse_z = 1.0 / np.where(seen, z, np.float32(1.0))
-    x = (A[:, 0:1] + t * B[:, 0:1]) * inverse_z
-    y = (A[:, 1:2] + t * B[:, 1:2]) * inverse_z
+    x *= inverse_z
+    y *= inverse_z
     k1, k2, p1, p2, k3 = camera.dist.astype(np.float32)
     if np.any(camera.dist):
         r2 = x * x + y * y
@@ -39,13 +34,21 @@ def inside_along_rays(camera: Camera, mask: np.ndarray, origins: np.ndarray, dir
         x, y = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
                 y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
     fx, fy, cx, cy = (np.float32(value) for value in (camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]))
-    u = np.rint(fx * x + cx)
-    v = np.rint(fy * y + cy)
+    # Nearest pixel centre: pixel (0, 0) covers [-0.5, 0.5); the shift makes truncation round.
+    u = fx * x + (cx + np.float32(0.5))
+    v = fy * y + (cy + np.float32(0.5))
     height, width = mask.shape
     seen &= (u >= 0) & (u < width) & (v >= 0) & (v < height)
-    result = np.zeros(t.shape, bool)
-    result[seen] = mask[v[seen].astype(np.intp), u[seen].astype(np.intp)] > 0
-    return result
+    pixel = np.where(seen, v.astype(np.intp) * width + u.astype(np.intp), 0)
+    return seen & (mask.ravel()[pixel] > 0)
+
+
+def ray_points(origins: np.ndarray, directions: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(3, M S) float32 world points ``origins + t directions`` of rays (M, 3) at ``t`` (M, S) or (M,), ray-major."""
+    t = t.reshape(len(t), -1).astype(np.float32)
+    o = origins.T.astype(np.float32)[:, :, None]  # (3, M, 1)
+    d = directions.T.astype(np.float32)[:, :, None]
+    return (o + t[None] * d).reshape(3, -1)
 
 
 def box_interval(

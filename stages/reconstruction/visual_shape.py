@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 
 from calib.camera import Camera, Rig
 from stages.reconstruction.contours import Outline, cone_normals, outline
-from stages.reconstruction.views import box_interval, in_volume, inside_along_rays
+from stages.reconstruction.views import box_interval, in_volume, inside_view, ray_points
 
 # The convex hull of a silhouette is widened by this many pixels before clipping rays, so that lens
 # distortion (which bends the hull's straight edges slightly) never cuts off a true part of the cone.
@@ -53,8 +53,12 @@ MIN_FACE_ANGLE_SIN = np.sin(np.radians(5.0))
 MAX_SNAP_PX = 3.0
 MAX_SNAP_M = 0.15
 OUTLINE_TOLERANCE_KERNEL = np.ones((3, 3), np.uint8)
-# Sample this many more rays than observations wanted: some rays have no edge, some have several.
-RAY_OVERSAMPLING = 1.3
+# Sample this many more rays than observations wanted: a few rays have no edge (their rim point falls
+# outside a view's tolerant mask or the working volume); each ray gives at most one point.
+RAY_OVERSAMPLING = 1.1
+# A phantom edge is scored by its rim point's mean distance to this many rim points of rays that have a
+# single edge (which therefore carries their rim point): a few, so that one stray point cannot vouch.
+SUPPORT_NEIGHBOURS = 3
 
 
 @dataclass(frozen=True)
@@ -127,13 +131,38 @@ def rim_points(
     else:
         t_rim = 0.5 * (t_near + t_far)
     points = origins[edges.ray] + t_rim[:, None] * directions[edges.ray]
-    point_normals = normals[edges.ray]
+    kept = _one_edge_per_ray(edges.ray, points, t_far - t_near)
+    points, point_normals = points[kept], normals[edges.ray[kept]]
     keep = in_volume(points, volume)
     points, point_normals = points[keep], point_normals[keep]
     if len(points) > n_observations:
         chosen = np.unique(np.linspace(0, len(points) - 1, n_observations).round().astype(int))
         points, point_normals = points[chosen], point_normals[chosen]
     return points, point_normals
+
+
+def _one_edge_per_ray(ray: np.ndarray, points: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """Indices of the one edge kept per ray, given edges' rays (E,), rim points (E, 3) and lengths (E,).
+
+    A ray through a contour point touches the body only at its rim point, so of a ray's several edges
+    one holds the rim and the others are phantom parts of the visual hull. Which one is not fixed by the
+    ray alone (the rim edge is not always the first along the ray: a phantom in front of the body is not
+    opaque). A ray with a single edge holds its rim point; the real surface is covered by such points from
+    every view, while a phantom, lying in free space, is not: each ray keeps the edge whose rim point is
+    closest to them (mean distance to ``SUPPORT_NEIGHBOURS`` of them). Without any single-edge ray, the
+    longest edge is kept (phantoms are mostly thin slivers between cones).
+    """
+    single = np.bincount(ray)[ray] == 1
+    score = np.zeros(len(ray))
+    if single.any() and not single.all():
+        neighbours = min(SUPPORT_NEIGHBOURS, int(single.sum()))
+        distance, _ = cKDTree(points[single]).query(points[~single], k=neighbours)
+        score[~single] = distance.reshape(len(distance), -1).mean(axis=1)
+    elif not single.any():
+        score = -length
+    ranked = np.lexsort((score, ray))  # by ray, best score first
+    ray_sorted = ray[ranked]
+    return ranked[np.diff(ray_sorted, prepend=-1) != 0]
 
 
 def _sample_rays(outlines: list[Outline], n_rays: int) -> tuple[np.ndarray, np.ndarray]:
@@ -179,9 +208,9 @@ def _viewing_edges(
         return ViewingEdges(*(np.zeros(0, int),) * 5)
     fractions = np.linspace(0.0, 1.0, samples_per_ray)  # (S,)
     t = t_low[alive, None] + (t_high - t_low)[alive, None] * fractions  # (A, S)
-    ok = (~_inside_per_view(cameras, masks, origins[alive], directions[alive], camera_of[alive], t)).sum(
-        axis=0
-    ) <= tolerated_views
+    ray_of_sample = np.repeat(alive, samples_per_ray)
+    X = ray_points(origins[alive], directions[alive], t)
+    ok = _inside_enough(cameras, masks, camera_of[ray_of_sample], X, tolerated_views).reshape(t.shape)
     # A single outside sample between inside ones is a grazing ray flickering along another view's
     # outline, not a gap in the body: close it.
     ok[:, 1:-1] |= ok[:, :-2] & ok[:, 2:]
@@ -200,20 +229,39 @@ def _viewing_edges(
     return ViewingEdges(alive[rows], t_end[:count], t_end[count:], camera_end[:count], camera_end[count:])
 
 
-def _inside_per_view(cameras, masks, origins, directions, camera_of, t) -> np.ndarray:
-    """(C, M, S) bool: whether sample ``t`` (M, S) of ray m lies inside view c; a ray's own view says yes."""
-    result = np.ones((len(cameras),) + t.shape, bool)
+def _inside_enough(cameras, masks, camera_of: np.ndarray, X: np.ndarray, tolerated_views: int) -> np.ndarray:
+    """(N,) bool: whether points ``X`` (3, N), each on a ray cast from ``camera_of`` (N,), are outside at
+    most ``tolerated_views`` views (a ray's own view counts it as inside).
+
+    Views are tested one after the other on the points still in the running: with the exact hull a
+    point leaves at its first outside view, so later views test only a fraction of the points.
+    """
+    misses = np.zeros(X.shape[1], np.int16)
+    running = np.arange(X.shape[1])
+    for index, (camera, mask) in enumerate(zip(cameras, masks, strict=True)):
+        tested = running[camera_of[running] != index]
+        misses[tested[~inside_view(camera, mask, X[:, tested])]] += 1
+        running = running[misses[running] <= tolerated_views]
+    return misses <= tolerated_views
+
+
+def _inside_each(cameras, masks, camera_of: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """(C, N) bool: whether points ``X`` (3, N) are inside view c; the view a point's ray came from says yes."""
+    result = np.ones((len(cameras), X.shape[1]), bool)
     for index, (camera, mask) in enumerate(zip(cameras, masks, strict=True)):
         others = np.flatnonzero(camera_of != index)
-        result[index, others] = inside_along_rays(camera, mask, origins[others], directions[others], t[others])
+        result[index, others] = inside_view(camera, mask, X[:, others])
     return result
 
 
 def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, inner, outer, tolerated_views):
-    """Bisect each edge end between the inside sample ``inner`` (E,) and its outside neighbour ``outer``.
+    """Each edge end between the inside sample ``inner`` (E,) and its outside neighbour ``outer`` (E,).
 
-    Returns the end's ray parameter (E,) and the camera whose cone it crosses (E,), -1 when the end is
-    the sampled stretch's boundary (the volume).
+    The views that are inside at ``inner`` but outside at ``outer`` are the cones the ray leaves in
+    between; each such crossing is bisected against that one view alone (a fifth of the work of testing
+    every view), and the end is the crossing that brings the number of outside views above
+    ``tolerated_views``, counted from the inner side. Returns the end's ray parameter (E,) and the camera
+    whose cone it crosses (E,), -1 when the end is the sampled stretch's boundary (the volume).
     """
     samples = t.shape[1]
     bounded = (outer >= 0) & (outer < samples)
@@ -222,17 +270,34 @@ def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, i
     idx = np.flatnonzero(bounded)
     if len(idx) == 0:
         return t_end, camera
-    o, d, skip = origins[ray[idx]], directions[ray[idx]], camera_of[ray[idx]]
-    lo, hi = t_end[idx], t[rows[idx], outer[idx]]  # lo inside, hi outside
+    ray, own = ray[idx], camera_of[ray[idx]]
+    t_in, t_out = t_end[idx], t[rows[idx], outer[idx]]
+    inside_in = _inside_each(cameras, masks, own, ray_points(origins[ray], directions[ray], t_in))  # (C, E')
+    flips = inside_in & ~_inside_each(cameras, masks, own, ray_points(origins[ray], directions[ray], t_out))
+    view, end = np.nonzero(flips)  # one crossing per (view, end), grouped by view
+    lo, hi = t_in[end], t_out[end]  # lo inside, hi outside that view
+    o, d = origins[ray[end]], directions[ray[end]]
+    groups = np.searchsorted(view, np.arange(len(cameras) + 1))
     for _ in range(BISECTION_STEPS):
         mid = 0.5 * (lo + hi)
-        good = (~_inside_per_view(cameras, masks, o, d, skip, mid[:, None])).sum(axis=0)[:, 0] <= tolerated_views
-        lo = np.where(good, mid, lo)
-        hi = np.where(good, hi, mid)
-    views = _inside_per_view(cameras, masks, o, d, skip, np.column_stack([lo, hi]))  # (C, E', 2)
-    flips = views[:, :, 0] & ~views[:, :, 1]  # (C, E') inside at lo, outside at hi
-    t_end[idx] = 0.5 * (lo + hi)
-    camera[idx] = np.where(flips.any(axis=0), np.argmax(flips, axis=0), -1)
+        X = ray_points(o, d, mid)
+        inside = np.zeros(len(mid), bool)
+        for index, (camera_c, mask) in enumerate(zip(cameras, masks, strict=True)):
+            part = slice(groups[index], groups[index + 1])
+            inside[part] = inside_view(camera_c, mask, X[:, part])
+        lo = np.where(inside, mid, lo)
+        hi = np.where(inside, hi, mid)
+    crossing = 0.5 * (lo + hi)
+    # The end is the k-th crossing from the inner side, k = the views still allowed to disagree there.
+    needed = tolerated_views + 1 - (~inside_in).sum(axis=0)  # (E',)
+    order = np.lexsort((np.abs(crossing - t_in[end]), end))
+    sorted_end = end[order]
+    rank = np.arange(len(order)) - np.searchsorted(sorted_end, sorted_end)
+    available = np.bincount(end, minlength=len(idx))
+    wanted = np.minimum(needed, available) - 1
+    picked = order[rank == wanted[sorted_end]]
+    t_end[idx[end[picked]]] = crossing[picked]
+    camera[idx[end[picked]]] = view[picked]
     return t_end, camera
 
 
