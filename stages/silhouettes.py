@@ -58,8 +58,6 @@ NOISE_SIGMA_MAX = 6.0
 # Bounds on the exposure ratio g between frame and background: drift and codec level shifts stay well
 # inside; outside, the median is not the background's (a person filling the view) and is not trusted.
 EXPOSURE_RATIO_RANGE = (0.7, 1.4)
-# OpenCV's 3x3 Sobel kernels answer 8 to a unit ramp.
-SOBEL_GAIN = 8.0
 # Matting (full-resolution pixels): the person's colour next to the outline is the mean of the mask's
 # pixels at least CORE_DEPTH_PX inside it (lens blur and compression mix the outermost ones) within
 # MATTE_RADIUS_PX, and the outline is measured on pixels up to MATTE_RADIUS_PX from it, on both sides.
@@ -83,9 +81,9 @@ class SilhouetteParams:
         resolution), then the outline is interpolated back; 2 halves the cost four times over and averages
         noise away.
     blur_kernel_px : int
-        Size of the Gaussian blur kernel (odd; at the working resolution) against sensor noise and
-        compression blocks, for the foreground test only (the outline is measured on the unblurred image);
-        1 = none.
+        Size of a Gaussian blur kernel (odd; at the working resolution) applied before the foreground test
+        only, for very noisy input; 1 = none (the thresholds already follow the noise, and a blur widens
+        the person's edges, which the weak threshold then takes in).
     strong_threshold : float
         Evidence ‖I − gB‖ / σ (in noise standard deviations) above which a pixel seeds the person: high
         enough that noise alone practically never reaches it.
@@ -114,7 +112,7 @@ class SilhouetteParams:
     """
 
     downsample: int = 2
-    blur_kernel_px: int = 3
+    blur_kernel_px: int = 1
     strong_threshold: float = 8.0
     weak_threshold: float = 4.0
     shadow_min: float = 0.5
@@ -159,9 +157,11 @@ class BackgroundModel:
     shape: tuple[int, int, int]  # (H, W, 3) of the full-resolution images
     downsample: int
     blur_kernel_px: int
-    B: np.ndarray  # (h, w, 3) float32 background colours at the working resolution, blurred
+    image: np.ndarray  # (H, W, 3) uint8 the background itself
+    B: np.ndarray  # (h, w, 3) uint8 background colours at the working resolution, blurred
     B_sharp: np.ndarray  # (h, w, 3) uint8 the same before the blur
-    BB: np.ndarray  # (h, w) float32 B·B (+ BACKGROUND_ENERGY_FLOOR)
+    BB: np.ndarray  # (h, w) float32 B·B
+    inverse_BB: np.ndarray  # (h, w) float32 1 / (B·B + BACKGROUND_ENERGY_FLOOR)
     texture_variance: np.ndarray  # (h, w) float32 (κ ‖∇B‖)² / 3, per-channel noise variance from texture
 
 
@@ -171,22 +171,23 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
     if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:
         raise InputError(f"background: expected an (H, W, 3) uint8 array, got {background.dtype} {background.shape}")
     B_sharp = _downsample(background, params.downsample)
-    B = _blur(B_sharp, params.blur_kernel_px)  # (h, w, 3)
+    B = _blur(B_sharp, params.blur_kernel_px)  # (h, w, 3) uint8
     channel_sum = np.ones((1, 3), np.float32)
-    BB = cv2.transform(cv2.multiply(B, B), channel_sum) + np.float32(BACKGROUND_ENERGY_FLOOR)
-    gradient_x = cv2.Sobel(B, cv2.CV_32F, 1, 0, scale=1.0 / SOBEL_GAIN)
-    gradient_y = cv2.Sobel(B, cv2.CV_32F, 0, 1, scale=1.0 / SOBEL_GAIN)
-    squared_gradient = cv2.transform(  # (h, w) ‖∇B‖², summed over the channels
-        cv2.multiply(gradient_x, gradient_x) + cv2.multiply(gradient_y, gradient_y), channel_sum
-    )
+    BB = cv2.transform(cv2.multiply(B, B, dtype=cv2.CV_32F), channel_sum)  # (h, w) B·B
+    # A shift of the background by κ pixels changes a pixel by about κ times the gradient, which the
+    # range of each channel over the 3x3 neighbourhood (two pixels across) measures twice over.
+    spread = cv2.morphologyEx(B, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8))  # (h, w, 3) uint8
+    squared_gradient = cv2.transform(cv2.multiply(spread, spread, dtype=cv2.CV_32F), channel_sum) / 4.0
     jitter = params.background_jitter_px
     return BackgroundModel(
         shape=background.shape,
         downsample=params.downsample,
         blur_kernel_px=params.blur_kernel_px,
+        image=background,
         B=B,
         B_sharp=B_sharp,
         BB=BB,
+        inverse_BB=1.0 / (BB + np.float32(BACKGROUND_ENERGY_FLOOR)),
         texture_variance=squared_gradient * np.float32(jitter * jitter / 3.0),
     )
 
@@ -253,16 +254,29 @@ def extract_silhouette(
         raise InputError(f"background: model of {background.shape} images, expected the image's {image.shape}")
     elif (background.downsample, background.blur_kernel_px) != (params.downsample, params.blur_kernel_px):
         raise InputError("background: model built with another downsample/blur_kernel_px than params")
-    height, width = image.shape[:2]
-    I_sharp = _downsample(image, params.downsample)
+    ds = params.downsample
+    I_sharp = _downsample(image, ds)
     I = _blur(I_sharp, params.blur_kernel_px)
     evidence = _evidence(I, background, params)
-    raw = _hysteresis(evidence.evidence2, params)
-    mask = _clean_mask(raw, params, params.downsample)
-    score = _outline_score(mask, I_sharp, background.B_sharp, evidence, params.downsample)
-    if params.downsample > 1:
-        score = cv2.resize(score, (width, height), interpolation=cv2.INTER_LINEAR)
-    return cv2.compare(score, 0.0, cv2.CMP_GT)
+    mask = _clean_mask(_hysteresis(evidence.evidence2, params), params, ds)
+    silhouette = np.zeros(image.shape[:2], np.uint8)
+    x, y, w, h = cv2.boundingRect(mask)
+    if w == 0:
+        return silhouette
+    # The outline is worked out in the person's bounding box only, with a margin of background wider
+    # than the matting band, so that interpolation at the box's edges sees background as it would.
+    margin = max(1, round(MATTE_RADIUS_PX / ds)) + 2
+    x0, y0 = max(x - margin, 0), max(y - margin, 0)
+    x1, y1 = min(x + w + margin, mask.shape[1]), min(y + h + margin, mask.shape[0])
+    box = (slice(y0, y1), slice(x0, x1))
+    matte = _matte(mask[box], I_sharp[box], background.B_sharp[box], evidence.alpha[box], evidence.g, ds)
+    if ds > 1:
+        score = _full_resolution_score(matte, image, background.image, (y0 * ds, x0 * ds), ds)
+    else:
+        score = matte.score
+    inside = silhouette[y0 * ds : y1 * ds, x0 * ds : x1 * ds]  # a view, clipped at the image's edges
+    cv2.compare(score[: inside.shape[0], : inside.shape[1]], 0.0, cv2.CMP_GT, dst=inside)
+    return silhouette
 
 
 def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
@@ -275,10 +289,10 @@ def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
 
 
 def _blur(image: np.ndarray, blur_kernel: int) -> np.ndarray:
-    """The uint8 image blurred against noise (still on uint8, for speed), as float32."""
+    """The uint8 image blurred against noise (on uint8, where OpenCV's fixed-point code is fast)."""
     if blur_kernel > 1:
-        image = cv2.GaussianBlur(image, (blur_kernel, blur_kernel), 0)
-    return image.astype(np.float32)
+        return cv2.GaussianBlur(image, (blur_kernel, blur_kernel), 0)
+    return image
 
 
 @dataclass(frozen=True, eq=False)
@@ -291,25 +305,30 @@ class _Evidence:
 def _evidence(I: np.ndarray, model: BackgroundModel, params: SilhouetteParams) -> _Evidence:
     """Squared evidence per pixel, in noise variances, the brightness distortion and the exposure ratio.
 
-    With α = I·B / B·B, ‖I − gB‖² splits into the chromaticity part ‖I − αB‖² = I·I − α I·B (orthogonal
-    to B) and the brightness part (α − g)² B·B. Shadow-band pixels keep only the first.
+    ``I`` (h, w, 3) uint8. With α = I·B / B·B, the chromaticity distortion is ‖I − αB‖² = I·I − α I·B
+    (the remainder orthogonal to B) and ‖I − gB‖² = I·I − 2g I·B + g² B·B; shadow-band pixels keep only
+    the first. The products are taken straight from uint8 into float32 (no conversion pass).
     """
-    B, BB = model.B, model.BB
     channel_sum = np.ones((1, 3), np.float32)
-    II = cv2.transform(cv2.multiply(I, I), channel_sum)  # (h, w) I·I
-    IB = cv2.transform(cv2.multiply(I, B), channel_sum)  # (h, w) I·B
-    alpha = cv2.divide(IB, BB)  # (h, w) α
-    chroma2 = cv2.max(II - IB * alpha, 0.0)  # (h, w) ‖I − αB‖²
-    g = float(np.clip(np.median(alpha[::SAMPLE_STRIDE, ::SAMPLE_STRIDE]), *EXPOSURE_RATIO_RANGE))
-    offset = alpha - np.float32(g)
-    difference2 = chroma2 + offset * offset * BB  # (h, w) ‖I − gB‖²
-    sample = difference2[::SAMPLE_STRIDE, ::SAMPLE_STRIDE].ravel()
-    quartile = np.partition(sample, sample.size // 4)[sample.size // 4]
+    II = cv2.transform(cv2.multiply(I, I, dtype=cv2.CV_32F), channel_sum)  # (h, w) I·I
+    IB = cv2.transform(cv2.multiply(I, model.B, dtype=cv2.CV_32F), channel_sum)  # (h, w) I·B
+    alpha = cv2.multiply(IB, model.inverse_BB)  # (h, w) α
+    chroma2 = cv2.subtract(II, cv2.multiply(IB, alpha))  # (h, w) ‖I − αB‖² (≥ 0 up to rounding)
+    g = float(np.clip(_quantile(alpha[::SAMPLE_STRIDE, ::SAMPLE_STRIDE], 0.5), *EXPOSURE_RATIO_RANGE))
+    difference2 = cv2.scaleAdd(model.BB, g * g, cv2.addWeighted(II, 1.0, IB, -2.0 * g, 0.0))  # ‖I − gB‖²
+    quartile = _quantile(difference2[::SAMPLE_STRIDE, ::SAMPLE_STRIDE], 0.25)
     sigma2 = np.clip(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2, NOISE_SIGMA_MAX**2)  # σ²
     shadow = cv2.inRange(alpha, g * params.shadow_min, g * params.shadow_max)
     cv2.copyTo(chroma2, shadow, difference2)  # shadow band: the colour direction alone
     evidence2 = cv2.divide(difference2, model.texture_variance + np.float32(sigma2))
     return _Evidence(evidence2, alpha, g)
+
+
+def _quantile(values: np.ndarray, q: float) -> float:
+    """The ``q`` quantile of ``values`` by partial sorting (a few times faster than ``np.median``)."""
+    flat = values.ravel()
+    k = min(int(q * flat.size), flat.size - 1)
+    return float(np.partition(flat, k)[k])
 
 
 def _hysteresis(evidence2: np.ndarray, params: SilhouetteParams) -> np.ndarray:
@@ -325,45 +344,93 @@ def _hysteresis(evidence2: np.ndarray, params: SilhouetteParams) -> np.ndarray:
     seeded = np.zeros(count, np.uint8)  # (count,) 255 for the regions holding a strong pixel
     seeded[labels[strong > 0]] = 255
     seeded[0] = 0
-    return seeded[labels]
+    return np.take(seeded, labels)
 
 
-def _outline_score(
-    mask: np.ndarray, I: np.ndarray, B: np.ndarray, evidence: _Evidence, downsample: int
-) -> np.ndarray:
-    """(h, w) float32, > 0 for the person: near the outline, the person's share of the pixel minus one half.
+@dataclass(frozen=True, eq=False)
+class _Matte:
+    score: np.ndarray  # (h, w) float32 > 0 for the person: φ − 1/2 where measured, else the mask's ±SCORE_FLOOR
+    rows: np.ndarray  # (n,) int working-resolution pixels where φ is measured
+    cols: np.ndarray  # (n,) int
+    phi: np.ndarray  # (n,) float32 φ there
+    F: np.ndarray  # (n, 3) float32 the person's colour next to each
+    lam: np.ndarray  # (n,) float32 the background's brightness factor λ next to each
+
+
+def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, g: float, downsample: int) -> _Matte:
+    """The person's share φ of the pixels near the outline, and what it was measured against.
 
     A pixel on a blurred edge mixes the person's colour F and the background's, λB:
     I = φ F + (1 − φ) λB, so φ = (I − λB)·(F − λB) / ‖F − λB‖². F is the mean colour of the mask's core
     nearby (pixels ``CORE_DEPTH_PX`` inside it) and λ the mean brightness distortion of the pixels just
     outside (g, or less in the person's shadow). The true outline runs where φ = 1/2; a fixed threshold
     would keep the whole blurred edge of a high-contrast outline and grow the silhouette. ``I`` and ``B``
-    (h, w, 3) uint8 are not blurred, so the edge is as sharp as the camera made it. This decides the
-    pixels within ``MATTE_RADIUS_PX`` of the outline, on both sides; elsewhere (and where F is too close to
-    the background to measure φ) the mask decides, with a small magnitude so that interpolation still
-    places the outline between pixels.
+    (h, w, 3) uint8 are not blurred, so the edge is as sharp as the camera made it. φ is measured within
+    ``MATTE_RADIUS_PX`` of the outline, on both sides; elsewhere (and where F is too close to the
+    background to measure it) the mask decides, with a small magnitude so that interpolation still places
+    the outline between pixels.
     """
     depth = _disk(max(1, round(CORE_DEPTH_PX / downsample)))
     radius = max(1, round(MATTE_RADIUS_PX / downsample))
     size = (2 * radius + 1, 2 * radius + 1)
+    width = mask.shape[1]
+    score = np.where(mask > 0, np.float32(SCORE_FLOOR), np.float32(-SCORE_FLOOR))
     core = cv2.erode(mask, depth, borderType=cv2.BORDER_REPLICATE)
     outside = cv2.compare(cv2.dilate(mask, depth), 0, cv2.CMP_EQ)
-    band = cv2.dilate(mask, _disk(radius)) > cv2.erode(mask, _disk(radius), borderType=cv2.BORDER_REPLICATE)
-    rows, cols = np.nonzero(band)  # (n,) pixels whose share is measured
-    n_core = cv2.boxFilter(core, cv2.CV_32F, size, normalize=False)[rows, cols] / 255.0  # (n,)
-    F_sum = cv2.boxFilter(cv2.bitwise_and(I, I, mask=core), cv2.CV_32F, size, normalize=False)[rows, cols]
-    n_outside = cv2.boxFilter(outside, cv2.CV_32F, size, normalize=False)[rows, cols] / 255.0  # (n,)
-    alpha_sum = cv2.boxFilter(cv2.bitwise_and(evidence.alpha, evidence.alpha, mask=outside), -1, size,
-                              normalize=False)[rows, cols]
-    lam = np.where(n_outside > 0, alpha_sum / np.maximum(n_outside, 1.0), evidence.g)  # (n,) λ
-    background = lam[:, None] * B[rows, cols]  # (n, 3) λB
-    E = F_sum / np.maximum(n_core, 1.0)[:, None] - background  # (n, 3) F − λB
-    D = I[rows, cols] - background  # (n, 3) I − λB
-    EE = np.einsum("nc,nc->n", E, E)
-    phi = np.einsum("nc,nc->n", D, E) / np.maximum(EE, 1e-6)  # (n,) φ
+    band = cv2.compare(cv2.dilate(mask, _disk(radius)), cv2.erode(mask, _disk(radius), borderType=cv2.BORDER_REPLICATE),
+                       cv2.CMP_GT)
+    points = cv2.findNonZero(band)  # x, y of the pixels near the outline
+    if points is None:  # a mask filling the whole image has no outline
+        points = np.zeros((0, 2), np.int32)
+    points = points.reshape(-1, 2)  # (n, 2)
+    index = points[:, 1] * width + points[:, 0]  # (n,) flat indices: np.take is the fastest gather
+    I, B = np.ascontiguousarray(I), np.ascontiguousarray(B)
+    counts = cv2.boxFilter(cv2.merge([core, outside]), cv2.CV_32F, size, normalize=False)
+    n_core, n_outside = (counts.reshape(-1, 2).take(index, axis=0) / 255.0).T  # (n,) pixels nearby
+    F_sum = cv2.boxFilter(cv2.bitwise_and(I, I, mask=core), cv2.CV_32F, size, normalize=False)
+    alpha_sum = cv2.boxFilter(cv2.bitwise_and(alpha, alpha, mask=outside), -1, size, normalize=False)
+    lam = np.where(n_outside > 0, alpha_sum.ravel().take(index) / np.maximum(n_outside, 1.0), np.float32(g))  # λ
+    F = F_sum.reshape(-1, 3).take(index, axis=0) / np.maximum(n_core, 1.0)[:, None]  # (n, 3)
+    phi, EE = _share(I.reshape(-1, 3).take(index, axis=0), F, lam[:, None] * B.reshape(-1, 3).take(index, axis=0))
     measured = (n_core > 0) & (EE > MIN_MATTE_CONTRAST**2)
-    score = np.where(mask > 0, np.float32(SCORE_FLOOR), np.float32(-SCORE_FLOOR))
-    score[rows[measured], cols[measured]] = phi[measured] - 0.5
+    score.ravel()[index[measured]] = phi[measured] - 0.5
+    rows, cols = np.divmod(index[measured], width)
+    return _Matte(score, rows, cols, phi[measured], F[measured], lam[measured])
+
+
+def _share(I: np.ndarray, F: np.ndarray, background: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """φ (n,) of colours I (n, 3) between the person's F (n, 3) and the background's (n, 3), and ‖F − bg‖²."""
+    E = F - background  # (n, 3)
+    D = I - background  # (n, 3)
+    EE = np.einsum("nc,nc->n", E, E)
+    return np.einsum("nc,nc->n", D, E) / np.maximum(EE, 1e-6), EE
+
+
+def _full_resolution_score(
+    matte: _Matte, image: np.ndarray, background: np.ndarray, origin: tuple[int, int], downsample: int
+) -> np.ndarray:
+    """(h ds, w ds) float32 outline score of the box at full resolution, from its working-resolution matte.
+
+    The score is interpolated, then φ is measured again on the full-resolution pixels of every mixed
+    working pixel (0 < φ < 1: a block all person, or all background, needs no new measurement), against
+    that pixel's F and λ: the outline then follows the full-resolution edge rather than its average over
+    ``downsample`` x ``downsample`` blocks. ``image`` and ``background`` (H, W, 3) uint8 are whole (flat
+    gathers from them are the fastest), the box starting at full-resolution pixel ``origin`` (row, column).
+    """
+    height, width = matte.score.shape
+    ds = downsample
+    score = cv2.resize(matte.score, (width * ds, height * ds), interpolation=cv2.INTER_LINEAR)
+    mixed = np.abs(matte.phi - 0.5) < 0.5
+    dy, dx = np.divmod(np.arange(ds * ds), ds)  # (ds²,) offsets in a block
+    rows = (matte.rows[mixed, None] * ds + dy).ravel()  # (m ds²,) box rows and columns of their pixels
+    cols = (matte.cols[mixed, None] * ds + dx).ravel()
+    inside = (rows + origin[0] < image.shape[0]) & (cols + origin[1] < image.shape[1])  # the box may pass the edge
+    rows, cols = rows[inside], cols[inside]
+    index = (rows + origin[0]) * image.shape[1] + cols + origin[1]  # (m',) flat indices in the image
+    block = np.repeat(np.flatnonzero(mixed), ds * ds)[inside]  # (m',) the working pixel of each
+    lam_B = background.reshape(-1, 3).take(index, axis=0) * matte.lam[block, None]  # (m', 3) λB
+    phi, _ = _share(image.reshape(-1, 3).take(index, axis=0), matte.F[block], lam_B)
+    score.ravel()[rows * (width * ds) + cols] = phi - 0.5
     return score
 
 
