@@ -44,7 +44,7 @@ class ReconstructionParams:
         planes at the edge's ends (see ``visual_shape.py``), or the edge's midpoint.
     samples_per_ray : int
         Samples along each viewing ray's bounded stretch before the in/out transitions are bisected;
-        edges shorter than the sample spacing (a few millimetres) can be missed.
+        edges shorter than the sample spacing (about 2 cm on a typical 40 cm stretch) can be missed.
     contour_smoothing_px : float
         Gaussian smoothing of outlines along the contour (in contour points), against pixel staircase.
     voxel_size_m, coarse_voxel_size_m : float
@@ -55,7 +55,7 @@ class ReconstructionParams:
     n_observations: int = 1000
     tolerated_views: int = 0
     rim_placement: str = "osculating"
-    samples_per_ray: int = 32
+    samples_per_ray: int = 24
     contour_smoothing_px: float = 1.5
     voxel_size_m: float = 0.01
     coarse_voxel_size_m: float = 0.08
