@@ -55,6 +55,11 @@ CHI2_3_LOWER_QUARTILE = 1.2125
 # the person (or a change of lighting) covers most of the image, and the quartile is no longer noise.
 NOISE_SIGMA_MIN = 0.5
 NOISE_SIGMA_MAX = 6.0
+# The search for the person looks at blocks of COARSE_FACTOR x COARSE_FACTOR working pixels (a sixteenth of
+# the cost), then works on the box around what it found plus COARSE_MARGIN blocks (parts of the person too
+# faint to show on blocks lie next to parts that do).
+COARSE_FACTOR = 4
+COARSE_MARGIN = 3
 # Bounds on the exposure ratio g between frame and background: drift and codec level shifts stay well
 # inside; outside, the median is not the background's (a person filling the view) and is not trusted.
 EXPOSURE_RATIO_RANGE = (0.7, 1.4)
@@ -163,6 +168,10 @@ class BackgroundModel:
     BB: np.ndarray  # (h, w) float32 B·B
     inverse_BB: np.ndarray  # (h, w) float32 1 / (B·B + BACKGROUND_ENERGY_FLOOR)
     texture_variance: np.ndarray  # (h, w) float32 (κ ‖∇B‖)² / 3, per-channel noise variance from texture
+    sample_B: np.ndarray  # (h / SAMPLE_STRIDE, w / SAMPLE_STRIDE, 3) float32 every SAMPLE_STRIDE-th pixel of B
+    sample_BB: np.ndarray  # (h / SAMPLE_STRIDE, w / SAMPLE_STRIDE) float32 B·B there
+    coarse_B: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR, 3) float32 B averaged over blocks
+    coarse_texture_variance: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR) float32 the same for it
 
 
 def background_model(background: np.ndarray, params: SilhouetteParams) -> BackgroundModel:
@@ -179,6 +188,8 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
     spread = cv2.morphologyEx(B, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8))  # (h, w, 3) uint8
     squared_gradient = cv2.transform(cv2.multiply(spread, spread, dtype=cv2.CV_32F), channel_sum) / 4.0
     jitter = params.background_jitter_px
+    texture_variance = squared_gradient * np.float32(jitter * jitter / 3.0)
+    sample_B = B[::SAMPLE_STRIDE, ::SAMPLE_STRIDE].astype(np.float32)
     return BackgroundModel(
         shape=background.shape,
         downsample=params.downsample,
@@ -188,7 +199,11 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
         B_sharp=B_sharp,
         BB=BB,
         inverse_BB=1.0 / (BB + np.float32(BACKGROUND_ENERGY_FLOOR)),
-        texture_variance=squared_gradient * np.float32(jitter * jitter / 3.0),
+        texture_variance=texture_variance,
+        sample_B=sample_B,
+        sample_BB=np.einsum("ijc,ijc->ij", sample_B, sample_B),
+        coarse_B=_downsample(B, COARSE_FACTOR).astype(np.float32),
+        coarse_texture_variance=_downsample(texture_variance, COARSE_FACTOR),
     )
 
 
@@ -255,11 +270,15 @@ def extract_silhouette(
     elif (background.downsample, background.blur_kernel_px) != (params.downsample, params.blur_kernel_px):
         raise InputError("background: model built with another downsample/blur_kernel_px than params")
     ds = params.downsample
-    I_sharp = _downsample(image, ds)
-    I = _blur(I_sharp, params.blur_kernel_px)
-    evidence = _evidence(I, background, params)
-    mask = _clean_mask(_hysteresis(evidence.evidence2, params), params, ds)
     silhouette = np.zeros(image.shape[:2], np.uint8)
+    I_sharp = _downsample(image, ds)
+    noise = _noise(I_sharp[::SAMPLE_STRIDE, ::SAMPLE_STRIDE], background)
+    region = _person_region(I_sharp, background, noise, params)
+    if region is None:
+        return silhouette
+    I = _blur(I_sharp[region], params.blur_kernel_px)
+    evidence2, alpha = _evidence(I, background, region, noise, params)
+    mask = _clean_mask(_hysteresis(evidence2, params), params, ds, image.shape[0] * image.shape[1] / ds**2)
     x, y, w, h = cv2.boundingRect(mask)
     if w == 0:
         return silhouette
@@ -268,8 +287,10 @@ def extract_silhouette(
     margin = max(1, round(MATTE_RADIUS_PX / ds)) + 2
     x0, y0 = max(x - margin, 0), max(y - margin, 0)
     x1, y1 = min(x + w + margin, mask.shape[1]), min(y + h + margin, mask.shape[0])
-    box = (slice(y0, y1), slice(x0, x1))
-    matte = _matte(mask[box], I_sharp[box], background.B_sharp[box], evidence.alpha[box], evidence.g, ds)
+    box = (slice(y0, y1), slice(x0, x1))  # in the region
+    y0, y1, x0, x1 = y0 + region[0].start, y1 + region[0].start, x0 + region[1].start, x1 + region[1].start
+    frame_box = (slice(y0, y1), slice(x0, x1))  # the same in the working-resolution frame
+    matte = _matte(mask[box], I_sharp[frame_box], background.B_sharp[frame_box], alpha[box], noise.g, ds)
     if ds > 1:
         score = _full_resolution_score(matte, image, background.image, (y0 * ds, x0 * ds), ds)
     else:
@@ -295,33 +316,73 @@ def _blur(image: np.ndarray, blur_kernel: int) -> np.ndarray:
     return image
 
 
-@dataclass(frozen=True, eq=False)
-class _Evidence:
-    evidence2: np.ndarray  # (h, w) float32 squared distortion in units of the pixel's noise variance σ_p²
-    alpha: np.ndarray  # (h, w) float32 brightness distortion α
+@dataclass(frozen=True)
+class _Noise:
     g: float  # exposure ratio of the frame to the background
+    sigma2: float  # σ², the per-channel noise variance (8-bit levels squared)
 
 
-def _evidence(I: np.ndarray, model: BackgroundModel, params: SilhouetteParams) -> _Evidence:
-    """Squared evidence per pixel, in noise variances, the brightness distortion and the exposure ratio.
+def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
+    """The frame's exposure ratio and noise level, from a sample ``I`` (every SAMPLE_STRIDE-th pixel).
 
-    ``I`` (h, w, 3) uint8. With α = I·B / B·B, the chromaticity distortion is ‖I − αB‖² = I·I − α I·B
-    (the remainder orthogonal to B) and ‖I − gB‖² = I·I − 2g I·B + g² B·B; shadow-band pixels keep only
-    the first. The products are taken straight from uint8 into float32 (no conversion pass).
+    g is the median of α = I·B / B·B (the person covers less than half of the image); σ² the lower
+    quartile of ‖I − gB‖² over χ²₃'s, both clipped to plausible ranges (see the constants).
     """
+    I = I.astype(np.float32)
+    B, BB = model.sample_B, model.sample_BB
+    alpha = np.einsum("ijc,ijc->ij", I, B) / (BB + np.float32(BACKGROUND_ENERGY_FLOOR))
+    g = float(np.clip(_quantile(alpha, 0.5), *EXPOSURE_RATIO_RANGE))
+    D = I - np.float32(g) * B
+    quartile = _quantile(np.einsum("ijc,ijc->ij", D, D), 0.25)
+    return _Noise(g, float(np.clip(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2, NOISE_SIGMA_MAX**2)))
+
+
+def _person_region(
+    I: np.ndarray, model: BackgroundModel, noise: _Noise, params: SilhouetteParams
+) -> tuple[slice, slice] | None:
+    """The part of the working-resolution frame ``I`` (h, w, 3) uint8 worth a close look, or None.
+
+    On blocks of COARSE_FACTOR x COARSE_FACTOR pixels, ‖I − gB‖² is compared with the weak threshold at
+    the working resolution's noise (averaging only lowers the noise, so this errs towards looking); the
+    answer is the box around every block that passes, with a margin of COARSE_MARGIN blocks for the
+    parts of the person too faint to show on blocks.
+    """
+    D = _downsample(I, COARSE_FACTOR).astype(np.float32) - np.float32(noise.g) * model.coarse_B
+    difference2 = np.einsum("ijc,ijc->ij", D, D)
+    passing = (difference2 > params.weak_threshold**2 * (model.coarse_texture_variance + noise.sigma2)).astype(np.uint8)
+    x, y, w, h = cv2.boundingRect(passing)
+    if w == 0:
+        return None
+    return _span(y, h, I.shape[0], passing.shape[0]), _span(x, w, I.shape[1], passing.shape[1])
+
+
+def _span(start: int, length: int, size: int, coarse_size: int) -> slice:
+    """Blocks [start, start + length) grown by COARSE_MARGIN, as pixels of an axis of ``size`` pixels."""
+    scale = size / coarse_size
+    low = max(int((start - COARSE_MARGIN) * scale), 0)
+    return slice(low, min(int(np.ceil((start + length + COARSE_MARGIN) * scale)), size))
+
+
+def _evidence(
+    I: np.ndarray, model: BackgroundModel, region: tuple[slice, slice], noise: _Noise, params: SilhouetteParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """Squared evidence per pixel of ``region``, in noise variances, and the brightness distortion α.
+
+    ``I`` (h', w', 3) uint8 is the region. With α = I·B / B·B, the chromaticity distortion is
+    ‖I − αB‖² = I·I − α I·B (the remainder orthogonal to B) and ‖I − gB‖² = I·I − 2g I·B + g² B·B;
+    shadow-band pixels keep only the first. The products are taken straight from uint8 into float32.
+    """
+    g = noise.g
     channel_sum = np.ones((1, 3), np.float32)
-    II = cv2.transform(cv2.multiply(I, I, dtype=cv2.CV_32F), channel_sum)  # (h, w) I·I
-    IB = cv2.transform(cv2.multiply(I, model.B, dtype=cv2.CV_32F), channel_sum)  # (h, w) I·B
-    alpha = cv2.multiply(IB, model.inverse_BB)  # (h, w) α
-    chroma2 = cv2.subtract(II, cv2.multiply(IB, alpha))  # (h, w) ‖I − αB‖² (≥ 0 up to rounding)
-    g = float(np.clip(_quantile(alpha[::SAMPLE_STRIDE, ::SAMPLE_STRIDE], 0.5), *EXPOSURE_RATIO_RANGE))
-    difference2 = cv2.scaleAdd(model.BB, g * g, cv2.addWeighted(II, 1.0, IB, -2.0 * g, 0.0))  # ‖I − gB‖²
-    quartile = _quantile(difference2[::SAMPLE_STRIDE, ::SAMPLE_STRIDE], 0.25)
-    sigma2 = np.clip(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2, NOISE_SIGMA_MAX**2)  # σ²
+    II = cv2.transform(cv2.multiply(I, I, dtype=cv2.CV_32F), channel_sum)  # (h', w') I·I
+    IB = cv2.transform(cv2.multiply(I, model.B[region], dtype=cv2.CV_32F), channel_sum)  # (h', w') I·B
+    alpha = cv2.multiply(IB, model.inverse_BB[region])  # (h', w') α
+    chroma2 = cv2.subtract(II, cv2.multiply(IB, alpha))  # (h', w') ‖I − αB‖² (≥ 0 up to rounding)
+    difference2 = cv2.scaleAdd(model.BB[region], g * g, cv2.addWeighted(II, 1.0, IB, -2.0 * g, 0.0))  # ‖I − gB‖²
     shadow = cv2.inRange(alpha, g * params.shadow_min, g * params.shadow_max)
     cv2.copyTo(chroma2, shadow, difference2)  # shadow band: the colour direction alone
-    evidence2 = cv2.divide(difference2, model.texture_variance + np.float32(sigma2))
-    return _Evidence(evidence2, alpha, g)
+    evidence2 = cv2.divide(difference2, model.texture_variance[region] + np.float32(noise.sigma2))
+    return evidence2, alpha
 
 
 def _quantile(values: np.ndarray, q: float) -> float:
@@ -438,10 +499,11 @@ def _disk(radius: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
-def _clean_mask(mask: np.ndarray, params: SilhouetteParams, scale: int) -> np.ndarray:
+def _clean_mask(mask: np.ndarray, params: SilhouetteParams, scale: int, frame_area: float) -> np.ndarray:
     """Morphology, then keep the large components, then fill the small holes.
 
-    ``mask`` is at 1/``scale`` of the full resolution; the radii in ``params`` are full-resolution pixels.
+    ``mask`` is at 1/``scale`` of the full resolution, part of a frame of ``frame_area`` pixels at that
+    resolution; the radii in ``params`` are full-resolution pixels.
     """
     opening, closing = round(params.opening_px / scale), round(params.closing_px / scale)
     if opening > 0:
@@ -451,10 +513,12 @@ def _clean_mask(mask: np.ndarray, params: SilhouetteParams, scale: int) -> np.nd
     contours, hierarchy = cv2.findContours(mask, cv2.RETR_TREE, cv2.CHAIN_APPROX_SIMPLE)
     if not contours:
         return mask
-    return _redraw(mask.shape, contours, hierarchy[0], params)
+    return _redraw(mask.shape, contours, hierarchy[0], params, frame_area)
 
 
-def _redraw(shape: tuple[int, int], contours, hierarchy: np.ndarray, params: SilhouetteParams) -> np.ndarray:
+def _redraw(
+    shape: tuple[int, int], contours, hierarchy: np.ndarray, params: SilhouetteParams, frame_area: float
+) -> np.ndarray:
     """The mask redrawn from its contour tree without the small components and the small holes.
 
     Working on contours rather than on labelled pixels costs a fraction of a millisecond. Contours are
@@ -473,7 +537,7 @@ def _redraw(shape: tuple[int, int], contours, hierarchy: np.ndarray, params: Sil
     is_component = depth % 2 == 0
     min_component = max(
         params.min_component_fraction * areas[is_component].max(),
-        params.min_component_area_fraction * shape[0] * shape[1],
+        params.min_component_area_fraction * frame_area,
     )
     max_hole = params.max_hole_fraction * areas[is_component & (areas >= min_component)].sum()
     mask = np.zeros(shape, np.uint8)
