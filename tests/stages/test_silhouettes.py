@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from calib.errors import InputError
-from stages.silhouettes import SilhouetteParams, extract_silhouette, median_background
+from stages.silhouettes import SilhouetteParams, background_model, extract_silhouette, median_background
 
 HEIGHT, WIDTH = 290, 390
 
@@ -83,6 +83,38 @@ def test_frame_entirely_different_from_background_gives_full_mask():
     image[:] = (200, 20, 20)
     mask = extract_silhouette(image, background, SilhouetteParams())
     assert (mask == 255).all()
+
+
+def test_clothing_a_few_noise_levels_from_a_plain_wall_is_found():
+    rng = np.random.default_rng(6)
+    stains = rng.uniform(-8, 8, (HEIGHT // 60 + 1, WIDTH // 60 + 1, 1))
+    background = np.clip(np.array([170.0, 180.0, 185.0]) + cv2.resize(stains, (WIDTH, HEIGHT))[:, :, None], 0, 255)
+    background = background.astype(np.uint8)
+    truth = _person_mask()
+    image = background.astype(float)
+    image[truth > 0] += (9.0, -6.0, 7.0)  # camouflage: about 13 levels away, far below a fixed threshold
+    image = np.clip(image + rng.normal(0.0, 2.0, image.shape), 0, 255).astype(np.uint8)
+    mask = extract_silhouette(image, background, SilhouetteParams())
+    assert _iou(mask, truth) > 0.9
+
+
+def test_a_change_of_exposure_is_not_a_person():
+    background = _textured_background(np.random.default_rng(7))
+    darker = np.clip(background * 0.9 + np.random.default_rng(8).normal(0.0, 2.0, background.shape), 0, 255)
+    mask = extract_silhouette(darker.astype(np.uint8), background, SilhouetteParams())
+    assert not mask.any()
+
+
+def test_background_model_gives_the_same_mask_as_the_background_image():
+    image, background, _, _ = _scene(np.random.default_rng(9))
+    params = SilhouetteParams()
+    model = background_model(background, params)
+    from_model, from_image = (extract_silhouette(image, b, params) for b in (model, background))
+    np.testing.assert_array_equal(from_model, from_image)
+    with pytest.raises(InputError, match="downsample"):
+        extract_silhouette(image, model, SilhouetteParams(downsample=1))
+    with pytest.raises(InputError, match="model of"):
+        extract_silhouette(image[:100], model, params)
 
 
 def test_median_background_removes_a_moving_person():
