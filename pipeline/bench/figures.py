@@ -91,12 +91,17 @@ def unseen_figure(unseen: dict, path: Path, *, target_mm: float, worst_target_mm
 
 
 def speed_figure(speed: dict, path: Path) -> Path:
-    """Milliseconds per frame of each stage against the real-time budget of the capture's frame rate."""
+    """Milliseconds per frame of each stage and of all of them (the stages run one after another) against
+    the real-time budget of the capture's frame rate."""
     stages = speed["stage_ms_per_frame"]
+    wall = 1000.0 / speed["fps_end_to_end"]
     figure, axes = plt.subplots(figsize=(7, 4))
-    axes.barh(list(stages), list(stages.values()), color="tab:gray")
+    bars = axes.barh([*stages, "all stages", "end to end (wall)"], [*stages.values(), sum(stages.values()), wall],
+                     color=["tab:gray"] * len(stages) + ["tab:blue", "tab:purple"])
+    axes.bar_label(bars, fmt="%.0f", fontsize=8, padding=2)
     budget = 1000.0 / speed["fps_capture"]
-    axes.axvline(budget, color="tab:red", ls="--", label=f"real time at {speed['fps_capture']:g} fps: {budget:.1f} ms")
+    axes.axvline(budget, color="tab:red", ls="--",
+                 label=f"real-time budget at {speed['fps_capture']:g} fps: {budget:.1f} ms")
     axes.invert_yaxis()
     axes.set_xlabel("ms per frame (2 workers)")
     axes.set_title(f"{speed['capture']}: {speed['frames']} frames, end to end {speed['fps_end_to_end']:.1f} fps")
