@@ -45,7 +45,7 @@ CLOTHING_COLOURS = {
 }
 # Room surfaces, sRGB; walls in the order +x, -x, +y, -y.
 WALL_COLOURS = ((0.80, 0.76, 0.67), (0.74, 0.76, 0.72), (0.82, 0.78, 0.70), (0.70, 0.72, 0.74))
-FLOOR_COLOUR = (0.45, 0.36, 0.27)
+FLOOR_COLOUR = (0.40, 0.36, 0.33)  # a grey-stained oak studio floor: not the hue of skin
 SKIRTING_COLOUR = (0.11, 0.10, 0.10)
 CEILING_COLOUR = (0.88, 0.88, 0.86)
 
