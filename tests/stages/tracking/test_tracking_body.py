@@ -51,6 +51,17 @@ def test_zero_pose_stands_on_the_floor_facing_forward():
     assert top == pytest.approx(1.80, abs=0.02)
 
 
+def test_default_neck_is_the_top_of_the_thorax_below_the_shoulders():
+    # joints.csv's neck is the start of CMU lowerneck: 3-8.5 cm below the shoulder joint centres in the
+    # CMU skeletons (standing, about 1.6-1.75 m tall), not level with them.
+    body = load_body("default", height_m=1.75)
+    joints = body.joint_positions(body.zero_pose())
+    j = {name: joints[k] for k, name in enumerate(JOINT_NAMES)}
+    below = 0.5 * (j["l_shoulder"][2] + j["r_shoulder"][2]) - j["neck"][2]
+    assert 0.03 <= below <= 0.085
+    assert j["head"][2] - j["neck"][2] > 0.15
+
+
 def test_scaling_scales_every_length():
     small, large = load_body("default", height_m=1.5), load_body("default", height_m=1.8)
     np.testing.assert_allclose(large.joint_positions(large.zero_pose()),
