@@ -168,9 +168,9 @@ class BackgroundModel:
     BB: np.ndarray  # (h, w) float32 B·B
     inverse_BB: np.ndarray  # (h, w) float32 1 / (B·B + BACKGROUND_ENERGY_FLOOR)
     texture_variance: np.ndarray  # (h, w) float32 (κ ‖∇B‖)² / 3, per-channel noise variance from texture
-    sample_B: np.ndarray  # (h / SAMPLE_STRIDE, w / SAMPLE_STRIDE, 3) float32 every SAMPLE_STRIDE-th pixel of B
+    sample_B: np.ndarray  # (h / SAMPLE_STRIDE, w / SAMPLE_STRIDE, 3) float32 every SAMPLE_STRIDE-th of B_sharp
     sample_BB: np.ndarray  # (h / SAMPLE_STRIDE, w / SAMPLE_STRIDE) float32 B·B there
-    coarse_B: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR, 3) float32 B averaged over blocks
+    coarse_B: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR, 3) float32 B_sharp averaged over blocks
     coarse_texture_variance: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR) float32 the same for it
 
 
@@ -189,7 +189,7 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
     squared_gradient = cv2.transform(cv2.multiply(spread, spread, dtype=cv2.CV_32F), channel_sum) / 4.0
     jitter = params.background_jitter_px
     texture_variance = squared_gradient * np.float32(jitter * jitter / 3.0)
-    sample_B = B[::SAMPLE_STRIDE, ::SAMPLE_STRIDE].astype(np.float32)
+    sample_B = B_sharp[::SAMPLE_STRIDE, ::SAMPLE_STRIDE].astype(np.float32)  # the frame's sample is unblurred
     return BackgroundModel(
         shape=background.shape,
         downsample=params.downsample,
@@ -202,7 +202,7 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
         texture_variance=texture_variance,
         sample_B=sample_B,
         sample_BB=np.einsum("ijc,ijc->ij", sample_B, sample_B),
-        coarse_B=_downsample(B, COARSE_FACTOR).astype(np.float32),
+        coarse_B=_downsample(B_sharp, COARSE_FACTOR).astype(np.float32),
         coarse_texture_variance=_downsample(texture_variance, COARSE_FACTOR),
     )
 
@@ -240,10 +240,11 @@ def extract_silhouette(
 ) -> np.ndarray:
     """(H, W) uint8 mask of the person, 0 = background, 255 = person.
 
-    The foreground test, hysteresis, morphology and component filtering run at the working resolution
-    (``params.downsample``); the cleaned mask then decides the sign of a continuous outline score, which
-    is interpolated to full resolution and thresholded there, so the outline keeps sub-pixel detail while
-    the costly steps run on a quarter of the pixels.
+    The exposure ratio and the noise level come from a sparse sample of the frame; blocks of
+    ``COARSE_FACTOR`` x ``COARSE_FACTOR`` working pixels show where the person may be; there, at the working
+    resolution (``params.downsample``), the foreground test, hysteresis, morphology and component
+    filtering give the mask, and in the mask's box the matting places the outline, measured again at full
+    resolution where a working pixel is mixed. The costly steps thus run on a fraction of the pixels.
 
     Parameters
     ----------
