@@ -47,7 +47,7 @@ from pipeline.runner import Stage, StageContext
 from stages.export import ExportParams
 from stages.joints import JOINT_NAMES
 from stages.reconstruction import Observations, ReconstructionParams, reconstruct
-from stages.silhouettes import SilhouetteParams, extract_silhouette, median_background
+from stages.silhouettes import SilhouetteParams, background_model, extract_silhouette, median_background
 from stages.tracking.body import load_body
 from stages.tracking.tracker import FrameResult, TrackerParams, TrackerState, track_frame
 
@@ -118,7 +118,7 @@ def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: Silhouet
         if capture.silhouettes_given:
             masks = ((frame, capture.read_silhouette(camera, frame)) for frame in chunk)
         else:
-            background = frames_io.read_image(background_path(out_dir, camera))
+            background = background_model(frames_io.read_image(background_path(out_dir, camera)), params)
             masks = ((frame, extract_silhouette(image, background, params))
                      for frame, image in capture.iter_images(camera, chunk))
         for frame, mask in masks:
