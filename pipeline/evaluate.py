@@ -105,8 +105,15 @@ def evaluate_run(out_dir: str | os.PathLike, *, truth: str | os.PathLike | None 
         raise InputError(f"{estimate_path}: not found (expected a run whose export stage has finished)")
     truth_path = Path(truth) if truth is not None else default_truth(out_dir)
     estimate = read_joints_csv(estimate_path)
-    true = read_joints_csv(truth_path)
-    metrics = evaluate_joints(*estimate, *true)
+    true_frames, true_names, true_joints = read_joints_csv(truth_path)
+    # Score only the frames the run was asked to process (capture.yaml's frames range), so that a run on
+    # an excerpt is not charged with the frames it never saw.
+    summary_path = out_dir / "calibration" / "capture.json"
+    processed = frames_io.read_json(summary_path).get("frames") if summary_path.is_file() else None
+    if processed is not None:
+        kept = np.isin(true_frames, processed)
+        true_frames, true_joints = true_frames[kept], true_joints[kept]
+    metrics = evaluate_joints(*estimate, true_frames, true_names, true_joints)
     summary = {"estimate": str(estimate_path), "truth": str(truth_path), **metrics.summary(),
                "silhouette_iou": silhouette_iou(out_dir / "silhouettes", truth_path.parent / "masks")}
     frames_io.write_json(out_dir / EVAL_DIR / METRICS_FILE, summary)
