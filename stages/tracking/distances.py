@@ -129,6 +129,37 @@ def all_residuals(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
     return (0.5 * ellipsoids.semi_axes.min(axis=1)[None, :] * (q - 1.0))[:, :, None]
 
 
+def normal_spread(n: np.ndarray, ellipsoids: Ellipsoids, p: np.ndarray | None = None) -> np.ndarray:
+    """A Aᵀ with A = ∂x_ip/∂n_i of eq. (4): how a tilt of the normal moves the ellipsoid point.
+
+    A tilt of the unit normal by a small angle θ about an axis perpendicular to n moves n by θ w, w a
+    unit tangent; with θ ~ N(0, σ_n²) about either tangent axis, cov(dn) = σ_n² (I − n nᵀ) and
+    cov(x_ip) = σ_n² A (I − n nᵀ) Aᵀ = σ_n² A Aᵀ, since A n = 0 (x depends on n's direction only).
+    On an elongated ellipsoid x slides along the long axis by about a²/b per radian.
+
+    Parameters
+    ----------
+    n : (I, 3) float
+        Unit normals.
+    ellipsoids : Ellipsoids
+        The P posed ellipsoids.
+    p : (I,) int, optional
+        One ellipsoid per normal (pairs); default every normal against every ellipsoid.
+
+    Returns
+    -------
+    (I, 3, 3) float for pairs, (I, P, 3, 3) otherwise; symmetric positive semi-definite, m² per rad².
+    """
+    M = _shape(ellipsoids, 2.0)
+    if p is not None:
+        A = _normal_point(n, M[p], ellipsoids.t[p], True)[2]
+    else:
+        u = np.einsum("pab,ib->ipa", M, n)  # (I,P,3)
+        lam = 1.0 / np.sqrt(np.einsum("ipa,ia->ip", u, n))
+        A = lam[:, :, None, None] * (M[None] - (lam**2)[:, :, None, None] * u[..., :, None] * u[..., None, :])
+    return A @ A  # A = λ (M − λ² u uᵀ) is symmetric
+
+
 def ellipsoid_point(n: np.ndarray, R: np.ndarray, t: np.ndarray, semi_axes: np.ndarray) -> np.ndarray:
     """The ellipsoid point whose outward normal is parallel to n, Horaud et al. 2009 eq. (4).
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stages.tracking.body import BodyModel
-from stages.tracking.distances import DISTANCES, all_residuals, residual_size, residuals
+from stages.tracking.distances import DISTANCES, all_residuals, normal_spread, residual_size, residuals
 
 # Σ is estimated from the residuals; with nearly exact data it would shrink towards 0 and the
 # posteriors would turn into hard, brittle assignments. The floor is the model's own inexactness
@@ -78,6 +78,17 @@ class EMParams:
         Also estimate the body's overall size (standing height) with the pose.
     estimate_lengths : bool
         Also estimate the body's segment-length factors with the pose.
+    normal_noise_rad : float
+        Angular noise σ_n of the observed normals (radians), for the "normals" distance: each pair's
+        covariance is Σ_ip = Σ + σ_n² A_ip A_ipᵀ with A_ip = ∂x_ip/∂n_i (`distances.normal_spread`);
+        0 is the paper's model (Σ_ip = Σ).
+    min_outlier_prior : float
+        Lower bound on the outlier prior π_{P+1}. Without it the outlier class can die out (π_{P+1} → 0)
+        and Σ then grows to absorb the visual hull's phantom volumes; robust point-set registration
+        keeps a fixed outlier weight for the same reason. 0 is the paper's model.
+    max_sigma_m : float
+        Upper bound on the standard deviation along every axis of Σ, metres: Σ is the model's
+        inexactness (ellipsoids are not a body surface), not the spread of phantom volumes.
     """
 
     distance: str = "normals"
@@ -87,6 +98,9 @@ class EMParams:
     gauss_newton_steps: int = 1
     estimate_scale: bool = False
     estimate_lengths: bool = False
+    normal_noise_rad: float = 0.0
+    min_outlier_prior: float = 0.0
+    max_sigma_m: float = np.inf
 
 
 @dataclass(frozen=True)
@@ -183,8 +197,11 @@ def volume_size(volume: np.ndarray) -> float:
 
 
 def e_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixture: Mixture,
-           V: float, *, distance: str = "normals") -> EStep:
+           V: float, *, distance: str = "normals", normal_noise_rad: float = 0.0) -> EStep:
     """Posteriors t_ip (Horaud et al. 2009 eq. 13) and log-likelihood (eq. 12), by log-sum-exp.
+
+    With `normal_noise_rad` σ_n > 0 (and the "normals" distance), component p's Gaussian for datum i
+    has the covariance Σ_ip = Σ + σ_n² A_ip A_ipᵀ (`pair_covariances`) instead of Σ.
 
     Parameters
     ----------
@@ -198,9 +215,11 @@ def e_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixt
     I, P = len(y), body.n_ellipsoids
     if I == 0:
         return EStep(t=np.zeros((0, P)), t_outlier=np.zeros(0), log_likelihood=0.0)
-    e = all_residuals(y, n, body.ellipsoids(pose), distance=distance)  # (I,P,k)
+    ellipsoids = body.ellipsoids(pose)
+    e = all_residuals(y, n, ellipsoids, distance=distance)  # (I,P,k)
+    Sigma = pair_covariances(n, ellipsoids, mixture.Sigma, distance, normal_noise_rad)
     log_joint = np.empty((I, P + 1))
-    log_joint[:, :P] = np.log(mixture.pi[:P]) + log_gaussian(e, mixture.Sigma)  # ln π_p N(y_i | x_ip, Σ)
+    log_joint[:, :P] = np.log(mixture.pi[:P]) + log_gaussian(e, Sigma)  # ln π_p N(y_i | x_ip, Σ_ip)
     log_joint[:, P] = np.log(mixture.pi[P]) - np.log(V)  # ln π_{P+1} / V
     peak = log_joint.max(axis=1, keepdims=True)
     joint = np.exp(log_joint - peak)
@@ -212,7 +231,9 @@ def e_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixt
 
 def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixture: Mixture,
            estep: EStep, *, distance: str = "normals", prior_pose: np.ndarray | None = None,
-           gauss_newton_steps: int = 1, estimate_scale: bool = False, estimate_lengths: bool = False) -> MStep:
+           gauss_newton_steps: int = 1, estimate_scale: bool = False, estimate_lengths: bool = False,
+           normal_noise_rad: float = 0.0, min_outlier_prior: float = 0.0,
+           max_sigma_m: float = np.inf) -> MStep:
     """M-step of Horaud et al. 2009 (Sec. 3, step 3): pose by damped Gauss-Newton, then Σ and π.
 
     The pose minimises ½ Σ_i Σ_p t_ip (y_i − x_ip(Λ))ᵀ Σ⁻¹ (y_i − x_ip(Λ)) (eq. 14 for fixed t_ip)
@@ -220,24 +241,38 @@ def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixt
     joint limits are enforced by clipping each step. Then Σ = Σ t_ip e_ip e_ipᵀ / Σ t_ip at the new
     pose and π_p = (1/I) Σ_i t_ip. With `estimate_scale` the body's height, with `estimate_lengths`
     its segment-length factors ln ℓ (prior ½ (ln ℓ / LENGTH_PRIOR_SD)²) are further unknowns.
+
+    With normal noise σ_n, Σ⁻¹ becomes each pair's Σ_ip⁻¹, frozen at the starting pose during the
+    Gauss-Newton steps (Σ_ip varies slowly with Λ: only through the ellipsoid's orientation relative to
+    n_i). Σ is then the moment estimate Σ t_ip (e_ip e_ipᵀ − σ_n² A_ip A_ipᵀ) / Σ t_ip, since
+    E[e eᵀ] = Σ_ip (no closed-form maximiser exists), floored like the plain one. Σ's eigenvalues are
+    bounded above by `max_sigma_m`², π_{P+1} below by `min_outlier_prior` (the maximisers of eq. 14
+    under these bounds).
     """
     I, P = estep.t.shape
     if I == 0:
         return MStep(pose=pose, mixture=mixture, body=body)
     p, i = np.nonzero(estep.t.T > PRUNE_POSTERIOR)  # pairs grouped by ellipsoid
     t = estep.t[i, p]  # (K,)
-    L = np.linalg.cholesky(np.linalg.inv(mixture.Sigma))  # Σ⁻¹ = L Lᵀ: whitened residual Lᵀ e
+    Sigma_ip = pair_covariances(n[i], body.ellipsoids(pose), mixture.Sigma, distance, normal_noise_rad, p)
+    L = np.linalg.cholesky(np.linalg.inv(Sigma_ip))  # Σ_ip⁻¹ = L Lᵀ: whitened residual Lᵀ e
+    L = np.broadcast_to(L, (len(i),) + mixture.Sigma.shape)
     problem = _Problem(y, n, i, p, np.sqrt(t)[:, None], L, distance, prior_pose if prior_pose is not None
                        else pose, body.prior_weight / PRIOR_SIGMA_RAD**2, estimate_scale,
                        estimate_lengths and len(body.length_groups) > 0)
     e = None
     for _ in range(gauss_newton_steps):
         pose, body, e = _gauss_newton_step(problem, body, pose)
-    Sigma = (e * t[:, None]).T @ e / max(t.sum(), np.finfo(float).tiny)
+    scatter = (e * t[:, None]).T @ e
+    if Sigma_ip.ndim == 3:  # minus the normals' share, at the new pose
+        spread = normal_spread(n[i], body.ellipsoids(pose), p)
+        scatter = scatter - normal_noise_rad**2 * np.einsum("k,kab->ab", t, spread)
+    Sigma = scatter / max(t.sum(), np.finfo(float).tiny)
     pi = np.empty(P + 1)
     pi[:P] = estep.t.sum(axis=0) / I
     pi[P] = estep.t_outlier.sum() / I
-    return MStep(pose=pose, mixture=Mixture(Sigma=_floor_covariance(Sigma), pi=_floor_priors(pi)), body=body)
+    return MStep(pose=pose, mixture=Mixture(Sigma=_bound_covariance(Sigma, max_sigma_m),
+                                            pi=_bound_priors(pi, min_outlier_prior)), body=body)
 
 
 def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume: np.ndarray,
@@ -261,7 +296,7 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
     prior_pose = pose.copy() if prior_pose is None else prior_pose
     if mixture is None:
         mixture = Mixture.initial(body.n_ellipsoids, sigma_m, residual_size(params.distance))
-    estep = e_step(y, n, body, pose, mixture, V, distance=params.distance)
+    estep = e_step(y, n, body, pose, mixture, V, distance=params.distance, normal_noise_rad=params.normal_noise_rad)
     history = [estep.log_likelihood]
     converged = len(y) == 0
     iterations = 0
@@ -269,9 +304,10 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
     while not converged and iterations < params.max_iterations:
         mstep = m_step(y, n, body, pose, mixture, estep, distance=params.distance, prior_pose=prior_pose,
                        gauss_newton_steps=params.gauss_newton_steps, estimate_scale=params.estimate_scale,
-                       estimate_lengths=params.estimate_lengths)
+                       estimate_lengths=params.estimate_lengths, normal_noise_rad=params.normal_noise_rad,
+                       min_outlier_prior=params.min_outlier_prior, max_sigma_m=params.max_sigma_m)
         pose, mixture, body = mstep.pose, mstep.mixture, mstep.body
-        estep = e_step(y, n, body, pose, mixture, V, distance=params.distance)
+        estep = e_step(y, n, body, pose, mixture, V, distance=params.distance, normal_noise_rad=params.normal_noise_rad)
         iterations += 1
         history.append(estep.log_likelihood)
         moved = joints
@@ -283,8 +319,24 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
                      log_likelihood=tuple(history), outlier_fraction=outliers)
 
 
+def pair_covariances(n: np.ndarray, ellipsoids, Sigma: np.ndarray, distance: str, normal_noise_rad: float,
+                     p: np.ndarray | None = None) -> np.ndarray:
+    """Covariance of each datum-ellipsoid pair: Σ + σ_n² A_ip A_ipᵀ (`distances.normal_spread`).
+
+    Returns Σ itself (k, k) when the normals' noise does not enter (σ_n = 0, or a distance that does
+    not use the normals), else (I, P, 3, 3) for all pairs or (K, 3, 3) for the pairs of ellipsoids `p`.
+    """
+    if distance != "normals" or normal_noise_rad <= 0.0:
+        return Sigma
+    return Sigma + normal_noise_rad**2 * normal_spread(n, ellipsoids, p)
+
+
 def log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
-    """ln N(e | 0, Σ) for residuals e (..., k)."""
+    """ln N(e | 0, Σ) for residuals e (..., k); Σ (k, k) shared, or (..., 3, 3) one per residual."""
+    if Sigma.ndim > 2:
+        inverse, log_det = _inverse_sym3(Sigma)
+        mahalanobis = np.einsum("...a,...ab,...b->...", e, inverse, e)
+        return -0.5 * (mahalanobis + log_det + 3 * np.log(2.0 * np.pi))
     k = Sigma.shape[0]
     L = np.linalg.cholesky(Sigma)
     z = (e.reshape(-1, k) @ np.linalg.inv(L).T).reshape(e.shape)  # L⁻¹ e, row by row
@@ -292,12 +344,30 @@ def log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
     return -0.5 * (np.einsum("...a,...a->...", z, z) + log_det + k * np.log(2.0 * np.pi))
 
 
+def _inverse_sym3(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse and ln det of symmetric positive definite 3 × 3 matrices (..., 3, 3), by cofactors.
+
+    A closed form: LAPACK's per-matrix overhead would dominate the E-step's tens of thousands of pairs.
+    """
+    a, b, c = C[..., 0, 0], C[..., 0, 1], C[..., 0, 2]
+    d, e, f = C[..., 1, 1], C[..., 1, 2], C[..., 2, 2]
+    cof = np.empty(C.shape)
+    cof[..., 0, 0] = d * f - e * e
+    cof[..., 0, 1] = cof[..., 1, 0] = c * e - b * f
+    cof[..., 0, 2] = cof[..., 2, 0] = b * e - c * d
+    cof[..., 1, 1] = a * f - c * c
+    cof[..., 1, 2] = cof[..., 2, 1] = b * c - a * e
+    cof[..., 2, 2] = a * d - b * b
+    det = a * cof[..., 0, 0] + b * cof[..., 0, 1] + c * cof[..., 0, 2]
+    return cof / det[..., None, None], np.log(det)
+
+
 @dataclass(frozen=True)
 class _Problem:
     """The weighted least squares of one M-step (eq. 14 for fixed t_ip): data, pairs and priors.
 
-    Pairs (i[k], p[k]) are sorted by ellipsoid p; `sqrt_t` (K, 1) is √t_ip, L (k, k) whitens
-    (Σ⁻¹ = L Lᵀ), `prior` (D,) the prior precisions of the DOFs towards `prior_pose`.
+    Pairs (i[k], p[k]) are sorted by ellipsoid p; `sqrt_t` (K, 1) is √t_ip, L (K, k, k) whitens each
+    pair (Σ_ip⁻¹ = L Lᵀ), `prior` (D,) the prior precisions of the DOFs towards `prior_pose`.
     """
 
     y: np.ndarray
@@ -319,7 +389,7 @@ class _Problem:
 
     def cost(self, body, pose, e):
         """Eq. (14) for fixed t_ip plus the priors on the weakly observed DOFs and the segment lengths."""
-        r = (e @ self.L) * self.sqrt_t
+        r = np.einsum("kab,ka->kb", self.L, e) * self.sqrt_t
         ln_l = np.log(body.length_factors) if self.estimate_lengths else np.zeros(0)
         return 0.5 * ((r**2).sum() + (self.prior * (pose - self.prior_pose) ** 2).sum()
                       + (ln_l**2).sum() / LENGTH_PRIOR_SD**2)
@@ -336,8 +406,8 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, pose: np.ndarray):
     kin, res = problem.residuals(body, pose, jacobian=True)
     L, sqrt_t, D = problem.L, problem.sqrt_t, body.pose_size
     K, k = res.e.shape
-    r = (res.e @ L) * sqrt_t  # (K,k) whitened Lᵀ e √t
-    Bw = (res.B.transpose(0, 2, 1).reshape(-1, k) @ L).reshape(K, 6, k) * sqrt_t[:, :, None]  # (Lᵀ B √t)ᵀ
+    r = np.einsum("kab,ka->kb", L, res.e) * sqrt_t  # (K,k) whitened Lᵀ e √t
+    Bw = np.einsum("kai,kab->kib", res.B, L) * sqrt_t[:, :, None]  # (K,6,k) (Lᵀ B √t)ᵀ
     starts = np.flatnonzero(np.r_[True, problem.p[1:] != problem.p[:-1]])
     ends = np.r_[starts[1:], K]
     T = body.segment_twists(kin)[body.ellipsoid_segment[problem.p[starts]]]  # (P',6,D)
@@ -354,7 +424,7 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, pose: np.ndarray):
     H[:D, :D] = np.einsum("pdj,pje->de", TH, T)
     g[:D] = np.einsum("pid,pi->d", T, g6)
     if X:
-        Xw = np.einsum("ba,kbx->kax", L, extra) * sqrt_t[:, :, None]
+        Xw = np.einsum("kba,kbx->kax", L, extra) * sqrt_t[:, :, None]
         H[:D, D:] = np.einsum("pid,pix->dx", T, np.add.reduceat(np.einsum("kia,kax->kix", Bw, Xw), starts))
         H[D:, :D] = H[:D, D:].T
         H[D:, D:] = np.einsum("kax,kay->xy", Xw, Xw)
@@ -405,12 +475,18 @@ def _updated_body(problem: _Problem, body: BodyModel, step: np.ndarray) -> BodyM
     return body
 
 
-def _floor_covariance(Sigma: np.ndarray) -> np.ndarray:
-    """Σ with every eigenvalue at least SIGMA_FLOOR_M² (symmetric positive definite)."""
+def _bound_covariance(Sigma: np.ndarray, max_sigma_m: float) -> np.ndarray:
+    """Σ with its eigenvalues clipped to [SIGMA_FLOOR_M², max_sigma_m²] (symmetric positive definite)."""
     vals, vecs = np.linalg.eigh(0.5 * (Sigma + Sigma.T))
-    return (vecs * np.maximum(vals, SIGMA_FLOOR_M**2)) @ vecs.T
+    return (vecs * np.clip(vals, SIGMA_FLOOR_M**2, max(max_sigma_m, SIGMA_FLOOR_M) ** 2)) @ vecs.T
 
 
-def _floor_priors(pi: np.ndarray) -> np.ndarray:
+def _bound_priors(pi: np.ndarray, min_outlier_prior: float) -> np.ndarray:
+    """π with every ellipsoid's prior at least PI_FLOOR and the outlier prior at least `min_outlier_prior`.
+
+    The ellipsoids' share is rescaled to 1 − π_{P+1}, which maximises Σ_p (Σ_i t_ip) ln π_p under the bound.
+    """
     pi = np.maximum(pi, PI_FLOOR)
-    return pi / pi.sum()
+    pi = pi / pi.sum()
+    outlier = max(pi[-1], min_outlier_prior)
+    return np.r_[pi[:-1] * (1.0 - outlier) / pi[:-1].sum(), outlier]

@@ -269,8 +269,8 @@ def initialise(y: np.ndarray, n: np.ndarray, body: BodyModel, volume: np.ndarray
     mixture = Mixture.initial(body.n_ellipsoids, _SCORE_SIGMA_M, residual_size(em.distance))
     scored = sample[: params.score_points]
     scores = _score(y[scored], n[scored], centre, bodies, poses, yaws, mixture, V, em.distance)  # (M, H)
-    short = EMParams(distance=em.distance, max_iterations=params.refine_iterations, tolerance=em.tolerance,
-                     estimate_scale=estimate_height)
+    short = replace(em, max_iterations=params.refine_iterations, displacement_m=0.0,
+                    estimate_scale=estimate_height, estimate_lengths=False)
     order = np.argsort(-scores.max(axis=1))[: params.refine]  # distinct poses, each at its best heading
     fits = [fit(ys, ns, bodies[m], _placed(bodies[m], poses[m], yaws[np.argmax(scores[m])], centre), volume,
                 short, sigma_m=_SCORE_SIGMA_M) for m in order]

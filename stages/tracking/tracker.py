@@ -68,6 +68,14 @@ class TrackerParams:
         Frames over which the height (when unknown) and the segment lengths keep being estimated.
     init_headings, init_refine : int
         Initialisation: headings per library pose, hypotheses refined by EM.
+    normal_noise_deg : float
+        Angular noise of the observed normals (degrees; silhouette normals are off by ~10°): with the
+        "normals" distance each pair's covariance grows by how far that tilt slides the ellipsoid point
+        of eq. (4) (`EMParams.normal_noise_rad`); 0 is the paper's model.
+    min_outlier_prior : float
+        Lower bound on the outlier class's prior π_{P+1} (`EMParams.min_outlier_prior`); 0 is the paper's.
+    max_sigma_m : float
+        Upper bound on Σ's standard deviations, metres (`EMParams.max_sigma_m`).
     """
 
     height_m: float | None = None
@@ -87,6 +95,9 @@ class TrackerParams:
     scale_frames: int = 10
     init_headings: int = 12
     init_refine: int = 24
+    normal_noise_deg: float = 10.0
+    min_outlier_prior: float = 0.05
+    max_sigma_m: float = 0.06
 
 
 @dataclass(frozen=True)
@@ -216,7 +227,8 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     if len(y) < params.min_observations:
         return _predict(state, sized, params)
     em = EMParams(distance=params.distance, max_iterations=params.max_iterations, tolerance=params.tolerance,
-                  displacement_m=params.displacement_m)
+                  displacement_m=params.displacement_m, normal_noise_rad=np.radians(params.normal_noise_deg),
+                  min_outlier_prior=params.min_outlier_prior, max_sigma_m=params.max_sigma_m)
     if state.lost:
         return _initialise(state, y, n, sized, params, volume, em)
     prediction = sized.clip(state.pose + state.velocity)

@@ -92,3 +92,38 @@ def test_em_estimates_segment_length_factors(body):
     result = fit(y, n, body, truth, VOLUME, EMParams(estimate_lengths=True, max_iterations=40))
     # the prior towards 1 (LENGTH_PRIOR_SD) shrinks the estimates only slightly with this much data
     np.testing.assert_allclose(result.body.length_factors, factors, atol=0.015)
+
+
+def _tilted(n, degrees, rng):
+    """Unit normals each tilted by |N(0, degrees)| about a random perpendicular axis."""
+    axis = np.cross(n, rng.normal(size=n.shape))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = np.radians(np.abs(rng.normal(0.0, degrees, len(n))))[:, None]
+    return n * np.cos(angle) + np.cross(axis, n) * np.sin(angle)
+
+
+def test_normal_noise_covariance_beats_plain_eq4_on_noisy_normals(body):
+    rng = np.random.default_rng(12)
+    errors = {0.0: [], 15.0: []}
+    for _ in range(3):
+        truth = random_pose(body, rng)
+        y, n = sample_ellipsoids(body, truth, 800, rng, outlier_fraction=0.1)
+        n = _tilted(n, 15.0, rng)
+        start = truth + rng.normal(0.0, 0.03, body.pose_size)
+        for deg in errors:
+            result = fit(y, n, body, start, VOLUME, EMParams(max_iterations=30, normal_noise_rad=np.radians(deg)))
+            errors[deg].append(np.linalg.norm(body.joint_positions(result.pose) - body.joint_positions(truth),
+                                              axis=1).mean())
+    assert np.mean(errors[15.0]) < 0.8 * np.mean(errors[0.0])
+
+
+def test_m_step_keeps_outlier_prior_and_bounds_sigma(body):
+    rng = np.random.default_rng(13)
+    pose = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, pose, 500, rng)  # no outliers: the plain M-step drives π_{P+1} to ~0
+    mixture = Mixture.initial(body.n_ellipsoids, 0.2)
+    estep = e_step(y, n, body, pose, mixture, volume_size(VOLUME))
+    mstep = m_step(y, n, body, pose, mixture, estep, min_outlier_prior=0.05, max_sigma_m=0.03)
+    assert mstep.mixture.pi[-1] == pytest.approx(0.05)
+    assert mstep.mixture.pi.sum() == pytest.approx(1.0)
+    assert np.linalg.eigvalsh(mstep.mixture.Sigma).max() <= 0.03**2 * (1 + 1e-9)
