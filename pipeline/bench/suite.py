@@ -229,21 +229,16 @@ def format_unseen(unseen: dict) -> str:
 
 
 def format_sweep(rows: list[dict], x_name: str) -> str:
-    distances = [d for d in ("normals", "points", "algebraic") if any(r["distance"] == d for r in rows)]
-    xs = sorted({row["x"] for row in rows})
-    cell = {(row["x"], row["distance"]): row for row in rows}
+    """One row per swept value and distance (the paper's curves are the ``angle mean`` column)."""
     extra = "mask IoU" if x_name == "noise" else "reconstructed"
-    table = []
-    for x in xs:
-        first = next(cell[(x, d)] for d in distances if (x, d) in cell)
-        table.append((f"{x:g}", f"{first['mask_iou']:.3f}" if x_name == "noise" else round(first["observations"]),
-                      first["frames"],
-                      *[cell[(x, d)]["angle_error_deg"] if (x, d) in cell else None for d in distances],
-                      *[cell[(x, d)]["mpjpe_mm"] if (x, d) in cell else None for d in distances],
-                      _percent(min(cell[(x, d)]["fraction_estimated"] for d in distances if (x, d) in cell))))
-    header = (x_name, extra, "frames", *[f"{d} angle °" for d in distances], *[f"{d} MPJPE mm" for d in distances],
-              "estimated (min)")
-    return format_table(header, table)
+    order = {"normals": 0, "points": 1, "algebraic": 2}
+    table = [(f"{row['x']:g}", row["distance"],
+              f"{row['mask_iou']:.3f}" if x_name == "noise" else round(row["observations"]), row["frames"],
+              row["angle_error_deg"], row.get("angle_error_median_deg"), row["mpjpe_mm"],
+              _percent(row.get("off_track")), _percent(row["fraction_estimated"]))
+             for row in sorted(rows, key=lambda r: (r["x"], order.get(r["distance"], 3)))]
+    return format_table((x_name, "distance", extra, "frames", "angle mean °", "angle median °", "MPJPE mm",
+                         "off track", "estimated"), table)
 
 
 def format_paper(paper: dict, figure: str | None) -> str:
@@ -251,14 +246,18 @@ def format_paper(paper: dict, figure: str | None) -> str:
     lines = [f"Capture `{paper['capture']}`: clip {recipe['clip']}, body {recipe['body']}, {recipe['cameras']} "
              f"cameras {recipe['size']}, true silhouettes; {100 * paper['outlier_fraction']:.0f} % outliers "
              "uniform in the working volume added to every frame's observations. Angle error = mean absolute "
-             f"error of {', '.join(paper['limb_angles'])} (degrees), on exported frames."]
+             f"error of {', '.join(paper['limb_angles'])} (degrees), on exported frames; mean over frames (the "
+             f"paper's average, plotted) and the median frame's; off track = share of frames with MPJPE above "
+             f"{paper['off_track_mm']:g} mm."]
     if figure:
         lines += ["", f"![Fig. 4 redone]({figure})"]
     base = paper["base"]
     lines += ["", "(a) 28 fps, 1000 observations, no silhouette noise:", "",
-              format_table(("distance", "frames", "angle °", "MPJPE mm", "estimated", "tracking s"),
-                           [(r["distance"], r["frames"], r["angle_error_deg"], r["mpjpe_mm"],
-                             _percent(r["fraction_estimated"]), r["seconds"]) for r in base])]
+              format_table(("distance", "frames", "angle mean °", "angle median °", "MPJPE mm", "off track",
+                            "estimated", "tracking s"),
+                           [(r["distance"], r["frames"], r["angle_error_deg"], r.get("angle_error_median_deg"),
+                             r["mpjpe_mm"], _percent(r.get("off_track")), _percent(r["fraction_estimated"]),
+                             r["seconds"]) for r in base])]
     for key, title in (("noise", "(b) silhouette noise strength (boundary ± up to 4 px, up to 6 holes)"),
                        ("fps", "(c) frame rate (same 3.6 s of motion)"),
                        ("observations", "(d) observations per frame")):
@@ -404,10 +403,10 @@ def run_bench(suites: Sequence[str], options: BenchOptions, *, log: Callable[[st
     results = load_results(options.out / RESULTS_JSON)
     for suite in suites:
         log(f"bench: {suite} suite{' (quick)' if options.quick else ''} ...")
-        load_before, started = os.getloadavg()[0], time.perf_counter()
+        commit, load_before, started = git_commit(), os.getloadavg()[0], time.perf_counter()
         section = runners[suite](options.out, options.captures, quick=options.quick, workers=options.workers)
         section |= {"quick": options.quick, "command": options.command(suite),
-                    "made": {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "commit": git_commit(),
+                    "made": {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "commit": commit,
                              "seconds": time.perf_counter() - started, "load_before": load_before,
                              "load_after": os.getloadavg()[0], "cpus": os.cpu_count(),
                              "machine": platform.processor() or platform.machine(),

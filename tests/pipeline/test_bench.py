@@ -137,7 +137,8 @@ def test_score_counts_only_exported_frames():
     estimate = truth.copy()
     estimate[3] += 1.0  # a lost frame's prediction, far off
     result = paper.score(estimate, ["initialised", "tracked", "tracked", "lost"], truth)
-    assert result == {"angle_error_deg": 0.0, "mpjpe_mm": 0.0, "fraction_estimated": 0.75}
+    assert result == {"angle_error_deg": 0.0, "angle_error_median_deg": 0.0, "mpjpe_mm": 0.0, "off_track": 0.0,
+                      "fraction_estimated": 0.75}
     assert math.isnan(paper.score(estimate, ["lost"] * 4, truth)["mpjpe_mm"])
 
 
@@ -229,7 +230,7 @@ def results():
                    "mean": unseen.mean_row([row])},
         "paper": {"quick": False, "command": "python -m pipeline bench --suite paper", "made": made,
                   "capture": "paper", "recipe": recipes.describe(recipes.PAPER), "frames": 100,
-                  "outlier_fraction": 0.2, "limb_angles": list(paper.LIMB_ANGLES),
+                  "outlier_fraction": 0.2, "limb_angles": list(paper.LIMB_ANGLES), "off_track_mm": 100.0,
                   "trajectories": {"time_s": [0.0, 0.1], **{name: {"truth": [1.0, 2.0], "estimate": [1.5, 2.5]}
                                                             for name in paper.TRAJECTORY_ANGLES}},
                   "base": [r for r in sweep if r["x"] == 0.0], "noise": sweep, "fps": sweep,
