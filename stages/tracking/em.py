@@ -334,8 +334,7 @@ def pair_covariances(n: np.ndarray, ellipsoids, Sigma: np.ndarray, distance: str
 def log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
     """ln N(e | 0, Σ) for residuals e (..., k); Σ (k, k) shared, or (..., 3, 3) one per residual."""
     if Sigma.ndim > 2:
-        inverse, log_det = _inverse_sym3(Sigma)
-        mahalanobis = np.einsum("...a,...ab,...b->...", e, inverse, e)
+        mahalanobis, log_det = _mahalanobis_sym3(e, Sigma)
         return -0.5 * (mahalanobis + log_det + 3 * np.log(2.0 * np.pi))
     k = Sigma.shape[0]
     L = np.linalg.cholesky(Sigma)
@@ -344,22 +343,20 @@ def log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
     return -0.5 * (np.einsum("...a,...a->...", z, z) + log_det + k * np.log(2.0 * np.pi))
 
 
-def _inverse_sym3(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse and ln det of symmetric positive definite 3 × 3 matrices (..., 3, 3), by cofactors.
+def _mahalanobis_sym3(e: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """eᵀ C⁻¹ e and ln det C for residuals e (..., 3) and symmetric positive definite C (..., 3, 3).
 
-    A closed form: LAPACK's per-matrix overhead would dominate the E-step's tens of thousands of pairs.
+    By cofactors (C⁻¹ = adj C / det C): LAPACK's per-matrix overhead would dominate the E-step's tens
+    of thousands of pairs.
     """
     a, b, c = C[..., 0, 0], C[..., 0, 1], C[..., 0, 2]
-    d, e, f = C[..., 1, 1], C[..., 1, 2], C[..., 2, 2]
-    cof = np.empty(C.shape)
-    cof[..., 0, 0] = d * f - e * e
-    cof[..., 0, 1] = cof[..., 1, 0] = c * e - b * f
-    cof[..., 0, 2] = cof[..., 2, 0] = b * e - c * d
-    cof[..., 1, 1] = a * f - c * c
-    cof[..., 1, 2] = cof[..., 2, 1] = b * c - a * e
-    cof[..., 2, 2] = a * d - b * b
-    det = a * cof[..., 0, 0] + b * cof[..., 0, 1] + c * cof[..., 0, 2]
-    return cof / det[..., None, None], np.log(det)
+    d, f, g = C[..., 1, 1], C[..., 1, 2], C[..., 2, 2]
+    c00, c01, c02 = d * g - f * f, c * f - b * g, b * f - c * d
+    c11, c12, c22 = a * g - c * c, b * c - a * f, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    x, y, z = e[..., 0], e[..., 1], e[..., 2]
+    quadratic = c00 * x * x + c11 * y * y + c22 * z * z + 2.0 * (c01 * x * y + c02 * x * z + c12 * y * z)
+    return quadratic / det, np.log(det)
 
 
 @dataclass(frozen=True)
