@@ -84,7 +84,7 @@ class Target:
             value = float("nan")
         met = math.isfinite(value) and (value >= self.threshold if self.at_least else value <= self.threshold)
         return {"suite": self.suite, "target": self.name, "value": value, "unit": self.unit,
-                "threshold": f"{'≥' if self.at_least else '≤'} {self.threshold:g} {self.unit}", "met": met}
+                "threshold": f"{'≥' if self.at_least else '≤'} {self.threshold:g} {self.unit}".strip(), "met": met}
 
 
 def _scored(section: dict) -> list[dict]:
@@ -286,7 +286,8 @@ PAPER_NOTES = (
     "(`pipeline.bench.masks.perturb_mask`: random smooth erosion/dilation of the outline and holes, growing "
     "with the strength), then 20 % outliers added uniformly in the working volume. Every sequence starts from "
     "the data alone (automatic initialisation); the subject's height is given. The paper plots radians; this "
-    "page degrees.")
+    "page degrees. Each point is one sequence (as in the paper), so one loss of track can decide its mean: read "
+    "the off-track share and the median beside it.")
 
 
 def format_results(results: dict, figure_links: dict[str, str] | None = None, *, source: Path | None = None) -> str:
