@@ -27,6 +27,7 @@ from stages.tracking.em import (
     EMParams,
     FitResult,
     Mixture,
+    e_step,
     fit,
     volume_size,
 )
@@ -341,3 +342,150 @@ def _top_ratio(body: BodyModel, pose: np.ndarray) -> float:
     ell = body.ellipsoids(pose)
     z_extent = np.sqrt(np.sum((ell.R[:, 2, :] * ell.semi_axes) ** 2, axis=1))
     return float(np.max(ell.t[:, 2] + z_extent)) / body.height_m
+
+
+# A limb's segment is taken for misplaced when it explains fewer data than this fraction of what its
+# mirror segment explains: left and right limbs have the same surface, and even a limb held against
+# the body or turned away from most cameras keeps a good part of its mirror's share (a forearm put
+# on the wrong side of the body by the initialisation explained 9 observations against 81).
+LIMB_SHARE_RATIO = 0.3
+# The comparison only means something when the mirror segment itself explains this many observations
+# (a foot or a forearm seen by few cameras is too noisy a reference).
+LIMB_MIN_OBSERVATIONS = 20
+# Observations used to score the joint-angle hypotheses of a limb (the rest of the body fixed).
+_LIMB_SCORE_POINTS = 400
+# Hypotheses closer than this (radians, every DOF of the chain) are one: the library repeats itself.
+_LIMB_HYPOTHESIS_STEP = 0.1
+# Best-scoring limb hypotheses refined by EM on all the data.
+_LIMB_REFINE = 3
+# Values per DOF of the grid over the limb's two first joints (shoulder and elbow, hip and knee): the
+# library holds whole-body poses, and an arm reaching out from a leaning torso may be in none of them.
+_LIMB_GRID_LEVELS = 5
+
+
+@dataclass(frozen=True)
+class Limb:
+    """A chain of segments hanging from the torso (arm, leg) and its mirror image.
+
+    Attributes
+    ----------
+    name : str
+        Name of the chain's first segment ("l_upperarm").
+    segments, mirror_segments : (S,) int
+        Segments of the chain (from the torso outwards) and the mirror chain's same segments.
+    dofs, mirror_dofs : (K,) int
+        DOFs of the chain and the mirror chain's corresponding DOFs.
+    mirror_sign : (K,) float
+        A pose mirrored left-right has mirror_dofs = mirror_sign × dofs (twists change sign).
+    """
+
+    name: str
+    segments: np.ndarray
+    mirror_segments: np.ndarray
+    dofs: np.ndarray
+    mirror_dofs: np.ndarray
+    mirror_sign: np.ndarray
+
+
+_MIRROR_PREFIXES = ("l_", "r_")
+
+
+def body_limbs(body: BodyModel) -> list[Limb]:
+    """The limbs of `body`: chains starting at an "l_"/"r_" segment whose parent is neither, with mirrors.
+
+    Mirror segments and DOFs are found by swapping the "l_"/"r_" prefix; the sign of a mirrored DOF is
+    that of its axis against the left-right reflection (x → −x) of the original axis (a rotation axis
+    is a pseudo-vector: (w_x, −w_y, −w_z)).
+    """
+    names = list(body.segment_names)
+
+    def mirror(name):
+        side = name[:2]
+        return ("r_" if side == "l_" else "l_") + name[2:] if side in _MIRROR_PREFIXES else None
+
+    limbs = []
+    for s, name in enumerate(names):
+        parent = body.parent[s]
+        if mirror(name) not in names or (parent >= 0 and mirror(names[parent]) is not None):
+            continue
+        chain = [s]
+        for child in range(s + 1, len(names)):
+            if body.parent[child] in chain:
+                chain.append(child)
+        mirrored = [names.index(mirror(names[c])) for c in chain]
+        dofs = [d for d in range(body.pose_size) if body.dof_segment[d] in chain]
+        dof_names = list(body.dof_names)
+        mirror_dofs = [dof_names.index(mirror(dof_names[d])) for d in dofs]
+        reflected = body.dof_axis[dofs] * np.array([1.0, -1.0, -1.0])
+        sign = np.sign(np.einsum("ka,ka->k", body.dof_axis[mirror_dofs], reflected))
+        limbs.append(Limb(name=name, segments=np.array(chain), mirror_segments=np.array(mirrored),
+                          dofs=np.array(dofs), mirror_dofs=np.array(mirror_dofs), mirror_sign=sign))
+    return limbs
+
+
+def misplaced_limbs(body: BodyModel, result: FitResult, n_observations: int, *,
+                    share_ratio: float = LIMB_SHARE_RATIO,
+                    min_observations: float = LIMB_MIN_OBSERVATIONS) -> list[Limb]:
+    """Limbs of a fit with a segment explaining far fewer data than its mirror segment.
+
+    The data a segment explains are I Σ π_p over its ellipsoids (the fit's priors are the mean
+    posteriors). The test is absolute (a share against the mirror's share in the same frame), so a bad
+    start cannot make itself the norm.
+    """
+    counts = n_observations * result.mixture.pi[:-1]
+    per_segment = np.bincount(body.ellipsoid_segment, weights=counts, minlength=len(body.segment_names))
+    suspects = []
+    for limb in body_limbs(body):
+        own, mirror = per_segment[limb.segments], per_segment[limb.mirror_segments]
+        if np.any((mirror >= min_observations) & (own < share_ratio * mirror)):
+            suspects.append(limb)
+    return suspects
+
+
+def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Limb, volume: np.ndarray,
+                      em: EMParams, candidates: np.ndarray, *,
+                      rng: np.random.Generator | None = None) -> FitResult:
+    """Re-initialise one limb of a fit locally; returns the better (by likelihood) of the two fits.
+
+    Joint-angle hypotheses for the limb's DOFs come from the pose library (`candidates`, the limb's
+    own values and its mirror's, mirrored), from a grid over its first two joints (`_limb_grid`),
+    from the mirror limb's current angles (people often hold both arms alike) and from the current
+    angles. Each is scored by the likelihood (eq. 12) with the rest of the body fixed, on a
+    subsample, under the fit's Σ and with the limb's priors π set to its mirror's (a limb that
+    explained nothing would otherwise be handicapped by its small prior). The best `_LIMB_REFINE`
+    are refined by EM on all the data (the whole body free).
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    body, pose = result.body, result.pose
+    values = np.vstack([candidates[:, limb.dofs], candidates[:, limb.mirror_dofs] * limb.mirror_sign,
+                        pose[limb.mirror_dofs] * limb.mirror_sign, pose[limb.dofs], _limb_grid(body, pose, limb)])
+    values = np.clip(values, body.lower[limb.dofs], body.upper[limb.dofs])
+    _, first = np.unique(np.round(values / _LIMB_HYPOTHESIS_STEP), axis=0, return_index=True)
+    hypotheses = np.repeat(pose[None], len(first), axis=0)
+    hypotheses[:, limb.dofs] = values[np.sort(first)]
+    pi = result.mixture.pi.copy()
+    mine = np.isin(body.ellipsoid_segment, limb.segments)
+    theirs = np.isin(body.ellipsoid_segment, limb.mirror_segments)
+    pi[np.flatnonzero(mine)] = np.maximum(pi[np.flatnonzero(mine)], pi[np.flatnonzero(theirs)])
+    mixture = replace(result.mixture, pi=pi / pi.sum())
+    V = volume_size(volume)
+    subset = rng.permutation(len(y))[:_LIMB_SCORE_POINTS]
+    scores = [e_step(y[subset], n[subset], body, q, mixture, V, distance=em.distance,
+                     normal_noise_rad=em.normal_noise_rad).log_likelihood for q in hypotheses]
+    best = result
+    for q in hypotheses[np.argsort(scores)[::-1][:_LIMB_REFINE]]:
+        refined = fit(y, n, body, q, volume, em, mixture=mixture)
+        if refined.log_likelihood[-1] > best.log_likelihood[-1]:
+            best = refined
+    return best
+
+
+def _limb_grid(body: BodyModel, pose: np.ndarray, limb: Limb) -> np.ndarray:
+    """Limb angles (M, K): every combination of `_LIMB_GRID_LEVELS` values across the joint range of each
+    DOF of the limb's first two segments that the data see (twists, which have a prior, keep their
+    current value, as do the DOFs further down the chain)."""
+    first = np.isin(body.dof_segment[limb.dofs], limb.segments[:2]) & (body.prior_weight[limb.dofs] == 0)
+    axes = [np.linspace(body.lower[d], body.upper[d], _LIMB_GRID_LEVELS) for d in limb.dofs[first]]
+    grid = np.repeat(pose[limb.dofs][None], _LIMB_GRID_LEVELS ** len(axes), axis=0)
+    grid[:, first] = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(axes))
+    return grid

@@ -24,8 +24,16 @@ import numpy as np
 
 from stages.tracking.body import BodyModel
 from stages.tracking.distances import residual_size
-from stages.tracking.em import HEIGHT_RANGE_M, EMParams, Mixture, fit, volume_size
-from stages.tracking.init import InitParams, initialise, load_pose_library
+from stages.tracking.em import HEIGHT_RANGE_M, EMParams, FitResult, Mixture, fit, volume_size
+from stages.tracking.init import (
+    LIMB_MIN_OBSERVATIONS,
+    LIMB_SHARE_RATIO,
+    InitParams,
+    initialise,
+    load_pose_library,
+    misplaced_limbs,
+    reinitialise_limb,
+)
 
 STATUSES = ("tracked", "initialised", "predicted", "lost")
 
@@ -76,6 +84,10 @@ class TrackerParams:
         Lower bound on the outlier class's prior π_{P+1} (`EMParams.min_outlier_prior`); 0 is the paper's.
     max_sigma_m : float
         Upper bound on Σ's standard deviations, metres (`EMParams.max_sigma_m`).
+    limb_share_ratio, limb_min_observations : float, int
+        After every fit, a limb with a segment explaining fewer data than `limb_share_ratio` times
+        what its mirror segment explains (when that is at least `limb_min_observations`) is
+        re-initialised locally (`init.misplaced_limbs`, `init.reinitialise_limb`); 0 disables it.
     """
 
     height_m: float | None = None
@@ -98,6 +110,8 @@ class TrackerParams:
     normal_noise_deg: float = 10.0
     min_outlier_prior: float = 0.05
     max_sigma_m: float = 0.06
+    limb_share_ratio: float = LIMB_SHARE_RATIO
+    limb_min_observations: int = LIMB_MIN_OBSERVATIONS
 
 
 @dataclass(frozen=True)
@@ -245,6 +259,8 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
                            displacement_m=_REFIT_DISPLACEMENT_M), mixture=tracked.mixture, prior_pose=prediction)
         tracked = replace(more, iterations=tracked.iterations + more.iterations)
         per_obs = tracked.log_likelihood[-1] / len(y)
+    tracked = _recover_limbs(y, n, tracked, volume, frame_em, params)
+    per_obs = tracked.log_likelihood[-1] / len(y)
     dropped = np.isfinite(state.likelihood_level) and (
         per_obs < state.likelihood_level - params.max_likelihood_drop)
     failed = tracked.outlier_fraction > params.max_outlier_fraction or dropped
@@ -308,12 +324,25 @@ def _predict(state: TrackerState, body: BodyModel, params: TrackerParams) -> tup
     return result, new_state
 
 
+def _recover_limbs(y, n, result, volume, em, params) -> FitResult:
+    """The fit with each limb that explains far fewer data than its mirror re-initialised locally.
+
+    A limb EM put on the wrong side of the body or folded away from its data gets almost no
+    observations, and the local minimum holds it there for many frames; trying the library's angles
+    for that limb alone (`init.reinitialise_limb`) finds it again, and the likelihood decides.
+    """
+    for limb in misplaced_limbs(result.body, result, len(y), share_ratio=params.limb_share_ratio,
+                                min_observations=params.limb_min_observations):
+        result = reinitialise_limb(y, n, result, limb, volume, em, load_pose_library(result.body))
+    return result
+
+
 def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, TrackerState]:
     """Initialise from the data alone (`init.initialise`) and start a fresh track."""
     estimate = params.height_m is None and state.height_weight < params.scale_frames
     init = initialise(y, n, body, volume, load_pose_library(body), estimate_height=estimate, em=em,
                       params=InitParams(headings=params.init_headings, refine=params.init_refine))
-    fitted = init.fit
+    fitted = _recover_limbs(y, n, init.fit, volume, replace(em, estimate_scale=estimate), params)
     joints = fitted.body.joint_positions(fitted.pose)
     if fitted.outlier_fraction > params.max_outlier_fraction:
         lost_state = replace(state, lost=True, frames_without_fit=state.frames_without_fit + 1)

@@ -4,8 +4,18 @@ import numpy as np
 import pytest
 from tracking_testing import VOLUME, sample_ellipsoids
 
+from stages.joints import JOINT_NAMES
 from stages.tracking.body import load_body
-from stages.tracking.init import InitParams, generic_poses, initialise, load_pose_library
+from stages.tracking.em import EMParams, fit
+from stages.tracking.init import (
+    InitParams,
+    body_limbs,
+    generic_poses,
+    initialise,
+    load_pose_library,
+    misplaced_limbs,
+    reinitialise_limb,
+)
 
 
 @pytest.mark.parametrize("name", ["default", "paper"])
@@ -47,3 +57,38 @@ def test_initialisation_finds_bends_and_kicks(degrees):
                         params=InitParams(headings=8))
     error = np.linalg.norm(body.joint_positions(result.pose) - body.joint_positions(truth), axis=1)
     assert error.mean() < 0.02  # metres
+
+
+def test_limbs_and_their_mirrors():
+    body = load_body("default")
+    limbs = {limb.name: limb for limb in body_limbs(body)}
+    assert set(limbs) == {"l_upperarm", "r_upperarm", "l_thigh", "r_thigh"}
+    arm = limbs["l_upperarm"]
+    assert [body.segment_names[s] for s in arm.mirror_segments] == ["r_upperarm", "r_forearm"]
+    twist = [body.dof_names[d] for d in arm.dofs].index("l_upperarm.twist")
+    assert arm.mirror_sign[twist] == -1 and np.sum(arm.mirror_sign == 1) == len(arm.dofs) - 1
+
+
+def test_a_limb_placed_wrong_is_found_and_recovered_locally():
+    """An arm stuck behind the back while the data show it reaching forward: EM alone stays there; the
+    limb gets far fewer data than its mirror, and the local re-initialisation brings it back."""
+    body = load_body("default", height_m=1.75)
+    rng = np.random.default_rng(40)
+    truth = _pose(body, 0.5, {"l_upperarm.flex": 90, "l_upperarm.abduct": 20, "l_forearm.flex": 40,
+                              "r_upperarm.flex": 10, "r_forearm.flex": 20})
+    y, n = sample_ellipsoids(body, truth, 1000, rng, outlier_fraction=0.1)
+    wrong = truth.copy()
+    wrong[body.dof_names.index("l_upperarm.flex")] = np.radians(-60)
+    wrong[body.dof_names.index("l_upperarm.abduct")] = 0.0
+    wrong[body.dof_names.index("l_forearm.flex")] = np.radians(100)
+    em = EMParams(max_iterations=15, normal_noise_rad=np.radians(10), min_outlier_prior=0.05)
+    stuck = fit(y, n, body, wrong, VOLUME, em)
+    wrist = JOINT_NAMES.index("l_wrist")
+    assert np.linalg.norm(body.joint_positions(stuck.pose)[wrist] - body.joint_positions(truth)[wrist]) > 0.2
+    suspects = misplaced_limbs(body, stuck, len(y))
+    assert [limb.name for limb in suspects] == ["l_upperarm"]
+    recovered = reinitialise_limb(y, n, stuck, suspects[0], VOLUME, em, load_pose_library(body))
+    assert recovered.log_likelihood[-1] > stuck.log_likelihood[-1]
+    error = np.linalg.norm(recovered.body.joint_positions(recovered.pose) - body.joint_positions(truth), axis=1)
+    assert error.max() < 0.03  # metres, every joint
+    assert misplaced_limbs(body, recovered, len(y)) == []
