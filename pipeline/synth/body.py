@@ -11,20 +11,33 @@ Usage (frame ``k`` of a clip)::
 
 from __future__ import annotations
 
+from calib.errors import InputError
 from pipeline.mocap import Motion
-from pipeline.synth.capsules import CapsuleBody, build_capsule_body
+from pipeline.synth.capsules import CapsuleBody, JointCapsuleBody, build_capsule_body
 from pipeline.synth.makehuman import MeshBody, build_mesh_body
 from pipeline.synth.posed import PosedBody
 
 BODY_KINDS = ("mesh", "capsules")
 
-Body = MeshBody | CapsuleBody
+Body = MeshBody | CapsuleBody | JointCapsuleBody
 
 
 def build_body(motion: Motion, kind: str = "mesh") -> Body:
-    """The body surface of ``kind`` bound to ``motion``'s skeleton (CMU bone names)."""
+    """The body surface of ``kind`` bound to ``motion``'s skeleton.
+
+    The mesh is skinned to CMU bones; the capsules fit any skeleton the mocap reader maps to the 17
+    joints, so a mesh that cannot be bound points the user to them.
+
+    Raises
+    ------
+    InputError
+        ``kind`` is "mesh" and the skeleton lacks a CMU bone the mesh needs.
+    """
     if kind == "mesh":
-        return build_mesh_body(motion)
+        try:
+            return build_mesh_body(motion)
+        except InputError as error:
+            raise InputError(f"{error}; --body capsules renders any clip the mocap reader reads") from error
     if kind == "capsules":
         return build_capsule_body(motion)
     raise ValueError(f"body kind: expected one of {', '.join(BODY_KINDS)}, got {kind!r}")
