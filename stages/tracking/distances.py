@@ -151,13 +151,60 @@ def normal_spread(n: np.ndarray, ellipsoids: Ellipsoids, p: np.ndarray | None = 
     (I, 3, 3) float for pairs, (I, P, 3, 3) otherwise; symmetric positive semi-definite, m² per rad².
     """
     M = _shape(ellipsoids, 2.0)
+    M2 = _shape(ellipsoids, 4.0)  # M² = R diag(semi_axes⁴) Rᵀ
     if p is not None:
-        A = _normal_point(n, M[p], ellipsoids.t[p], True)[2]
+        M, M2 = M[p], M2[p]
     else:
-        u = np.einsum("pab,ib->ipa", M, n)  # (I,P,3)
-        lam = 1.0 / np.sqrt(np.einsum("ipa,ia->ip", u, n))
-        A = lam[:, :, None, None] * (M[None] - (lam**2)[:, :, None, None] * u[..., :, None] * u[..., None, :])
-    return A @ A  # A = λ (M − λ² u uᵀ) is symmetric
+        M, M2, n = M[None], M2[None], n[:, None, :]  # (1,P,3,3) against (I,1,3)
+    u = np.einsum("...ab,...b->...a", M, n)  # M n
+    w = np.einsum("...ab,...b->...a", M2, n)  # M u = M² n
+    lam2 = (1.0 / np.einsum("...a,...a->...", n, u))[..., None, None]  # λ² of eq. (4)
+    uu = u[..., :, None] * u[..., None, :]
+    wu = w[..., :, None] * u[..., None, :]
+    # A = λ (M − λ² u uᵀ) is symmetric, so A Aᵀ = A² = λ² (M² − λ² (w uᵀ + u wᵀ) + λ⁴ |u|² u uᵀ)
+    return lam2 * (M2 - lam2 * (wu + wu.swapaxes(-1, -2)) + lam2**2 * (u * u).sum(-1)[..., None, None] * uu)
+
+
+def residual_bounds(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
+                    distance: str = "normals") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bounds on every pair's residual (I, P each) from (I, P) matrix products, without the residuals.
+
+    - ``norm`` ≤ |e_ip|: x_ip lies on the ellipsoid, within its largest semi-axis a_p of t_p, so
+      |y_i − x_ip| ≥ |y_i − t_p| − a_p (0 for the algebraic distance, which has no such point);
+    - ``along`` = |n_iᵀ e_ip| exactly for the "normals" distance: x_ip is where the tangent plane with
+      normal n_i touches the ellipsoid, n_iᵀ (x_ip − t_p) = λ n_iᵀ M n_i = (n_iᵀ M n_i)^(1/2) (eq. 4),
+      M = R D⁻¹ Rᵀ; 0 otherwise;
+    - ``spread`` ≥ ‖A_ip‖² for the "normals" distance (`normal_spread`): A = λ M^½ (I − Π) M^½ with Π a
+      projector, so ‖A‖ ≤ λ a_p²; 0 otherwise.
+
+    Parameters
+    ----------
+    y, n : (I, 3) float
+        Points (metres) and unit outward normals.
+    ellipsoids : Ellipsoids
+        The P posed ellipsoids.
+    distance : {"normals", "points", "algebraic"}
+
+    Returns
+    -------
+    norm, along, spread : (I, P) float
+        Metres, metres, m² per rad².
+    """
+    t, a = ellipsoids.t, ellipsoids.semi_axes.max(axis=1)
+    zeros = np.zeros((len(y), len(t)))
+    if distance == "algebraic":
+        return zeros, zeros, zeros
+    centre = np.maximum((y * y).sum(1)[:, None] - 2.0 * y @ t.T + (t * t).sum(1)[None, :], 0.0)  # |y − t|²
+    norm = np.maximum(np.sqrt(centre) - a, 0.0)
+    if distance != "normals":
+        return norm, zeros, zeros
+    M = _shape(ellipsoids, 2.0)
+    products = np.stack([n[:, 0] ** 2, n[:, 1] ** 2, n[:, 2] ** 2,
+                         2.0 * n[:, 0] * n[:, 1], 2.0 * n[:, 0] * n[:, 2], 2.0 * n[:, 1] * n[:, 2]], axis=1)
+    entries = np.stack([M[:, 0, 0], M[:, 1, 1], M[:, 2, 2], M[:, 0, 1], M[:, 0, 2], M[:, 1, 2]], axis=1)
+    q = products @ entries.T  # n_iᵀ M_p n_i
+    along = np.abs((n * y).sum(1)[:, None] - n @ t.T - np.sqrt(q))
+    return norm, along, a**4 / q
 
 
 def ellipsoid_point(n: np.ndarray, R: np.ndarray, t: np.ndarray, semi_axes: np.ndarray) -> np.ndarray:

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.tracking.body import BodyModel
-from stages.tracking.distances import DISTANCES, all_residuals, normal_spread, residual_size, residuals
+from stages.tracking.body import BodyModel, Ellipsoids, Kinematics
+from stages.tracking.distances import DISTANCES, normal_spread, residual_bounds, residual_size, residuals
 
 # Σ is estimated from the residuals; with nearly exact data it would shrink towards 0 and the
 # posteriors would turn into hard, brittle assignments. The floor is the model's own inexactness
@@ -35,6 +35,10 @@ PI_FLOOR = 1e-4
 # Posteriors below this do not change the weighted least squares measurably; dropping those pairs
 # from the M-step is what makes it fast (each datum keeps a handful of ellipsoids).
 PRUNE_POSTERIOR = 1e-3
+# The E-step skips a pair whose joint density π_p N(y_i | x_ip, Σ_ip) is provably below this fraction of
+# the outlier term π_{P+1} / V (`_candidate_pairs`): its posterior is below it too, every other
+# posterior changes by less than P times it (relative), and ln P(Y | Λ) by less than I·P times it.
+NEGLIGIBLE_POSTERIOR = 1e-9
 # Prior strength: a DOF with prior weight 1 is held to its predicted value with this standard
 # deviation (radians) when the data say nothing about it; data dominate it whenever they see it.
 PRIOR_SIGMA_RAD = 0.25
@@ -136,11 +140,18 @@ class EStep:
         Posterior of the outlier class, t_{i,P+1}.
     log_likelihood : float
         ln P(Y | Λ) of eq. (12), nats.
+    pairs : (2, K) int or None
+        Datum i and ellipsoid p of the pairs whose posteriors were computed, sorted by ellipsoid
+        (t_ip = 0 elsewhere); None means all pairs.
+    precision : (K, k, k) float or None
+        Σ_ip⁻¹ of those pairs at the E-step's pose and Σ, for the M-step of the same iteration.
     """
 
     t: np.ndarray
     t_outlier: np.ndarray
     log_likelihood: float
+    pairs: np.ndarray | None = None
+    precision: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -212,21 +223,62 @@ def e_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixt
     V : float
         Volume of the working space, m³ (outlier density 1/V).
     """
-    I, P = len(y), body.n_ellipsoids
+    return _e_step(y, n, body.ellipsoids(pose), mixture, V, distance, normal_noise_rad)
+
+
+def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixture, V: float, distance: str,
+            normal_noise_rad: float) -> EStep:
+    """`e_step` on the posed ellipsoids, over the pairs that `_candidate_pairs` cannot rule out."""
+    I, P = len(y), len(ellipsoids.t)
     if I == 0:
         return EStep(t=np.zeros((0, P)), t_outlier=np.zeros(0), log_likelihood=0.0)
-    ellipsoids = body.ellipsoids(pose)
-    e = all_residuals(y, n, ellipsoids, distance=distance)  # (I,P,k)
-    Sigma = pair_covariances(n, ellipsoids, mixture.Sigma, distance, normal_noise_rad)
-    log_joint = np.empty((I, P + 1))
-    log_joint[:, :P] = np.log(mixture.pi[:P]) + log_gaussian(e, Sigma)  # ln π_p N(y_i | x_ip, Σ_ip)
-    log_joint[:, P] = np.log(mixture.pi[P]) - np.log(V)  # ln π_{P+1} / V
-    peak = log_joint.max(axis=1, keepdims=True)
-    joint = np.exp(log_joint - peak)
-    evidence = joint.sum(axis=1, keepdims=True)
-    posterior = joint / evidence  # (I,P+1)
-    log_likelihood = float(np.sum(peak + np.log(evidence)))  # Σ_i ln P(y_i | n_i)
-    return EStep(t=posterior[:, :P], t_outlier=posterior[:, P], log_likelihood=log_likelihood)
+    log_outlier = np.log(mixture.pi[P]) - np.log(V)  # ln π_{P+1} / V
+    p, i = _candidate_pairs(y, n, ellipsoids, mixture, log_outlier, distance, normal_noise_rad)
+    e, mahalanobis, log_det, precision = _pair_terms(y, n, i, p, ellipsoids, mixture.Sigma, distance,
+                                                     normal_noise_rad)
+    k = e.shape[1]
+    log_joint = np.log(mixture.pi[p]) - 0.5 * (mahalanobis + log_det + k * np.log(2.0 * np.pi))  # ln π_p N_ip
+    peak = np.full(I, log_outlier)
+    np.maximum.at(peak, i, log_joint)
+    joint = np.exp(log_joint - peak[i])
+    evidence = np.exp(log_outlier - peak) + np.bincount(i, joint, minlength=I)
+    t = np.zeros((I, P))
+    t[i, p] = joint / evidence[i]  # eq. (13)
+    log_likelihood = float(np.sum(peak + np.log(evidence)))  # Σ_i ln P(y_i | n_i), eq. (12)
+    return EStep(t=t, t_outlier=np.exp(log_outlier - peak) / evidence, log_likelihood=log_likelihood,
+                 pairs=np.stack([i, p]), precision=precision)
+
+
+def _candidate_pairs(y, n, ellipsoids, mixture, log_outlier, distance, normal_noise_rad):
+    """Pairs (p, i), sorted by ellipsoid, whose π_p N(y_i | x_ip, Σ_ip) may exceed NEGLIGIBLE_POSTERIOR · π_{P+1}/V.
+
+    An upper bound on ln π_p N_ip from `distances.residual_bounds`, with c the largest eigenvalue of Σ:
+    det Σ_ip ≥ det Σ, and Σ_ip ⪯ C = c I + σ_n² A Aᵀ, of which n_i is an eigenvector with eigenvalue c
+    (A n = 0) and whose other eigenvalues are at most c + σ_n² ‖A‖², so that
+
+        e ᵀ Σ_ip⁻¹ e ≥ eᵀ C⁻¹ e ≥ (nᵀ e)² / c + (|e|² − (nᵀ e)²) / (c + σ_n² ‖A‖²).
+    """
+    norm, along, spread = residual_bounds(y, n, ellipsoids, distance=distance)
+    Sigma = mixture.Sigma
+    c = np.linalg.eigvalsh(Sigma)[-1]
+    if distance != "normals":
+        normal_noise_rad = 0.0
+    mahalanobis = along**2 / c + np.maximum(norm**2 - along**2, 0.0) / (c + normal_noise_rad**2 * spread)
+    log_norm = -0.5 * (np.linalg.slogdet(Sigma)[1] + len(Sigma) * np.log(2.0 * np.pi))
+    bound = np.log(mixture.pi[:-1]) + log_norm - 0.5 * mahalanobis  # ≥ ln π_p N_ip
+    return np.nonzero((bound >= log_outlier + np.log(NEGLIGIBLE_POSTERIOR)).T)
+
+
+def _pair_terms(y, n, i, p, ellipsoids, Sigma, distance, normal_noise_rad):
+    """Residuals e_ip (K, k), eᵀ Σ_ip⁻¹ e, ln det Σ_ip (K,) and Σ_ip⁻¹ (K, k, k) of the pairs (i, p)."""
+    e = residuals(y, n, i, p, None, ellipsoids, distance=distance).e
+    Sigma_ip = pair_covariances(n[i], ellipsoids, Sigma, distance, normal_noise_rad, p)
+    if Sigma_ip.ndim == 3:
+        mahalanobis, log_det, precision = _mahalanobis_sym3(e, Sigma_ip)
+        return e, mahalanobis, log_det, precision
+    W = np.linalg.inv(Sigma_ip)
+    precision = np.broadcast_to(W, (len(e),) + W.shape)
+    return e, ((e @ W) * e).sum(1), np.full(len(e), np.linalg.slogdet(Sigma_ip)[1]), precision
 
 
 def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixture: Mixture,
@@ -249,30 +301,45 @@ def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixt
     bounded above by `max_sigma_m`², π_{P+1} below by `min_outlier_prior` (the maximisers of eq. 14
     under these bounds).
     """
-    I, P = estep.t.shape
-    if I == 0:
+    if len(estep.t) == 0:
         return MStep(pose=pose, mixture=mixture, body=body)
-    p, i = np.nonzero(estep.t.T > PRUNE_POSTERIOR)  # pairs grouped by ellipsoid
+    return _m_step(y, n, body, body.fk(pose), pose, mixture, estep, distance, prior_pose, gauss_newton_steps,
+                   estimate_scale, estimate_lengths, normal_noise_rad, min_outlier_prior, max_sigma_m)[0]
+
+
+def _m_step(y, n, body, kin, pose, mixture, estep, distance, prior_pose, gauss_newton_steps, estimate_scale,
+            estimate_lengths, normal_noise_rad, min_outlier_prior, max_sigma_m) -> tuple[MStep, Kinematics]:
+    """`m_step` from the pose's kinematics `kin`; also returns the kinematics of the new pose.
+
+    The pairs' Σ_ip⁻¹ are the E-step's (same pose, same Σ), computed here only for an EStep without them.
+    """
+    I, P = estep.t.shape
+    if estep.pairs is None:  # every pair
+        p, i = np.divmod(np.arange(I * P), I)
+        precision = _pair_terms(y, n, i, p, body.ellipsoids(kin), mixture.Sigma, distance, normal_noise_rad)[3]
+    else:
+        (i, p), precision = estep.pairs, estep.precision
+    keep = estep.t[i, p] > PRUNE_POSTERIOR  # pairs stay grouped by ellipsoid
+    i, p = i[keep], p[keep]
     t = estep.t[i, p]  # (K,)
-    Sigma_ip = pair_covariances(n[i], body.ellipsoids(pose), mixture.Sigma, distance, normal_noise_rad, p)
-    L = np.linalg.cholesky(np.linalg.inv(Sigma_ip))  # Σ_ip⁻¹ = L Lᵀ: whitened residual Lᵀ e
-    L = np.broadcast_to(L, (len(i),) + mixture.Sigma.shape)
+    L = _cholesky(precision[keep])  # Σ_ip⁻¹ = L Lᵀ: whitened residual Lᵀ e
     problem = _Problem(y, n, i, p, np.sqrt(t)[:, None], L, distance, prior_pose if prior_pose is not None
                        else pose, body.prior_weight / PRIOR_SIGMA_RAD**2, estimate_scale,
                        estimate_lengths and len(body.length_groups) > 0)
     e = None
     for _ in range(gauss_newton_steps):
-        pose, body, e = _gauss_newton_step(problem, body, pose)
+        pose, body, kin, e = _gauss_newton_step(problem, body, kin, pose)
     scatter = (e * t[:, None]).T @ e
-    if Sigma_ip.ndim == 3:  # minus the normals' share, at the new pose
-        spread = normal_spread(n[i], body.ellipsoids(pose), p)
+    if distance == "normals" and normal_noise_rad > 0.0:  # minus the normals' share, at the new pose
+        spread = normal_spread(n[i], body.ellipsoids(kin), p)
         scatter = scatter - normal_noise_rad**2 * np.einsum("k,kab->ab", t, spread)
     Sigma = scatter / max(t.sum(), np.finfo(float).tiny)
     pi = np.empty(P + 1)
     pi[:P] = estep.t.sum(axis=0) / I
     pi[P] = estep.t_outlier.sum() / I
-    return MStep(pose=pose, mixture=Mixture(Sigma=_bound_covariance(Sigma, max_sigma_m),
-                                            pi=_bound_priors(pi, min_outlier_prior)), body=body)
+    mstep = MStep(pose=pose, mixture=Mixture(Sigma=_bound_covariance(Sigma, max_sigma_m),
+                                             pi=_bound_priors(pi, min_outlier_prior)), body=body)
+    return mstep, kin
 
 
 def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume: np.ndarray,
@@ -296,22 +363,22 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
     prior_pose = pose.copy() if prior_pose is None else prior_pose
     if mixture is None:
         mixture = Mixture.initial(body.n_ellipsoids, sigma_m, residual_size(params.distance))
-    estep = e_step(y, n, body, pose, mixture, V, distance=params.distance, normal_noise_rad=params.normal_noise_rad)
+    kin = body.fk(pose)
+    estep = _e_step(y, n, body.ellipsoids(kin), mixture, V, params.distance, params.normal_noise_rad)
     history = [estep.log_likelihood]
     converged = len(y) == 0
     iterations = 0
-    joints = body.joint_positions(pose)
+    joints = body.joint_positions(kin)
     while not converged and iterations < params.max_iterations:
-        mstep = m_step(y, n, body, pose, mixture, estep, distance=params.distance, prior_pose=prior_pose,
-                       gauss_newton_steps=params.gauss_newton_steps, estimate_scale=params.estimate_scale,
-                       estimate_lengths=params.estimate_lengths, normal_noise_rad=params.normal_noise_rad,
-                       min_outlier_prior=params.min_outlier_prior, max_sigma_m=params.max_sigma_m)
+        mstep, kin = _m_step(y, n, body, kin, pose, mixture, estep, params.distance, prior_pose,
+                             params.gauss_newton_steps, params.estimate_scale, params.estimate_lengths,
+                             params.normal_noise_rad, params.min_outlier_prior, params.max_sigma_m)
         pose, mixture, body = mstep.pose, mstep.mixture, mstep.body
-        estep = e_step(y, n, body, pose, mixture, V, distance=params.distance, normal_noise_rad=params.normal_noise_rad)
+        estep = _e_step(y, n, body.ellipsoids(kin), mixture, V, params.distance, params.normal_noise_rad)
         iterations += 1
         history.append(estep.log_likelihood)
         moved = joints
-        joints = body.joint_positions(pose)
+        joints = body.joint_positions(kin)
         displacement = np.linalg.norm(joints - moved, axis=1).max()
         converged = abs(history[-1] - history[-2]) < params.tolerance * len(y) or displacement < params.displacement_m
     outliers = float(estep.t_outlier.mean()) if len(y) else 1.0
@@ -334,7 +401,7 @@ def pair_covariances(n: np.ndarray, ellipsoids, Sigma: np.ndarray, distance: str
 def log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
     """ln N(e | 0, Σ) for residuals e (..., k); Σ (k, k) shared, or (..., 3, 3) one per residual."""
     if Sigma.ndim > 2:
-        mahalanobis, log_det = _mahalanobis_sym3(e, Sigma)
+        mahalanobis, log_det, _ = _mahalanobis_sym3(e, Sigma)
         return -0.5 * (mahalanobis + log_det + 3 * np.log(2.0 * np.pi))
     k = Sigma.shape[0]
     L = np.linalg.cholesky(Sigma)
@@ -343,11 +410,11 @@ def log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
     return -0.5 * (np.einsum("...a,...a->...", z, z) + log_det + k * np.log(2.0 * np.pi))
 
 
-def _mahalanobis_sym3(e: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """eᵀ C⁻¹ e and ln det C for residuals e (..., 3) and symmetric positive definite C (..., 3, 3).
+def _mahalanobis_sym3(e: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """eᵀ C⁻¹ e, ln det C and C⁻¹ for residuals e (..., 3) and symmetric positive definite C (..., 3, 3).
 
-    By cofactors (C⁻¹ = adj C / det C): LAPACK's per-matrix overhead would dominate the E-step's tens
-    of thousands of pairs.
+    By cofactors (C⁻¹ = adj C / det C): LAPACK's per-matrix overhead would dominate the E-step's
+    thousands of pairs.
     """
     a, b, c = C[..., 0, 0], C[..., 0, 1], C[..., 0, 2]
     d, f, g = C[..., 1, 1], C[..., 1, 2], C[..., 2, 2]
@@ -356,7 +423,25 @@ def _mahalanobis_sym3(e: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndar
     det = a * c00 + b * c01 + c * c02
     x, y, z = e[..., 0], e[..., 1], e[..., 2]
     quadratic = c00 * x * x + c11 * y * y + c22 * z * z + 2.0 * (c01 * x * y + c02 * x * z + c12 * y * z)
-    return quadratic / det, np.log(det)
+    inverse = np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], axis=-1).reshape(C.shape) / det[..., None, None]
+    return quadratic / det, np.log(det), inverse
+
+
+def _cholesky(W: np.ndarray) -> np.ndarray:
+    """Lower-triangular L (K, k, k) with W = L Lᵀ for symmetric positive definite W (K, k, k), k = 1 or 3.
+
+    Written out for 3 × 3 (the Cholesky–Banachiewicz recurrences) for the same reason as `_mahalanobis_sym3`.
+    """
+    if W.shape[1] == 1:
+        return np.sqrt(W)
+    L = np.zeros(W.shape)
+    L[:, 0, 0] = l00 = np.sqrt(W[:, 0, 0])
+    L[:, 1, 0] = l10 = W[:, 1, 0] / l00
+    L[:, 2, 0] = l20 = W[:, 2, 0] / l00
+    L[:, 1, 1] = l11 = np.sqrt(W[:, 1, 1] - l10 * l10)
+    L[:, 2, 1] = l21 = (W[:, 2, 1] - l20 * l10) / l11
+    L[:, 2, 2] = np.sqrt(W[:, 2, 2] - l20 * l20 - l21 * l21)
+    return L
 
 
 @dataclass(frozen=True)
@@ -379,10 +464,10 @@ class _Problem:
     estimate_scale: bool
     estimate_lengths: bool
 
-    def residuals(self, body, pose, *, jacobian=False):
-        kin = body.fk(pose)
-        return kin, residuals(self.y, self.n, self.i, self.p, kin, body.ellipsoids(kin), distance=self.distance,
-                              jacobian=jacobian, scale=jacobian and self.estimate_scale)
+    def residuals(self, body, kin, *, jacobian=False):
+        """The pairs' residuals on `body` posed by the kinematics `kin`."""
+        return residuals(self.y, self.n, self.i, self.p, kin, body.ellipsoids(kin), distance=self.distance,
+                         jacobian=jacobian, scale=jacobian and self.estimate_scale)
 
     def cost(self, body, pose, e):
         """Eq. (14) for fixed t_ip plus the priors on the weakly observed DOFs and the segment lengths."""
@@ -392,15 +477,15 @@ class _Problem:
                       + (ln_l**2).sum() / LENGTH_PRIOR_SD**2)
 
 
-def _gauss_newton_step(problem: _Problem, body: BodyModel, pose: np.ndarray):
-    """One Levenberg-Marquardt step on eq. (14) for fixed posteriors.
+def _gauss_newton_step(problem: _Problem, body: BodyModel, kin: Kinematics, pose: np.ndarray):
+    """One Levenberg-Marquardt step on eq. (14) for fixed posteriors, from the pose's kinematics `kin`.
 
-    Returns the accepted pose, body and the pairs' residuals there. The unknowns are Λ (D), then
+    Returns the accepted pose, body, their kinematics and the pairs' residuals there. The unknowns are Λ (D), then
     ln s of the body's size with `estimate_scale`, then ln ℓ of the length factors with
     `estimate_lengths`. The normal equations are summed per ellipsoid in rigid-velocity coordinates
     (H_p = Σ_k t_k B_kᵀ Σ⁻¹ B_k, 6 × 6) and mapped to the DOFs by the segment twists: H = Σ_p T_pᵀ H_p T_p.
     """
-    kin, res = problem.residuals(body, pose, jacobian=True)
+    res = problem.residuals(body, kin, jacobian=True)
     L, sqrt_t, D = problem.L, problem.sqrt_t, body.pose_size
     K, k = res.e.shape
     r = np.einsum("kab,ka->kb", L, res.e) * sqrt_t  # (K,k) whitened Lᵀ e √t
@@ -441,11 +526,12 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, pose: np.ndarray):
         step = np.linalg.solve(H + np.diag(damping * diag + RIDGE), -g)
         candidate = body.clip(pose + step[:D])
         body_c = _updated_body(problem, body, step[D:])
-        e_c = problem.residuals(body_c, candidate)[1].e
+        kin_c = body_c.fk(candidate)
+        e_c = problem.residuals(body_c, kin_c).e
         if problem.cost(body_c, candidate, e_c) <= cost:
-            return candidate, body_c, e_c
+            return candidate, body_c, kin_c, e_c
         damping *= LM_GROWTH
-    return pose, body, res.e
+    return pose, body, kin, res.e
 
 
 def _extra_columns(problem: _Problem, body: BodyModel, pose: np.ndarray, res) -> np.ndarray:
@@ -457,7 +543,8 @@ def _extra_columns(problem: _Problem, body: BodyModel, pose: np.ndarray, res) ->
         for g in range(len(body.length_groups)):
             factors = body.length_factors.copy()
             factors[g] *= np.exp(LENGTH_STEP)
-            e_g = problem.residuals(body.with_lengths(factors), pose)[1].e
+            stretched = body.with_lengths(factors)
+            e_g = problem.residuals(stretched, stretched.fk(pose)).e
             columns.append(((e_g - res.e) / LENGTH_STEP)[:, :, None])
     return np.concatenate(columns, axis=2) if columns else np.zeros(res.e.shape + (0,))
 
