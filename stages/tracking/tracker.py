@@ -8,9 +8,12 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
 - unknown height: estimated at the initialisation and refined over the next `scale_frames` frames;
   with `estimate_lengths`, the segment-length factors of the body (the `lengths` of its file) are estimated
   with the pose over the same frames (prior towards the body file's proportions), then frozen;
-- failure detection: an outlier fraction above `max_outlier_fraction`, or a log-likelihood per
-  observation far below the running level, triggers a re-initialisation, and the better of the two
-  fits (by likelihood) is kept;
+- failure detection, by absolute checks that a bad start cannot make the norm: an outlier fraction
+  above `max_outlier_fraction` or a Σ wider than `failure_sigma_m` triggers a re-initialisation,
+  and the better of the two fits (by likelihood) is kept; a frame that was fitted is never dropped:
+  when both fail the checks, the better one is the estimate, flagged `doubtful`;
+- a limb that explains far fewer data than its mirror limb (an arm put on the wrong side of the
+  body) is re-initialised locally after every fit (`init.reinitialise_limb`);
 - frames with no or too few observations: the pose is predicted (velocity decaying) and flagged
   "predicted", then "lost" when the gap lasts; tracking re-initialises when data return.
 Nothing here produces NaN: unusable rows of the input are dropped and every output is finite.
@@ -62,12 +65,12 @@ class TrackerParams:
         Fewer observations than this: the frame is predicted, not fitted.
     max_outlier_fraction : float
         A fit explaining more than this fraction of the data as outliers is a failure.
+    failure_sigma_m : float
+        A fit whose Σ has a standard deviation above this (metres) is a failure: the ellipsoids are
+        off the body surface by a few centimetres, not by a spread close to the `max_sigma_m` ceiling.
     refit_drop, refit_iterations : float, int
         A fit whose log-likelihood per observation is `refit_drop` nats below the running level gets up
         to `refit_iterations` more EM iterations with a strict stopping rule before it is judged.
-    max_likelihood_drop : float
-        A fit whose log-likelihood per observation is this much (nats) below the running level is a
-        failure.
     velocity_decay : float
         Factor on the velocity for each predicted frame (a gap's motion slows down).
     max_predicted_frames : int
@@ -99,9 +102,9 @@ class TrackerParams:
     sigma_m: float = 0.02
     min_observations: int = 30
     max_outlier_fraction: float = 0.6
+    failure_sigma_m: float = 0.05
     refit_drop: float = 0.1
     refit_iterations: int = 20
-    max_likelihood_drop: float = 2.0
     velocity_decay: float = 0.7
     max_predicted_frames: int = 10
     scale_frames: int = 10
@@ -134,6 +137,9 @@ class FrameResult:
         "predicted" and "lost" frames are not exported.
     height_m : float
         Body height used for this frame, metres.
+    doubtful : bool
+        The fit failed the failure checks (`TrackerParams.max_outlier_fraction`, `failure_sigma_m`)
+        and so did a re-initialisation: the better of the two is the estimate, exported but flagged.
     """
 
     pose: np.ndarray
@@ -143,6 +149,7 @@ class FrameResult:
     outlier_fraction: float
     status: str
     height_m: float
+    doubtful: bool = False
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (lists of floats)."""
@@ -173,6 +180,9 @@ class TrackerState:
         Consecutive frames predicted instead of fitted.
     lost : bool
         The next frame with data must re-initialise.
+    doubtful : bool
+        The last fit failed the failure checks: the next frame also tries a re-initialisation, since
+        a fit to bad data can leave the body far off (turned around) with checks that look normal.
     """
 
     pose: np.ndarray
@@ -185,6 +195,7 @@ class TrackerState:
     likelihood_level: float
     frames_without_fit: int
     lost: bool
+    doubtful: bool = False
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
@@ -203,7 +214,8 @@ class TrackerState:
                             Sigma=np.asarray(data["Sigma"], dtype=float), pi=np.asarray(data["pi"], dtype=float),
                             likelihood_level=np.nan if data["likelihood_level"] is None
                             else float(data["likelihood_level"]),
-                            frames_without_fit=int(data["frames_without_fit"]), lost=bool(data["lost"]))
+                            frames_without_fit=int(data["frames_without_fit"]), lost=bool(data["lost"]),
+                            doubtful=bool(data.get("doubtful", False)))
 
 
 # Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
@@ -261,15 +273,11 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
         per_obs = tracked.log_likelihood[-1] / len(y)
     tracked = _recover_limbs(y, n, tracked, volume, frame_em, params)
     per_obs = tracked.log_likelihood[-1] / len(y)
-    dropped = np.isfinite(state.likelihood_level) and (
-        per_obs < state.likelihood_level - params.max_likelihood_drop)
-    failed = tracked.outlier_fraction > params.max_outlier_fraction or dropped
-    if failed:
+    doubtful = _failed(tracked, params)
+    if doubtful or state.doubtful:
         result, new_state = _initialise(state, y, n, sized, params, volume, em)
-        if result.log_likelihood > tracked.log_likelihood[-1] and result.status != "lost":
+        if result.log_likelihood > tracked.log_likelihood[-1]:
             return result, new_state
-    if tracked.outlier_fraction > params.max_outlier_fraction:
-        return _predict(state, sized, params)
     height, lengths, weight = state.height_m, state.length_factors, state.height_weight
     if learning:  # running means of the per-frame estimates (of ln ℓ for the length factors)
         weight += 1
@@ -277,14 +285,28 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
         lengths = lengths * (tracked.body.length_factors / lengths) ** (1.0 / weight)
     level = per_obs if not np.isfinite(state.likelihood_level) else (
         (1 - _LEVEL_RATE) * state.likelihood_level + _LEVEL_RATE * per_obs)
-    velocity = tracked.pose - state.pose if state.frames_without_fit == 0 else np.zeros_like(state.velocity)
+    # A doubtful fit's motion is not carried on: the next frame starts from it at rest.
+    moving = state.frames_without_fit == 0 and not doubtful
+    velocity = tracked.pose - state.pose if moving else np.zeros_like(state.velocity)
     new_state = TrackerState(pose=tracked.pose, velocity=velocity, height_m=height, length_factors=lengths,
                              height_weight=weight, Sigma=tracked.mixture.Sigma, pi=tracked.mixture.pi,
-                             likelihood_level=level, frames_without_fit=0, lost=False)
+                             likelihood_level=level, frames_without_fit=0, lost=False, doubtful=doubtful)
     result = FrameResult(pose=tracked.pose, joints=tracked.body.joint_positions(tracked.pose),
                          log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
-                         outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m)
+                         outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m,
+                         doubtful=doubtful)
     return result, new_state
+
+
+def _failed(result: FitResult, params: TrackerParams) -> bool:
+    """Whether a fit fails the absolute checks: too many outliers, or Σ spread beyond `failure_sigma_m`.
+
+    Absolute rather than relative to a running level, so that a bad start cannot make itself the
+    norm. A Σ as wide as the data's spread around the wrong surface is what a torso or a pair of legs
+    locked onto the wrong data looks like, while the outlier fraction stays small.
+    """
+    spread = float(np.sqrt(np.linalg.eigvalsh(result.mixture.Sigma).max()))
+    return result.outlier_fraction > params.max_outlier_fraction or spread > params.failure_sigma_m
 
 
 def _first_state(body: BodyModel, params: TrackerParams, volume: np.ndarray) -> TrackerState:
@@ -344,12 +366,8 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
                       params=InitParams(headings=params.init_headings, refine=params.init_refine))
     fitted = _recover_limbs(y, n, init.fit, volume, replace(em, estimate_scale=estimate), params)
     joints = fitted.body.joint_positions(fitted.pose)
-    if fitted.outlier_fraction > params.max_outlier_fraction:
-        lost_state = replace(state, lost=True, frames_without_fit=state.frames_without_fit + 1)
-        result = FrameResult(pose=fitted.pose, joints=joints, log_likelihood=fitted.log_likelihood[-1],
-                             iterations=fitted.iterations, outlier_fraction=fitted.outlier_fraction,
-                             status="lost", height_m=init.height_m)
-        return result, lost_state
+    # A doubtful initialisation is still this frame's best estimate; the next frame's checks decide again.
+    doubtful = _failed(fitted, params)
     height, weight = state.height_m, state.height_weight
     if estimate:
         weight += 1
@@ -357,8 +375,8 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
     new_state = replace(state, pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
                         height_weight=weight, Sigma=fitted.mixture.Sigma, pi=fitted.mixture.pi,
                         likelihood_level=fitted.log_likelihood[-1] / len(y),
-                        frames_without_fit=0, lost=False)
+                        frames_without_fit=0, lost=False, doubtful=doubtful)
     result = FrameResult(pose=fitted.pose, joints=joints, log_likelihood=fitted.log_likelihood[-1],
                          iterations=fitted.iterations, outlier_fraction=fitted.outlier_fraction,
-                         status="initialised", height_m=init.height_m)
+                         status="initialised", height_m=init.height_m, doubtful=doubtful)
     return result, new_state
