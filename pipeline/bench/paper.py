@@ -72,7 +72,7 @@ class PaperPlan:
 
 FULL_PLAN = PaperPlan(frames=100, noise_levels=(0.0, 0.25, 0.5, 0.75, 1.0), frame_rates=(7.0, 14.0, 28.0, 56.0),
                       observation_counts=(50, 150, 250, 350, 450, 550))
-QUICK_PLAN = PaperPlan(frames=12, noise_levels=(0.0, 1.0), frame_rates=(14.0, 28.0), observation_counts=(50, 550))
+QUICK_PLAN = PaperPlan(frames=10, noise_levels=(0.0, 1.0), frame_rates=(14.0, 28.0), observation_counts=(50, 550))
 
 
 @dataclass(frozen=True)

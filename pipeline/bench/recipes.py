@@ -141,7 +141,8 @@ def _opts(**options) -> tuple[tuple[str, object], ...]:
 
 #: The paper's studio (Horaud et al. 2009, Sec. 4.2): 6 cameras, 780 x 580, 28 frames/s, mp4 video.
 #: Taekwondo kicks (135_07), 6 s; the memory check also runs its first third.
-SPEED = Recipe("speed-135_07", "135_07", 0.3, 6.0, _opts(n_cameras=6, size=(780, 580), fps=28.0), quick_seconds=1.0)
+SPEED = Recipe("speed-135_07", "135_07", 0.3, 6.0, _opts(n_cameras=6, size=(780, 580), fps=28.0),
+               quick_seconds=0.75)
 
 #: Captures the tracker was never tuned on: every row changes several things at once (clip, body, camera
 #: count, resolution, sensor noise, distractors, media, calibration format/units/up axis, known height).
@@ -174,4 +175,4 @@ QUICK_UNSEEN = ("front_kicks", "walk_capsules", "leaning")
 
 #: The paper's simulation (Sec. 4.1): seven cameras; rendered at 56 frames/s so that 28, 14 and 7 frames/s
 #: are exact subsamples of it. Front kicks (135_04): the knee flexes through its whole range.
-PAPER = Recipe("paper-135_04", "135_04", 2.6, 3.6, _opts(n_cameras=7, fps=56.0), quick_seconds=0.6)
+PAPER = Recipe("paper-135_04", "135_04", 2.6, 3.6, _opts(n_cameras=7, fps=56.0), quick_seconds=0.4)
