@@ -33,6 +33,8 @@ import numpy as np
 from stages.tracking.body import Ellipsoids, Kinematics, skew
 
 DISTANCES = ("normals", "points", "algebraic")
+# Order of the six distinct entries of a symmetric 3 × 3 matrix when it is kept as separate arrays.
+SYMMETRIC_ENTRIES = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 # q_p(y) is the squared "ellipsoidal radius" of y; at the ellipsoid's centre the radial projection is
 # undefined. Data that deep inside a limb are noise; clamping keeps x finite and lets EM push them out.
 _Q_MIN = 1e-6
@@ -95,7 +97,7 @@ def residuals(y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, kin: K
         Q = _shape(ellipsoids, -2.0)[p]
         return _algebraic(y_k, Q, t, ellipsoids.semi_axes[p], kin, jacobian, scale)
     if distance == "normals":
-        x, A_y, A_n = _normal_point(n_k, _shape(ellipsoids, 2.0)[p], t, jacobian)
+        x, A_y, A_n = _normal_point(n_k, _entries(_shape(ellipsoids, 2.0), p), t, jacobian)
     else:
         x, A_y, A_n = _radial_point(y_k, _shape(ellipsoids, -2.0)[p], t)
     e = y_k - x
@@ -150,32 +152,60 @@ def normal_spread(n: np.ndarray, ellipsoids: Ellipsoids, p: np.ndarray | None = 
     -------
     (I, 3, 3) float for pairs, (I, P, 3, 3) otherwise; symmetric positive semi-definite, m² per rad².
     """
-    M = _shape(ellipsoids, 2.0)
-    M2 = _shape(ellipsoids, 4.0)  # M² = R diag(semi_axes⁴) Rᵀ
     if p is not None:
-        M, M2 = M[p], M2[p]
-    else:
-        M, M2, n = M[None], M2[None], n[:, None, :]  # (1,P,3,3) against (I,1,3)
-    u = np.einsum("...ab,...b->...a", M, n)  # M n
-    w = np.einsum("...ab,...b->...a", M2, n)  # M u = M² n
-    lam2 = (1.0 / np.einsum("...a,...a->...", n, u))[..., None, None]  # λ² of eq. (4)
-    uu = u[..., :, None] * u[..., None, :]
+        return symmetric_matrices(normal_spread_entries(n, ellipsoids, p))
+    M, M2 = _shape(ellipsoids, 2.0), _shape(ellipsoids, 4.0)  # M² = R diag(semi_axes⁴) Rᵀ
+    u = np.einsum("pab,ib->ipa", M, n)  # (I,P,3)
+    w = np.einsum("pab,ib->ipa", M2, n)  # M u = M² n
+    lam2 = (1.0 / np.einsum("ipa,ia->ip", u, n))[..., None, None]  # λ² of eq. (4)
     wu = w[..., :, None] * u[..., None, :]
+    uu = u[..., :, None] * u[..., None, :]
     # A = λ (M − λ² u uᵀ) is symmetric, so A Aᵀ = A² = λ² (M² − λ² (w uᵀ + u wᵀ) + λ⁴ |u|² u uᵀ)
-    return lam2 * (M2 - lam2 * (wu + wu.swapaxes(-1, -2)) + lam2**2 * (u * u).sum(-1)[..., None, None] * uu)
+    return lam2 * (M2[None] - lam2 * (wu + wu.swapaxes(-1, -2)) + lam2**2 * (u * u).sum(-1)[..., None, None] * uu)
+
+
+def normal_spread_entries(n: np.ndarray, ellipsoids: Ellipsoids, p: np.ndarray) -> tuple[np.ndarray, ...]:
+    """`normal_spread` of the pairs (n_k, ellipsoid p_k) as its six distinct entries (K,) each.
+
+    In `SYMMETRIC_ENTRIES` order; separate (K,) arrays keep the pairs' elementwise work on contiguous
+    memory. A² = λ² (M² − λ² (w uᵀ + u wᵀ) + λ⁴ |u|² u uᵀ) with u = M n, w = M u, since A = λ (M − λ² u uᵀ)
+    is symmetric.
+    """
+    M, M2 = _entries(_shape(ellipsoids, 2.0), p), _entries(_shape(ellipsoids, 4.0), p)
+    n = (n[:, 0], n[:, 1], n[:, 2])
+    u = _symmetric_times(M, n)
+    w = _symmetric_times(M, u)
+    lam2 = 1.0 / (n[0] * u[0] + n[1] * u[1] + n[2] * u[2])  # λ² of eq. (4)
+    quartic = lam2**2 * (u[0] * u[0] + u[1] * u[1] + u[2] * u[2])  # λ⁴ |u|²
+    return tuple(lam2 * (m2 - lam2 * (w[a] * u[b] + u[a] * w[b]) + quartic * u[a] * u[b])
+                 for m2, (a, b) in zip(M2, SYMMETRIC_ENTRIES, strict=True))
+
+
+def symmetric_matrices(entries: tuple[np.ndarray, ...]) -> np.ndarray:
+    """Symmetric matrices (K, 3, 3) from their six distinct entries (K,) in `SYMMETRIC_ENTRIES` order."""
+    m00, m11, m22, m01, m02, m12 = entries
+    return np.stack([m00, m01, m02, m01, m11, m12, m02, m12, m22], axis=1).reshape(-1, 3, 3)
 
 
 def residual_bounds(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
                     distance: str = "normals") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Bounds on every pair's residual (I, P each) from (I, P) matrix products, without the residuals.
+    """Every pair's |e_ip|, |n_iᵀ e_ip| and ‖A_ip‖² (P, I each) from (P, I) matrix products alone.
 
-    - ``norm`` ≤ |e_ip|: x_ip lies on the ellipsoid, within its largest semi-axis a_p of t_p, so
-      |y_i − x_ip| ≥ |y_i − t_p| − a_p (0 for the algebraic distance, which has no such point);
-    - ``along`` = |n_iᵀ e_ip| exactly for the "normals" distance: x_ip is where the tangent plane with
-      normal n_i touches the ellipsoid, n_iᵀ (x_ip − t_p) = λ n_iᵀ M n_i = (n_iᵀ M n_i)^(1/2) (eq. 4),
-      M = R D⁻¹ Rᵀ; 0 otherwise;
-    - ``spread`` ≥ ‖A_ip‖² for the "normals" distance (`normal_spread`): A = λ M^½ (I − Π) M^½ with Π a
-      projector, so ‖A‖ ≤ λ a_p²; 0 otherwise.
+    Ellipsoid-major (P, I), the order of the pairs everywhere else, and numpy's fast one for
+    broadcasting an ellipsoid's constants along a row.
+
+    For the "normals" distance all three are exact, by quadratic forms of the normal (M = R D⁻¹ Rᵀ,
+    u = M n, λ = (nᵀ M n)^(-1/2), eq. 4):
+
+    - e = y − t − λ u, so |e|² = |y − t|² − 2 λ (yᵀ M n − (M t)ᵀ n) + λ² nᵀ M² n;
+    - x_ip is where the tangent plane with normal n touches the ellipsoid: nᵀ e = nᵀ (y − t) − (nᵀ M n)^½;
+    - A = λ (M − λ² u uᵀ) (`normal_spread`) is symmetric positive semi-definite of rank 2 (A n = 0): its
+      largest eigenvalue is (s + (2 S − s²)^½) / 2 from s = tr A = λ (tr M − λ² nᵀ M² n) and
+      S = tr A² = λ² (tr M² − 2 λ² nᵀ M³ n + λ⁴ (nᵀ M² n)²).
+
+    For the other distances they are bounds: x_ip lies on the ellipsoid, within its largest semi-axis
+    a_p of t_p, so |e| ≥ |y − t| − a_p ("points"; 0 for "algebraic", which has no such point), and the
+    other two are 0.
 
     Parameters
     ----------
@@ -187,24 +217,39 @@ def residual_bounds(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
 
     Returns
     -------
-    norm, along, spread : (I, P) float
+    norm, along, spread : (P, I) float
         Metres, metres, m² per rad².
     """
-    t, a = ellipsoids.t, ellipsoids.semi_axes.max(axis=1)
-    zeros = np.zeros((len(y), len(t)))
+    t = ellipsoids.t
+    zeros = np.zeros((len(t), len(y)))
     if distance == "algebraic":
         return zeros, zeros, zeros
-    centre = np.maximum((y * y).sum(1)[:, None] - 2.0 * y @ t.T + (t * t).sum(1)[None, :], 0.0)  # |y − t|²
-    norm = np.maximum(np.sqrt(centre) - a, 0.0)
+    centre = (t * t).sum(1)[:, None] - 2.0 * t @ y.T + (y * y).sum(1)  # |y − t|²
     if distance != "normals":
+        norm = np.maximum(np.sqrt(np.maximum(centre, 0.0)) - ellipsoids.semi_axes.max(axis=1)[:, None], 0.0)
         return norm, zeros, zeros
-    M = _shape(ellipsoids, 2.0)
-    products = np.stack([n[:, 0] ** 2, n[:, 1] ** 2, n[:, 2] ** 2,
-                         2.0 * n[:, 0] * n[:, 1], 2.0 * n[:, 0] * n[:, 2], 2.0 * n[:, 1] * n[:, 2]], axis=1)
-    entries = np.stack([M[:, 0, 0], M[:, 1, 1], M[:, 2, 2], M[:, 0, 1], M[:, 0, 2], M[:, 1, 2]], axis=1)
-    q = products @ entries.T  # n_iᵀ M_p n_i
-    along = np.abs((n * y).sum(1)[:, None] - n @ t.T - np.sqrt(q))
-    return norm, along, a**4 / q
+    M, M2, M3 = (_shape(ellipsoids, power) for power in (2.0, 4.0, 6.0))
+    q, q2, q3 = _quadratic_form(n, np.concatenate([M, M2, M3])).reshape(3, len(t), -1)  # nᵀ M n, nᵀ M² n, nᵀ M³ n
+    lam2 = 1.0 / q
+    lam = np.sqrt(lam2)
+    # (y − t)ᵀ M n = y_iᵀ M_p n_i − (M_p t_p)ᵀ n_i, one product over the 9 + 3 terms
+    tMn = np.c_[M.reshape(-1, 9), -np.einsum("pab,pb->pa", M, t)] @ np.r_[
+        (y[:, :, None] * n[:, None, :]).reshape(-1, 9).T, n.T]
+    u2 = lam2 * q2  # λ² |u|²
+    norm = np.sqrt(np.maximum(centre - 2.0 * lam * tMn + u2, 0.0))
+    along = np.abs((n * y).sum(1) - t @ n.T - q * lam)
+    s = lam * (np.trace(M, axis1=1, axis2=2)[:, None] - u2)
+    S = lam2 * (np.trace(M2, axis1=1, axis2=2)[:, None] - 2.0 * lam2 * q3 + u2 * u2)
+    largest = 0.5 * (s + np.sqrt(np.maximum(2.0 * S - s * s, 0.0)))
+    return norm, along, largest * largest
+
+
+def _quadratic_form(v: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """v_iᵀ A_j v_i (J, I) for vectors v (I, 3) and symmetric A (J, 3, 3), as one matrix product."""
+    products = np.stack([v[:, 0] ** 2, v[:, 1] ** 2, v[:, 2] ** 2,
+                         2.0 * v[:, 0] * v[:, 1], 2.0 * v[:, 0] * v[:, 2], 2.0 * v[:, 1] * v[:, 2]])
+    entries = np.stack([A[:, 0, 0], A[:, 1, 1], A[:, 2, 2], A[:, 0, 1], A[:, 0, 2], A[:, 1, 2]], axis=1)
+    return entries @ products
 
 
 def ellipsoid_point(n: np.ndarray, R: np.ndarray, t: np.ndarray, semi_axes: np.ndarray) -> np.ndarray:
@@ -217,7 +262,7 @@ def ellipsoid_point(n: np.ndarray, R: np.ndarray, t: np.ndarray, semi_axes: np.n
     R, t, semi_axes : (K, 3, 3), (K, 3), (K, 3) float
         Ellipsoid of each row.
     """
-    return _normal_point(n, _shape(Ellipsoids(R=R, t=t, semi_axes=semi_axes), 2.0), t, False)[0]
+    return _normal_point(n, _entries(_shape(Ellipsoids(R=R, t=t, semi_axes=semi_axes), 2.0)), t, False)[0]
 
 
 def _shape(ellipsoids: Ellipsoids, power: float) -> np.ndarray:
@@ -227,14 +272,30 @@ def _shape(ellipsoids: Ellipsoids, power: float) -> np.ndarray:
 
 
 def _normal_point(n, M, t, jacobian):
-    """x = λ M n + t with M = R D⁻¹ Rᵀ, and ∂x/∂y = 0, ∂x/∂n = λ (M − λ² (Mn)(Mn)ᵀ) if `jacobian`."""
-    u = np.einsum("kab,kb->ka", M, n)  # (K,3)
-    lam = 1.0 / np.sqrt(np.einsum("ka,ka->k", n, u))  # eq. (4); n·Mn >= min(semi)² > 0 for unit n
-    x = lam[:, None] * u + t
+    """x = λ M n + t with M = R D⁻¹ Rᵀ, and ∂x/∂y = 0, ∂x/∂n = λ (M − λ² (Mn)(Mn)ᵀ) if `jacobian`.
+
+    M is given by its six distinct entries (K,) each (`_entries`).
+    """
+    u = _symmetric_times(M, (n[:, 0], n[:, 1], n[:, 2]))
+    lam = 1.0 / np.sqrt(n[:, 0] * u[0] + n[:, 1] * u[1] + n[:, 2] * u[2])  # eq. (4); n·Mn >= min(semi)² > 0
+    x = np.stack([lam * u[0], lam * u[1], lam * u[2]], axis=1) + t
     if not jacobian:
         return x, None, None
-    A_n = lam[:, None, None] * (M - (lam**2)[:, None, None] * u[:, :, None] * u[:, None, :])
-    return x, None, A_n
+    lam3 = lam * lam * lam
+    return x, None, symmetric_matrices(tuple(lam * m - lam3 * u[a] * u[b]
+                                             for m, (a, b) in zip(M, SYMMETRIC_ENTRIES, strict=True)))
+
+
+def _entries(A: np.ndarray, p: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """The six distinct entries of symmetric matrices A (P, 3, 3), each gathered at p (K,) when given."""
+    return tuple(A[:, a, b] if p is None else A[:, a, b][p] for a, b in SYMMETRIC_ENTRIES)
+
+
+def _symmetric_times(M: tuple[np.ndarray, ...], v) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """M v for symmetric M given by its six distinct entries and v by its three components."""
+    m00, m11, m22, m01, m02, m12 = M
+    return (m00 * v[0] + m01 * v[1] + m02 * v[2], m01 * v[0] + m11 * v[1] + m12 * v[2],
+            m02 * v[0] + m12 * v[1] + m22 * v[2])
 
 
 def _radial_point(y, Q, t):

@@ -23,7 +23,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from stages.tracking.body import BodyModel, Ellipsoids, Kinematics
-from stages.tracking.distances import DISTANCES, normal_spread, residual_bounds, residual_size, residuals
+from stages.tracking.distances import (
+    DISTANCES,
+    SYMMETRIC_ENTRIES,
+    normal_spread,
+    normal_spread_entries,
+    residual_bounds,
+    residual_size,
+    residuals,
+    symmetric_matrices,
+)
 
 # Σ is estimated from the residuals; with nearly exact data it would shrink towards 0 and the
 # posteriors would turn into hard, brittle assignments. The floor is the model's own inexactness
@@ -141,8 +150,8 @@ class EStep:
     log_likelihood : float
         ln P(Y | Λ) of eq. (12), nats.
     pairs : (2, K) int or None
-        Datum i and ellipsoid p of the pairs whose posteriors were computed, sorted by ellipsoid
-        (t_ip = 0 elsewhere); None means all pairs.
+        Datum i and ellipsoid p of the pairs with t_ip > PRUNE_POSTERIOR (those the M-step uses),
+        sorted by ellipsoid; None: not recorded.
     precision : (K, k, k) float or None
         Σ_ip⁻¹ of those pairs at the E-step's pose and Σ, for the M-step of the same iteration.
     """
@@ -234,19 +243,21 @@ def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixtu
         return EStep(t=np.zeros((0, P)), t_outlier=np.zeros(0), log_likelihood=0.0)
     log_outlier = np.log(mixture.pi[P]) - np.log(V)  # ln π_{P+1} / V
     p, i = _candidate_pairs(y, n, ellipsoids, mixture, log_outlier, distance, normal_noise_rad)
-    e, mahalanobis, log_det, precision = _pair_terms(y, n, i, p, ellipsoids, mixture.Sigma, distance,
-                                                     normal_noise_rad)
+    e, mahalanobis, log_det, inverse = _pair_terms(y, n, i, p, ellipsoids, mixture.Sigma, distance,
+                                                   normal_noise_rad)
     k = e.shape[1]
     log_joint = np.log(mixture.pi[p]) - 0.5 * (mahalanobis + log_det + k * np.log(2.0 * np.pi))  # ln π_p N_ip
     peak = np.full(I, log_outlier)
     np.maximum.at(peak, i, log_joint)
     joint = np.exp(log_joint - peak[i])
     evidence = np.exp(log_outlier - peak) + np.bincount(i, joint, minlength=I)
+    posterior = joint / evidence[i]  # eq. (13)
     t = np.zeros((I, P))
-    t[i, p] = joint / evidence[i]  # eq. (13)
+    t[i, p] = posterior
     log_likelihood = float(np.sum(peak + np.log(evidence)))  # Σ_i ln P(y_i | n_i), eq. (12)
+    used = posterior > PRUNE_POSTERIOR
     return EStep(t=t, t_outlier=np.exp(log_outlier - peak) / evidence, log_likelihood=log_likelihood,
-                 pairs=np.stack([i, p]), precision=precision)
+                 pairs=np.stack([i[used], p[used]]), precision=_precisions(inverse, used))
 
 
 def _candidate_pairs(y, n, ellipsoids, mixture, log_outlier, distance, normal_noise_rad):
@@ -258,27 +269,36 @@ def _candidate_pairs(y, n, ellipsoids, mixture, log_outlier, distance, normal_no
 
         e ᵀ Σ_ip⁻¹ e ≥ eᵀ C⁻¹ e ≥ (nᵀ e)² / c + (|e|² − (nᵀ e)²) / (c + σ_n² ‖A‖²).
     """
-    norm, along, spread = residual_bounds(y, n, ellipsoids, distance=distance)
     Sigma = mixture.Sigma
     c = np.linalg.eigvalsh(Sigma)[-1]
     if distance != "normals":
         normal_noise_rad = 0.0
-    mahalanobis = along**2 / c + np.maximum(norm**2 - along**2, 0.0) / (c + normal_noise_rad**2 * spread)
     log_norm = -0.5 * (np.linalg.slogdet(Sigma)[1] + len(Sigma) * np.log(2.0 * np.pi))
-    bound = np.log(mixture.pi[:-1]) + log_norm - 0.5 * mahalanobis  # ≥ ln π_p N_ip
-    return np.nonzero((bound >= log_outlier + np.log(NEGLIGIBLE_POSTERIOR)).T)
+    threshold = log_outlier + np.log(NEGLIGIBLE_POSTERIOR) - np.log(mixture.pi[:-1]) - log_norm
+    norm, along, spread = residual_bounds(y, n, ellipsoids, distance=distance)  # (P, I)
+    mahalanobis = along**2 / c + np.maximum(norm**2 - along**2, 0.0) / (c + normal_noise_rad**2 * spread)
+    return np.nonzero(-0.5 * mahalanobis >= threshold[:, None])  # ln π_p N_ip may reach the threshold
 
 
 def _pair_terms(y, n, i, p, ellipsoids, Sigma, distance, normal_noise_rad):
-    """Residuals e_ip (K, k), eᵀ Σ_ip⁻¹ e, ln det Σ_ip (K,) and Σ_ip⁻¹ (K, k, k) of the pairs (i, p)."""
+    """Residuals e_ip (K, k), eᵀ Σ_ip⁻¹ e and ln det Σ_ip (K,) of the pairs (i, p), and Σ_ip⁻¹.
+
+    Σ_ip⁻¹ is Σ⁻¹ (k, k) when shared, else the six distinct entries (K,) of every Σ_ip⁻¹ (`_precisions`).
+    """
     e = residuals(y, n, i, p, None, ellipsoids, distance=distance).e
-    Sigma_ip = pair_covariances(n[i], ellipsoids, Sigma, distance, normal_noise_rad, p)
-    if Sigma_ip.ndim == 3:
-        mahalanobis, log_det, precision = _mahalanobis_sym3(e, Sigma_ip)
-        return e, mahalanobis, log_det, precision
-    W = np.linalg.inv(Sigma_ip)
-    precision = np.broadcast_to(W, (len(e),) + W.shape)
-    return e, ((e @ W) * e).sum(1), np.full(len(e), np.linalg.slogdet(Sigma_ip)[1]), precision
+    if distance != "normals" or normal_noise_rad <= 0.0:
+        W = np.linalg.inv(Sigma)
+        return e, ((e @ W) * e).sum(1), np.full(len(e), np.linalg.slogdet(Sigma)[1]), W
+    spread = normal_spread_entries(n[i], ellipsoids, p)
+    C = tuple(Sigma[a, b] + normal_noise_rad**2 * s for s, (a, b) in zip(spread, SYMMETRIC_ENTRIES, strict=True))
+    return e, *_mahalanobis_sym3(e, C)
+
+
+def _precisions(inverse, used: np.ndarray) -> np.ndarray:
+    """Σ_ip⁻¹ (K', k, k) of the pairs `used` (K,) bool, from `_pair_terms`' Σ⁻¹ or distinct entries."""
+    if isinstance(inverse, tuple):
+        return symmetric_matrices(tuple(w[used] for w in inverse))
+    return np.broadcast_to(inverse, (np.count_nonzero(used),) + inverse.shape)
 
 
 def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixture: Mixture,
@@ -314,15 +334,14 @@ def _m_step(y, n, body, kin, pose, mixture, estep, distance, prior_pose, gauss_n
     The pairs' Σ_ip⁻¹ are the E-step's (same pose, same Σ), computed here only for an EStep without them.
     """
     I, P = estep.t.shape
-    if estep.pairs is None:  # every pair
-        p, i = np.divmod(np.arange(I * P), I)
-        precision = _pair_terms(y, n, i, p, body.ellipsoids(kin), mixture.Sigma, distance, normal_noise_rad)[3]
+    if estep.pairs is None:  # not recorded: the pairs above PRUNE_POSTERIOR, grouped by ellipsoid
+        p, i = np.nonzero(estep.t.T > PRUNE_POSTERIOR)
+        inverse = _pair_terms(y, n, i, p, body.ellipsoids(kin), mixture.Sigma, distance, normal_noise_rad)[3]
+        precision = _precisions(inverse, np.ones(len(i), dtype=bool))
     else:
         (i, p), precision = estep.pairs, estep.precision
-    keep = estep.t[i, p] > PRUNE_POSTERIOR  # pairs stay grouped by ellipsoid
-    i, p = i[keep], p[keep]
     t = estep.t[i, p]  # (K,)
-    L = _cholesky(precision[keep])  # Σ_ip⁻¹ = L Lᵀ: whitened residual Lᵀ e
+    L = _cholesky(precision)  # Σ_ip⁻¹ = L Lᵀ: whitened residual Lᵀ e
     problem = _Problem(y, n, i, p, np.sqrt(t)[:, None], L, distance, prior_pose if prior_pose is not None
                        else pose, body.prior_weight / PRIOR_SIGMA_RAD**2, estimate_scale,
                        estimate_lengths and len(body.length_groups) > 0)
@@ -401,7 +420,7 @@ def pair_covariances(n: np.ndarray, ellipsoids, Sigma: np.ndarray, distance: str
 def log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
     """ln N(e | 0, Σ) for residuals e (..., k); Σ (k, k) shared, or (..., 3, 3) one per residual."""
     if Sigma.ndim > 2:
-        mahalanobis, log_det, _ = _mahalanobis_sym3(e, Sigma)
+        mahalanobis, log_det, _ = _mahalanobis_sym3(e, tuple(Sigma[..., a, b] for a, b in SYMMETRIC_ENTRIES))
         return -0.5 * (mahalanobis + log_det + 3 * np.log(2.0 * np.pi))
     k = Sigma.shape[0]
     L = np.linalg.cholesky(Sigma)
@@ -410,20 +429,20 @@ def log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
     return -0.5 * (np.einsum("...a,...a->...", z, z) + log_det + k * np.log(2.0 * np.pi))
 
 
-def _mahalanobis_sym3(e: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """eᵀ C⁻¹ e, ln det C and C⁻¹ for residuals e (..., 3) and symmetric positive definite C (..., 3, 3).
+def _mahalanobis_sym3(e: np.ndarray, C: tuple[np.ndarray, ...]):
+    """eᵀ C⁻¹ e, ln det C and C⁻¹ for residuals e (..., 3) and symmetric positive definite C.
 
+    C and the returned C⁻¹ are given by their six distinct entries (`SYMMETRIC_ENTRIES`), each (...).
     By cofactors (C⁻¹ = adj C / det C): LAPACK's per-matrix overhead would dominate the E-step's
     thousands of pairs.
     """
-    a, b, c = C[..., 0, 0], C[..., 0, 1], C[..., 0, 2]
-    d, f, g = C[..., 1, 1], C[..., 1, 2], C[..., 2, 2]
+    a, d, g, b, c, f = C
     c00, c01, c02 = d * g - f * f, c * f - b * g, b * f - c * d
     c11, c12, c22 = a * g - c * c, b * c - a * f, a * d - b * b
     det = a * c00 + b * c01 + c * c02
     x, y, z = e[..., 0], e[..., 1], e[..., 2]
     quadratic = c00 * x * x + c11 * y * y + c22 * z * z + 2.0 * (c01 * x * y + c02 * x * z + c12 * y * z)
-    inverse = np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], axis=-1).reshape(C.shape) / det[..., None, None]
+    inverse = tuple(cofactor / det for cofactor in (c00, c11, c22, c01, c02, c12))
     return quadratic / det, np.log(det), inverse
 
 
