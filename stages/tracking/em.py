@@ -341,17 +341,17 @@ def _m_step(y, n, body, kin, pose, mixture, estep, distance, prior_pose, gauss_n
     else:
         (i, p), precision = estep.pairs, estep.precision
     t = estep.t[i, p]  # (K,)
-    L = _cholesky(precision)  # Σ_ip⁻¹ = L Lᵀ: whitened residual Lᵀ e
-    problem = _Problem(y, n, i, p, np.sqrt(t)[:, None], L, distance, prior_pose if prior_pose is not None
-                       else pose, body.prior_weight / PRIOR_SIGMA_RAD**2, estimate_scale,
+    W = _cholesky(precision) * np.sqrt(t)[:, None, None]  # t_ip Σ_ip⁻¹ = W Wᵀ: weighted residual Wᵀ e
+    problem = _Problem(y, n, i, p, W, distance, prior_pose if prior_pose is not None else pose,
+                       body.prior_weight / PRIOR_SIGMA_RAD**2, estimate_scale,
                        estimate_lengths and len(body.length_groups) > 0)
     e = None
     for _ in range(gauss_newton_steps):
         pose, body, kin, e = _gauss_newton_step(problem, body, kin, pose)
     scatter = (e * t[:, None]).T @ e
     if distance == "normals" and normal_noise_rad > 0.0:  # minus the normals' share, at the new pose
-        spread = normal_spread(n[i], body.ellipsoids(kin), p)
-        scatter = scatter - normal_noise_rad**2 * np.einsum("k,kab->ab", t, spread)
+        spread = normal_spread_entries(n[i], body.ellipsoids(kin), p)
+        scatter = scatter - normal_noise_rad**2 * symmetric_matrices(tuple(np.atleast_1d(t @ s) for s in spread))[0]
     Sigma = scatter / max(t.sum(), np.finfo(float).tiny)
     pi = np.empty(P + 1)
     pi[:P] = estep.t.sum(axis=0) / I
@@ -467,16 +467,16 @@ def _cholesky(W: np.ndarray) -> np.ndarray:
 class _Problem:
     """The weighted least squares of one M-step (eq. 14 for fixed t_ip): data, pairs and priors.
 
-    Pairs (i[k], p[k]) are sorted by ellipsoid p; `sqrt_t` (K, 1) is √t_ip, L (K, k, k) whitens each
-    pair (Σ_ip⁻¹ = L Lᵀ), `prior` (D,) the prior precisions of the DOFs towards `prior_pose`.
+    Pairs (i[k], p[k]) are sorted by ellipsoid p; W (K, k, k), lower-triangular, weighs and whitens
+    each pair (t_ip Σ_ip⁻¹ = W Wᵀ: the pair's term of eq. 14 is ½ |Wᵀ e|²), `prior` (D,) holds the prior
+    precisions of the DOFs towards `prior_pose`.
     """
 
     y: np.ndarray
     n: np.ndarray
     i: np.ndarray
     p: np.ndarray
-    sqrt_t: np.ndarray
-    L: np.ndarray
+    W: np.ndarray
     distance: str
     prior_pose: np.ndarray
     prior: np.ndarray
@@ -490,7 +490,7 @@ class _Problem:
 
     def cost(self, body, pose, e):
         """Eq. (14) for fixed t_ip plus the priors on the weakly observed DOFs and the segment lengths."""
-        r = np.einsum("kab,ka->kb", self.L, e) * self.sqrt_t
+        r = _whitened(self.W, e)
         ln_l = np.log(body.length_factors) if self.estimate_lengths else np.zeros(0)
         return 0.5 * ((r**2).sum() + (self.prior * (pose - self.prior_pose) ** 2).sum()
                       + (ln_l**2).sum() / LENGTH_PRIOR_SD**2)
@@ -505,18 +505,18 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, kin: Kinematics, pose
     (H_p = Σ_k t_k B_kᵀ Σ⁻¹ B_k, 6 × 6) and mapped to the DOFs by the segment twists: H = Σ_p T_pᵀ H_p T_p.
     """
     res = problem.residuals(body, kin, jacobian=True)
-    L, sqrt_t, D = problem.L, problem.sqrt_t, body.pose_size
+    W, D = problem.W, body.pose_size
     K, k = res.e.shape
-    r = np.einsum("kab,ka->kb", L, res.e) * sqrt_t  # (K,k) whitened Lᵀ e √t
-    Bw = np.einsum("kai,kab->kib", res.B, L) * sqrt_t[:, :, None]  # (K,6,k) (Lᵀ B √t)ᵀ
+    r = _whitened(W, res.e)  # (K,k) Wᵀ e
+    Bw = _whitened(W, res.B)  # (K,k,6) Wᵀ B
     starts = np.flatnonzero(np.r_[True, problem.p[1:] != problem.p[:-1]])
     ends = np.r_[starts[1:], K]
     T = body.segment_twists(kin)[body.ellipsoid_segment[problem.p[starts]]]  # (P',6,D)
     H6 = np.empty((len(starts), 6, 6))
     for q, (a, b) in enumerate(zip(starts, ends, strict=True)):
-        block = Bw[a:b].transpose(1, 0, 2).reshape(6, -1)
-        H6[q] = block @ block.T
-    g6 = np.add.reduceat(np.einsum("kia,ka->ki", Bw, r), starts)  # (P',6)
+        block = Bw[a:b].reshape(-1, 6)
+        H6[q] = block.T @ block
+    g6 = np.add.reduceat(np.einsum("kai,ka->ki", Bw, r), starts)  # (P',6)
     TH = T.transpose(0, 2, 1) @ H6  # (P',D,6)
     extra = _extra_columns(problem, body, pose, res)  # (K,k,X)
     X = extra.shape[2]
@@ -525,8 +525,8 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, kin: Kinematics, pose
     H[:D, :D] = np.einsum("pdj,pje->de", TH, T)
     g[:D] = np.einsum("pid,pi->d", T, g6)
     if X:
-        Xw = np.einsum("kba,kbx->kax", L, extra) * sqrt_t[:, :, None]
-        H[:D, D:] = np.einsum("pid,pix->dx", T, np.add.reduceat(np.einsum("kia,kax->kix", Bw, Xw), starts))
+        Xw = _whitened(W, extra)
+        H[:D, D:] = np.einsum("pid,pix->dx", T, np.add.reduceat(np.einsum("kai,kax->kix", Bw, Xw), starts))
         H[D:, :D] = H[:D, D:].T
         H[D:, D:] = np.einsum("kax,kay->xy", Xw, Xw)
         g[D:] = np.einsum("kax,ka->x", Xw, r)
@@ -551,6 +551,13 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, kin: Kinematics, pose
             return candidate, body_c, kin_c, e_c
         damping *= LM_GROWTH
     return pose, body, kin, res.e
+
+
+def _whitened(W: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Wᵀ X of every pair for lower-triangular W (K, k, k) and X (K, k) or (K, k, m), term by term."""
+    k = W.shape[1]
+    w = W if X.ndim == 2 else W[..., None]
+    return np.stack([sum(w[:, a, b] * X[:, a] for a in range(b, k)) for b in range(k)], axis=1)
 
 
 def _extra_columns(problem: _Problem, body: BodyModel, pose: np.ndarray, res) -> np.ndarray:
