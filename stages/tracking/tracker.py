@@ -65,6 +65,14 @@ class TrackerParams:
         Fewer observations than this: the frame is predicted, not fitted.
     max_outlier_fraction : float
         A fit explaining more than this fraction of the data as outliers is a failure.
+    reinit_every : int
+        Every this many tracked frames a re-initialisation is tried as well, and the better fit (by
+        likelihood) kept: EM can settle in a wrong local optimum (a knee bent the wrong way, legs
+        swapped) that passes every check, and a fresh look bounds how long it lasts; 0 never.
+    reinit_margin : float
+        Such a periodic re-initialisation replaces a fit that passed the checks only when its
+        log-likelihood per observation is higher by this much (nats): two fits in nearly the same
+        place differ by hundredths, a fit in a different, better optimum by tenths.
     failure_sigma_m : float
         A fit whose Σ has a standard deviation above this (metres) is a failure: the ellipsoids are
         off the body surface by a few centimetres, not by a spread close to the `max_sigma_m` ceiling.
@@ -103,6 +111,8 @@ class TrackerParams:
     min_observations: int = 30
     max_outlier_fraction: float = 0.6
     failure_sigma_m: float = 0.05
+    reinit_every: int = 10
+    reinit_margin: float = 0.05
     refit_drop: float = 0.1
     refit_iterations: int = 20
     velocity_decay: float = 0.7
@@ -183,6 +193,8 @@ class TrackerState:
     doubtful : bool
         The last fit failed the failure checks: the next frame also tries a re-initialisation, since
         a fit to bad data can leave the body far off (turned around) with checks that look normal.
+    since_initialisation : int
+        Frames tracked since a re-initialisation was last tried (`TrackerParams.reinit_every`).
     """
 
     pose: np.ndarray
@@ -196,6 +208,7 @@ class TrackerState:
     frames_without_fit: int
     lost: bool
     doubtful: bool = False
+    since_initialisation: int = 0
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
@@ -215,7 +228,8 @@ class TrackerState:
                             likelihood_level=np.nan if data["likelihood_level"] is None
                             else float(data["likelihood_level"]),
                             frames_without_fit=int(data["frames_without_fit"]), lost=bool(data["lost"]),
-                            doubtful=bool(data.get("doubtful", False)))
+                            doubtful=bool(data.get("doubtful", False)),
+                            since_initialisation=int(data.get("since_initialisation", 0)))
 
 
 # Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
@@ -274,9 +288,13 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     tracked = _recover_limbs(y, n, tracked, volume, frame_em, params)
     per_obs = tracked.log_likelihood[-1] / len(y)
     doubtful = _failed(tracked, params)
-    if doubtful or state.doubtful:
+    periodic = 0 < params.reinit_every <= state.since_initialisation + 1
+    tried = doubtful or state.doubtful or periodic
+    if tried:
         result, new_state = _initialise(state, y, n, sized, params, volume, em)
-        if result.log_likelihood > tracked.log_likelihood[-1]:
+        # A fit that passed the checks is replaced only on clear evidence (`reinit_margin`).
+        margin = 0.0 if doubtful or state.doubtful else params.reinit_margin * len(y)
+        if result.log_likelihood > tracked.log_likelihood[-1] + margin:
             return result, new_state
     height, lengths, weight = state.height_m, state.length_factors, state.height_weight
     if learning:  # running means of the per-frame estimates (of ln ℓ for the length factors)
@@ -290,7 +308,8 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     velocity = tracked.pose - state.pose if moving else np.zeros_like(state.velocity)
     new_state = TrackerState(pose=tracked.pose, velocity=velocity, height_m=height, length_factors=lengths,
                              height_weight=weight, Sigma=tracked.mixture.Sigma, pi=tracked.mixture.pi,
-                             likelihood_level=level, frames_without_fit=0, lost=False, doubtful=doubtful)
+                             likelihood_level=level, frames_without_fit=0, lost=False, doubtful=doubtful,
+                             since_initialisation=0 if tried else state.since_initialisation + 1)
     result = FrameResult(pose=tracked.pose, joints=tracked.body.joint_positions(tracked.pose),
                          log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
                          outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m,
@@ -375,7 +394,7 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
     new_state = replace(state, pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
                         height_weight=weight, Sigma=fitted.mixture.Sigma, pi=fitted.mixture.pi,
                         likelihood_level=fitted.log_likelihood[-1] / len(y),
-                        frames_without_fit=0, lost=False, doubtful=doubtful)
+                        frames_without_fit=0, lost=False, doubtful=doubtful, since_initialisation=0)
     result = FrameResult(pose=fitted.pose, joints=joints, log_likelihood=fitted.log_likelihood[-1],
                          iterations=fitted.iterations, outlier_fraction=fitted.outlier_fraction,
                          status="initialised", height_m=init.height_m, doubtful=doubtful)
