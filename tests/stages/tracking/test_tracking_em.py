@@ -5,7 +5,8 @@ import pytest
 from tracking_testing import VOLUME, random_pose, sample_ellipsoids
 
 from stages.tracking.body import load_body
-from stages.tracking.em import EMParams, Mixture, e_step, fit, m_step, volume_size
+from stages.tracking.distances import all_residuals, normal_spread
+from stages.tracking.em import EMParams, Mixture, e_step, fit, log_gaussian, m_step, volume_size
 
 
 @pytest.fixture(scope="module")
@@ -127,3 +128,39 @@ def test_m_step_keeps_outlier_prior_and_bounds_sigma(body):
     assert mstep.mixture.pi[-1] == pytest.approx(0.05)
     assert mstep.mixture.pi.sum() == pytest.approx(1.0)
     assert np.linalg.eigvalsh(mstep.mixture.Sigma).max() <= 0.03**2 * (1 + 1e-9)
+
+
+@pytest.mark.parametrize(("distance", "noise_deg", "sigma_m"), [
+    ("normals", 10.0, 0.03), ("normals", 10.0, 0.01), ("normals", 0.0, 0.02), ("points", 0.0, 0.02)])
+def test_pruned_e_step_equals_the_dense_one(body, distance, noise_deg, sigma_m):
+    rng = np.random.default_rng(16)
+    truth = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, truth, 600, rng, outlier_fraction=0.2)
+    pose = truth + rng.normal(0.0, 0.03, body.pose_size)  # data a little off the model, as between iterations
+    mixture = Mixture(Sigma=np.diag([1.0, 1.5, 0.7]) * sigma_m**2, pi=rng.dirichlet(np.ones(body.n_ellipsoids + 1)))
+    V, sigma_n = volume_size(VOLUME), np.radians(noise_deg)
+    ell = body.ellipsoids(pose)
+    Sigma = mixture.Sigma + (sigma_n**2 * normal_spread(n, ell) if distance == "normals" else 0.0)
+    log_joint = np.c_[np.log(mixture.pi[:-1]) + log_gaussian(all_residuals(y, n, ell, distance=distance), Sigma),
+                      np.full(len(y), np.log(mixture.pi[-1] / V))]  # eq. (13) on every pair
+    evidence = np.logaddexp.reduce(log_joint, axis=1)
+    dense = np.exp(log_joint - evidence[:, None])
+    estep = e_step(y, n, body, pose, mixture, V, distance=distance, normal_noise_rad=sigma_n)
+    np.testing.assert_allclose(estep.t, dense[:, :-1], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(estep.t_outlier, dense[:, -1], rtol=0, atol=1e-6)
+    assert estep.log_likelihood == pytest.approx(evidence.sum(), rel=1e-9)
+    assert np.mean(estep.t == 0.0) > 0.5  # most pairs were skipped
+
+
+def test_m_step_without_recorded_pairs_matches(body):
+    rng = np.random.default_rng(17)
+    truth = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, truth, 400, rng, outlier_fraction=0.2)
+    pose = truth + rng.normal(0.0, 0.03, body.pose_size)
+    mixture = Mixture.initial(body.n_ellipsoids, 0.03)
+    estep = e_step(y, n, body, pose, mixture, volume_size(VOLUME), normal_noise_rad=np.radians(10.0))
+    bare = type(estep)(t=estep.t, t_outlier=estep.t_outlier, log_likelihood=estep.log_likelihood)
+    recorded, recomputed = (m_step(y, n, body, pose, mixture, e, normal_noise_rad=np.radians(10.0))
+                            for e in (estep, bare))
+    np.testing.assert_allclose(recorded.pose, recomputed.pose, atol=1e-12)
+    np.testing.assert_allclose(recorded.mixture.Sigma, recomputed.mixture.Sigma, atol=1e-15)
