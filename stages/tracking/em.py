@@ -221,7 +221,9 @@ def e_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixt
     """Posteriors t_ip (Horaud et al. 2009 eq. 13) and log-likelihood (eq. 12), by log-sum-exp.
 
     With `normal_noise_rad` σ_n > 0 (and the "normals" distance), component p's Gaussian for datum i
-    has the covariance Σ_ip = Σ + σ_n² A_ip A_ipᵀ (`pair_covariances`) instead of Σ.
+    has the covariance Σ_ip = Σ + σ_n² A_ip A_ipᵀ (`pair_covariances`) instead of Σ. Pairs whose joint
+    density is provably below NEGLIGIBLE_POSTERIOR times the outlier term are skipped (t_ip = 0), which
+    leaves a few ellipsoids per datum; the result equals the dense computation to that precision.
 
     Parameters
     ----------
@@ -261,13 +263,15 @@ def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixtu
 
 
 def _candidate_pairs(y, n, ellipsoids, mixture, log_outlier, distance, normal_noise_rad):
-    """Pairs (p, i), sorted by ellipsoid, whose π_p N(y_i | x_ip, Σ_ip) may exceed NEGLIGIBLE_POSTERIOR · π_{P+1}/V.
+    """Pairs (p, i), sorted by ellipsoid, whose π_p N(y_i | x_ip, Σ_ip) may reach NEGLIGIBLE_POSTERIOR · π_{P+1}/V.
 
-    An upper bound on ln π_p N_ip from `distances.residual_bounds`, with c the largest eigenvalue of Σ:
+    An upper bound on ln π_p N_ip from `distances.residual_bounds` (exact |e|, |nᵀ e| and ‖A‖ for the
+    "normals" distance, |e| ≥ |y − t_p| − a_p for "points", nothing for "algebraic", which keeps every
+    pair), with c the largest eigenvalue of Σ:
     det Σ_ip ≥ det Σ, and Σ_ip ⪯ C = c I + σ_n² A Aᵀ, of which n_i is an eigenvector with eigenvalue c
     (A n = 0) and whose other eigenvalues are at most c + σ_n² ‖A‖², so that
 
-        e ᵀ Σ_ip⁻¹ e ≥ eᵀ C⁻¹ e ≥ (nᵀ e)² / c + (|e|² − (nᵀ e)²) / (c + σ_n² ‖A‖²).
+        eᵀ Σ_ip⁻¹ e ≥ eᵀ C⁻¹ e ≥ (nᵀ e)² / c + (|e|² − (nᵀ e)²) / (c + σ_n² ‖A‖²).
     """
     Sigma = mixture.Sigma
     c = np.linalg.eigvalsh(Sigma)[-1]
