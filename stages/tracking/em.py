@@ -249,8 +249,9 @@ def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixtu
                                                    normal_noise_rad)
     k = e.shape[1]
     log_joint = np.log(mixture.pi[p]) - 0.5 * (mahalanobis + log_det + k * np.log(2.0 * np.pi))  # ln π_p N_ip
-    peak = np.full(I, log_outlier)
-    np.maximum.at(peak, i, log_joint)
+    dense = np.full((P, I), -np.inf)  # ln π_p N_ip, −∞ for the skipped pairs
+    dense[p, i] = log_joint
+    peak = np.maximum(dense.max(axis=0), log_outlier)
     joint = np.exp(log_joint - peak[i])
     evidence = np.exp(log_outlier - peak) + np.bincount(i, joint, minlength=I)
     posterior = joint / evidence[i]  # eq. (13)
