@@ -189,23 +189,19 @@ def symmetric_matrices(entries: tuple[np.ndarray, ...]) -> np.ndarray:
 
 def residual_bounds(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
                     distance: str = "normals") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every pair's |e_ip|, |n_iᵀ e_ip| and ‖A_ip‖² (P, I each) from (P, I) matrix products alone.
+    """Every pair's |e_ip|², (n_iᵀ e_ip)² and a bound on ‖A_ip‖² (P, I each) from matrix products alone.
 
     Ellipsoid-major (P, I), the order of the pairs everywhere else, and numpy's fast one for
-    broadcasting an ellipsoid's constants along a row.
+    broadcasting an ellipsoid's constants along a row. For the "normals" distance, by quadratic forms
+    of the normal (M = R D⁻¹ Rᵀ, u = M n, λ = (nᵀ M n)^(-1/2), eq. 4):
 
-    For the "normals" distance all three are exact, by quadratic forms of the normal (M = R D⁻¹ Rᵀ,
-    u = M n, λ = (nᵀ M n)^(-1/2), eq. 4):
-
-    - e = y − t − λ u, so |e|² = |y − t|² − 2 λ (yᵀ M n − (M t)ᵀ n) + λ² nᵀ M² n;
+    - e = y − t − λ u, so |e|² = |y − t|² − 2 λ (yᵀ M n − (M t)ᵀ n) + λ² nᵀ M² n, exactly;
     - x_ip is where the tangent plane with normal n touches the ellipsoid: nᵀ e = nᵀ (y − t) − (nᵀ M n)^½;
-    - A = λ (M − λ² u uᵀ) (`normal_spread`) is symmetric positive semi-definite of rank 2 (A n = 0): its
-      largest eigenvalue is (s + (2 S − s²)^½) / 2 from s = tr A = λ (tr M − λ² nᵀ M² n) and
-      S = tr A² = λ² (tr M² − 2 λ² nᵀ M³ n + λ⁴ (nᵀ M² n)²).
+    - A = λ (M − λ² u uᵀ) (`normal_spread`) is symmetric, so ‖A‖² ≤ ‖A‖_F² = tr A² =
+      λ² (tr M² − 2 λ² nᵀ M³ n + λ⁴ (nᵀ M² n)²) (at most twice ‖A‖², A having rank 2).
 
-    For the other distances they are bounds: x_ip lies on the ellipsoid, within its largest semi-axis
-    a_p of t_p, so |e| ≥ |y − t| − a_p ("points"; 0 for "algebraic", which has no such point), and the
-    other two are 0.
+    For the other distances: x_ip lies on the ellipsoid, within its largest semi-axis a_p of t_p, so
+    |e| ≥ |y − t| − a_p ("points"; 0 for "algebraic", which has no such point), and the other two are 0.
 
     Parameters
     ----------
@@ -217,8 +213,8 @@ def residual_bounds(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
 
     Returns
     -------
-    norm, along, spread : (P, I) float
-        Metres, metres, m² per rad².
+    norm2, along2, spread : (P, I) float
+        m², m², m² per rad².
     """
     t = ellipsoids.t
     zeros = np.zeros((len(t), len(y)))
@@ -227,7 +223,7 @@ def residual_bounds(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
     centre = (t * t).sum(1)[:, None] - 2.0 * t @ y.T + (y * y).sum(1)  # |y − t|²
     if distance != "normals":
         norm = np.maximum(np.sqrt(np.maximum(centre, 0.0)) - ellipsoids.semi_axes.max(axis=1)[:, None], 0.0)
-        return norm, zeros, zeros
+        return norm * norm, zeros, zeros
     M, M2, M3 = (_shape(ellipsoids, power) for power in (2.0, 4.0, 6.0))
     q, q2, q3 = _quadratic_form(n, np.concatenate([M, M2, M3])).reshape(3, len(t), -1)  # nᵀ M n, nᵀ M² n, nᵀ M³ n
     lam2 = 1.0 / q
@@ -236,12 +232,9 @@ def residual_bounds(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
     tMn = np.c_[M.reshape(-1, 9), -np.einsum("pab,pb->pa", M, t)] @ np.r_[
         (y[:, :, None] * n[:, None, :]).reshape(-1, 9).T, n.T]
     u2 = lam2 * q2  # λ² |u|²
-    norm = np.sqrt(np.maximum(centre - 2.0 * lam * tMn + u2, 0.0))
-    along = np.abs((n * y).sum(1) - t @ n.T - q * lam)
-    s = lam * (np.trace(M, axis1=1, axis2=2)[:, None] - u2)
-    S = lam2 * (np.trace(M2, axis1=1, axis2=2)[:, None] - 2.0 * lam2 * q3 + u2 * u2)
-    largest = 0.5 * (s + np.sqrt(np.maximum(2.0 * S - s * s, 0.0)))
-    return norm, along, largest * largest
+    along = (n * y).sum(1) - t @ n.T - q * lam
+    spread = lam2 * (np.trace(M2, axis1=1, axis2=2)[:, None] - 2.0 * lam2 * q3 + u2 * u2)
+    return centre - 2.0 * lam * tMn + u2, along * along, spread
 
 
 def _quadratic_form(v: np.ndarray, A: np.ndarray) -> np.ndarray:

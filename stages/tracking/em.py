@@ -266,8 +266,8 @@ def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixtu
 def _candidate_pairs(y, n, ellipsoids, mixture, log_outlier, distance, normal_noise_rad):
     """Pairs (p, i), sorted by ellipsoid, whose π_p N(y_i | x_ip, Σ_ip) may reach NEGLIGIBLE_POSTERIOR · π_{P+1}/V.
 
-    An upper bound on ln π_p N_ip from `distances.residual_bounds` (exact |e|, |nᵀ e| and ‖A‖ for the
-    "normals" distance, |e| ≥ |y − t_p| − a_p for "points", nothing for "algebraic", which keeps every
+    An upper bound on ln π_p N_ip from `distances.residual_bounds` (exact |e| and |nᵀ e|, ‖A‖ bounded, for
+    the "normals" distance, |e| ≥ |y − t_p| − a_p for "points", nothing for "algebraic", which keeps every
     pair), with c the largest eigenvalue of Σ:
     det Σ_ip ≥ det Σ, and Σ_ip ⪯ C = c I + σ_n² A Aᵀ, of which n_i is an eigenvector with eigenvalue c
     (A n = 0) and whose other eigenvalues are at most c + σ_n² ‖A‖², so that
@@ -280,9 +280,9 @@ def _candidate_pairs(y, n, ellipsoids, mixture, log_outlier, distance, normal_no
         normal_noise_rad = 0.0
     log_norm = -0.5 * (np.linalg.slogdet(Sigma)[1] + len(Sigma) * np.log(2.0 * np.pi))
     threshold = log_outlier + np.log(NEGLIGIBLE_POSTERIOR) - np.log(mixture.pi[:-1]) - log_norm
-    norm, along, spread = residual_bounds(y, n, ellipsoids, distance=distance)  # (P, I)
-    mahalanobis = along**2 / c + np.maximum(norm**2 - along**2, 0.0) / (c + normal_noise_rad**2 * spread)
-    return np.nonzero(-0.5 * mahalanobis >= threshold[:, None])  # ln π_p N_ip may reach the threshold
+    norm2, along2, spread = residual_bounds(y, n, ellipsoids, distance=distance)  # (P, I)
+    mahalanobis = along2 / c + np.maximum(norm2 - along2, 0.0) / (c + normal_noise_rad**2 * spread)
+    return np.nonzero(mahalanobis <= -2.0 * threshold[:, None])  # ln π_p N_ip may reach the threshold
 
 
 def _pair_terms(y, n, i, p, ellipsoids, Sigma, distance, normal_noise_rad):
