@@ -73,6 +73,8 @@ def tracker_speed(run_dir: Path, capture: Capture, frames: list[int]) -> dict:
         "observations_mean": float(np.mean(counts)),
         "fps_tracked": float(tracked.sum() / seconds[tracked].sum()) if tracked.any() else 0.0,
         "fps_all": float(len(seconds) / seconds.sum()),
+        "ms_tracked_median": float(1000.0 * np.median(seconds[tracked])) if tracked.any() else float("nan"),
+        "ms_tracked_p90": float(1000.0 * np.percentile(seconds[tracked], 90)) if tracked.any() else float("nan"),
         "ms_initialisation": float(1000.0 * seconds[~tracked].mean()) if (~tracked).any() else 0.0,
         "statuses": {str(s): int((statuses == s).sum()) for s in np.unique(statuses)},
     }

@@ -195,7 +195,9 @@ def format_speed(speed: dict) -> str:
     if tracker:
         lines += ["", f"Tracker alone (`track_frame` in-process on the long run's {tracker['frames']} observation "
                       f"files, {tracker['observations_mean']:.0f} observations per frame on average): "
-                      f"{tracker['fps_tracked']:.1f} frames/s over tracked frames, {tracker['fps_all']:.1f} over all; "
+                      f"{tracker['fps_tracked']:.1f} frames/s over tracked frames (median "
+                      f"{fmt(tracker.get('ms_tracked_median'), 0)} ms, 90th percentile "
+                      f"{fmt(tracker.get('ms_tracked_p90'), 0)} ms per frame), {tracker['fps_all']:.1f} over all; "
                       f"an initialisation takes {tracker['ms_initialisation']:.0f} ms; statuses "
                       f"{tracker['statuses']}."]
     bench = speed["made"]["bench_memory"]
