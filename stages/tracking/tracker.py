@@ -111,7 +111,7 @@ class TrackerParams:
     min_observations: int = 30
     max_outlier_fraction: float = 0.6
     failure_sigma_m: float = 0.05
-    reinit_every: int = 10
+    reinit_every: int = 0
     reinit_margin: float = 0.05
     refit_drop: float = 0.1
     refit_iterations: int = 20
