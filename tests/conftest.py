@@ -125,3 +125,16 @@ def tiny_capture(tmp_path: Path) -> Path:
 def rig12() -> Rig:
     """Twelve varied cameras named cam_0 .. cam_11 (numeric and text order differ)."""
     return ring_rig(12)
+
+
+def stick_figure() -> np.ndarray:
+    """(17, 3) a standing stick figure in ``JOINT_NAMES`` order (metres, +z up, facing +y)."""
+    from stages.joints import JOINT_NAMES
+
+    template = {"pelvis": (0, 0, 1.0), "neck": (0, 0, 1.5), "head": (0, 0, 1.7),
+                "l_shoulder": (-0.2, 0, 1.5), "r_shoulder": (0.2, 0, 1.5), "l_elbow": (-0.25, 0, 1.2),
+                "r_elbow": (0.25, 0, 1.2), "l_wrist": (-0.25, 0.1, 0.95), "r_wrist": (0.25, 0.1, 0.95),
+                "l_hip": (-0.1, 0, 1.0), "r_hip": (0.1, 0, 1.0), "l_knee": (-0.1, 0, 0.55),
+                "r_knee": (0.1, 0, 0.55), "l_ankle": (-0.1, 0, 0.1), "r_ankle": (0.1, 0, 0.1),
+                "l_toe": (-0.1, 0.15, 0.02), "r_toe": (0.1, 0.15, 0.02)}
+    return np.array([template[name] for name in JOINT_NAMES], dtype=float)

@@ -4,6 +4,7 @@ import subprocess
 
 import numpy as np
 import pytest
+from conftest import stick_figure
 
 from calib.camera import Camera, Rig
 from pipeline import frames_io
@@ -23,13 +24,7 @@ CHROMIUM_SECONDS = 60
 
 def _walk(n_frames: int) -> np.ndarray:
     """(n_frames, 17, 3) a stick figure swinging its limbs while walking along +y (metres, +z up)."""
-    template = {"pelvis": (0, 0, 1.0), "neck": (0, 0, 1.5), "head": (0, 0, 1.7),
-                "l_shoulder": (-0.2, 0, 1.5), "r_shoulder": (0.2, 0, 1.5), "l_elbow": (-0.25, 0, 1.2),
-                "r_elbow": (0.25, 0, 1.2), "l_wrist": (-0.25, 0.1, 0.95), "r_wrist": (0.25, 0.1, 0.95),
-                "l_hip": (-0.1, 0, 1.0), "r_hip": (0.1, 0, 1.0), "l_knee": (-0.1, 0, 0.55),
-                "r_knee": (0.1, 0, 0.55), "l_ankle": (-0.1, 0, 0.1), "r_ankle": (0.1, 0, 0.1),
-                "l_toe": (-0.1, 0.15, 0.02), "r_toe": (0.1, 0.15, 0.02)}
-    base = np.array([template[name] for name in JOINT_NAMES], dtype=float)
+    base = stick_figure()
     t = np.arange(n_frames)[:, None]
     swing = np.sin(0.3 * t) * np.array([[1.0 if name.startswith("l_") else -1.0 for name in JOINT_NAMES]])
     motion = np.zeros((n_frames, 17, 3))
