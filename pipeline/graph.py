@@ -92,24 +92,31 @@ def background_path(out_dir: Path, camera: str) -> Path:
     return out_dir / "background" / f"{camera}.png"
 
 
+def spread_frames(frames: Sequence[int], count: int) -> list[int]:
+    """At most ``count`` of ``frames``, evenly spread from the first to the last (sorted, no repeats)."""
+    picks = np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int)
+    return sorted({frames[int(i)] for i in picks})
+
+
+def background_image(capture: Capture, camera: str) -> np.ndarray:
+    """The camera's background: its clean plate, else the temporal median of frames spread over the capture."""
+    plate = capture.background(camera)
+    if plate is not None:
+        return plate
+    picks = spread_frames(capture.frame_numbers, MEDIAN_BACKGROUND_FRAMES)
+    log.info("silhouettes: no clean plate for camera %s; using the median of %d frames", camera, len(picks))
+    return median_background(image for _, image in capture.iter_images(camera, picks))
+
+
 def _backgrounds(ctx: StageContext) -> None:
-    """Write one background image per camera: the clean plate, else a temporal median.
+    """Write one background image per camera (:func:`background_image`).
 
     Computed once in this process, before the per-frame work, so every worker reads the same model.
     """
-    capture = ctx.capture
-    for camera in capture.rig.names:
+    for camera in ctx.capture.rig.names:
         path = background_path(ctx.out_dir, camera)
-        if path.exists():
-            continue
-        plate = capture.background(camera)
-        if plate is None:
-            frames = capture.frame_numbers
-            picks = sorted({frames[int(i)] for i in np.linspace(0, len(frames) - 1,
-                                                                 min(MEDIAN_BACKGROUND_FRAMES, len(frames)))})
-            plate = median_background(image for _, image in capture.iter_images(camera, picks))
-            log.info("silhouettes: no clean plate for camera %s; using the median of %d frames", camera, len(picks))
-        frames_io.write_image(path, plate)
+        if not path.exists():
+            frames_io.write_image(path, background_image(ctx.capture, camera))
 
 
 def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: SilhouetteParams, out_dir: Path) -> None:

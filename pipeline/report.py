@@ -188,7 +188,7 @@ def stage_timings(out_dir: Path) -> list[dict]:
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
             log.warning("%s: unreadable manifest (%s); left out of the report", folder, error)
             continue
-        timing = manifest.get("timing") or manifest.get("timings") or {}
+        timing = manifest.get("timing") or {}
         timing = timing if isinstance(timing, dict) else {}
         rows.append({"stage": folder.name, "seconds": timing.get("seconds"), "frames": timing.get("frames"),
                      "workers": timing.get("workers"), "finished_at": manifest.get("finished_at")})

@@ -34,13 +34,15 @@ import yaml
 from calib.camera import Camera, Rig
 from pipeline.bench.tracker import CLIPS
 from pipeline.capture import Capture
+from pipeline.graph import background_image, spread_frames
 from pipeline.mocap import load_clip
 from pipeline.poselib import clip_path
 from pipeline.synth import build_body, pose_body, posed_mesh
 from pipeline.synth.render import body_scene, pixel_grid_rays, render_body
 from pipeline.synth.writer import SynthParams, prepare_motion
+from stages.export.metrics import mask_iou
 from stages.reconstruction import Observations, ReconstructionParams, reconstruct
-from stages.silhouettes import SilhouetteParams, extract_silhouette, median_background
+from stages.silhouettes import SilhouetteParams, background_model, extract_silhouette
 
 OUTLIER_DISTANCE_M = 0.03
 IMAGE_SIZE = (780, 580)
@@ -87,7 +89,7 @@ def surface_errors(observations: Observations, vertices: np.ndarray, triangles: 
 
 def bench_reconstruction(clips: list[str], n_frames: int, n_cameras: int, n_observations: int) -> None:
     print(f"reconstruction: {n_cameras} cameras {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]}, {n_observations} observations")
-    print(f"{'clip':10s} {'method':24s} {'N':>6s} {'med mm':>7s} {'p95 mm':>7s} {'normal°':>8s} "
+    print(f"{'clip':12s} {'method':24s} {'N':>6s} {'med mm':>7s} {'p95 mm':>7s} {'normal°':>8s} "
           f"{'out>3cm':>8s} {'ms/frame':>9s}")
     for clip in clips:
         amc, asf = CLIPS[clip]
@@ -111,16 +113,8 @@ def bench_reconstruction(clips: list[str], n_frames: int, n_cameras: int, n_obse
                 params = ReconstructionParams(**{**params.__dict__, "n_observations": n_observations})
                 start = time.thread_time()
                 observations = reconstruct(masks, rig, VOLUME, params)
-                results[name]["t"].append(time.thread_time() - start)
-                distance, angle = surface_errors(observations, vertices, triangles, posed.vertex_normals)
-                results[name]["d"].append(distance)
-                results[name]["a"].append(angle)
-                results[name]["n"].append(len(observations))
-        for name, r in results.items():
-            d, a = np.concatenate(r["d"]), np.concatenate(r["a"])
-            print(f"{clip:10s} {name:24s} {np.mean(r['n']):6.0f} {np.median(d) * 1e3:7.1f} "
-                  f"{np.percentile(d, 95) * 1e3:7.1f} {np.median(a):8.1f} {np.mean(d > OUTLIER_DISTANCE_M):8.3f} "
-                  f"{np.median(r['t']) * 1e3:9.1f}")
+                _score(results[name], observations, time.thread_time() - start, posed, vertices, triangles)
+        _print_rows(clip, results)
 
 
 def bench_silhouettes(captures: list[Path], max_frames: int) -> None:
@@ -129,29 +123,45 @@ def bench_silhouettes(captures: list[Path], max_frames: int) -> None:
     params = SilhouetteParams()
     for path in captures:
         capture = Capture.open(path)
-        truth_root = Path(path) / "groundtruth" / "masks"
-        frames = capture.frame_numbers
-        frames = [frames[i] for i in np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).round().astype(int)]
+        frames = spread_frames(capture.frame_numbers, max_frames)
         ious, seconds = [], np.zeros(len(frames))
         for camera in capture.rig.names:
-            background = capture.background(camera)
-            if background is None:
-                background = median_background(image for _, image in capture.iter_images(camera, capture.frame_numbers))
+            background = background_model(background_image(capture, camera), params)
             for k, (frame, image) in enumerate(capture.iter_images(camera, frames)):
                 start = time.perf_counter()
                 mask = extract_silhouette(image, background, params)
                 seconds[k] += time.perf_counter() - start
-                truth = cv2.imread(str(truth_root / camera / f"{frame:06d}.png"), cv2.IMREAD_GRAYSCALE)
-                union = np.count_nonzero((mask > 0) | (truth > 0))
-                ious.append(np.count_nonzero((mask > 0) & (truth > 0)) / union if union else 1.0)
+                ious.append(mask_iou(mask, _true_mask(Path(path), camera, frame)))
         print(f"{Path(path).name:12s} {len(frames):6d} {np.median(ious):8.3f} {np.percentile(ious, 5):7.3f} "
               f"{np.median(seconds) * 1e3:20.1f}")
+
+
+def _true_mask(capture_dir: Path, camera: str, frame: int) -> np.ndarray:
+    return cv2.imread(str(capture_dir / "groundtruth" / "masks" / camera / f"{frame:06d}.png"), cv2.IMREAD_GRAYSCALE)
+
+
+def _score(record: dict, observations: Observations, seconds: float, posed, vertices, triangles) -> None:
+    """Append one frame's surface errors, count and CPU time to ``record`` (lists "d", "a", "n", "t")."""
+    distance, angle = surface_errors(observations, vertices, triangles, posed.vertex_normals)
+    record["d"].append(distance)
+    record["a"].append(angle)
+    record["n"].append(len(observations))
+    record["t"].append(seconds)
+
+
+def _print_rows(label: str, results: dict[str, dict]) -> None:
+    """One table row per method/mask kind: count, median and p95 distance, normal error, outliers, CPU time."""
+    for name, r in results.items():
+        d, a = np.concatenate(r["d"]), np.concatenate(r["a"])
+        print(f"{label:12s} {name:24s} {np.mean(r['n']):6.0f} {np.median(d) * 1e3:7.1f} "
+              f"{np.percentile(d, 95) * 1e3:7.1f} {np.median(a):8.1f} {np.mean(d > OUTLIER_DISTANCE_M):8.3f} "
+              f"{np.median(r['t']) * 1e3:9.1f}")
 
 
 def bench_capture_reconstruction(captures: list[Path], max_frames: int, n_observations: int) -> None:
     """Visual shape from each capture's segmented and true masks against its re-posed synthetic body."""
     print("visual shape on captures: segmented vs true masks, against the rendered body")
-    print(f"{'capture':12s} {'masks':10s} {'N':>6s} {'med mm':>7s} {'p95 mm':>7s} {'normal°':>8s} "
+    print(f"{'capture':12s} {'masks':24s} {'N':>6s} {'med mm':>7s} {'p95 mm':>7s} {'normal°':>8s} "
           f"{'out>3cm':>8s} {'ms/frame':>9s}")
     params = ReconstructionParams(n_observations=n_observations)
     silhouette_params = SilhouetteParams()
@@ -162,34 +172,22 @@ def bench_capture_reconstruction(captures: list[Path], max_frames: int, n_observ
         synth = SynthParams(**{**provenance, "size": tuple(provenance["size"])})
         motion = prepare_motion(synth)
         body = build_body(motion, synth.body)
-        frames = capture.frame_numbers
-        frames = [frames[i] for i in np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).round().astype(int)]
+        frames = spread_frames(capture.frame_numbers, max_frames)
         segmented = {frame: [] for frame in frames}
         for camera in capture.rig.names:
-            background = capture.background(camera)
-            if background is None:
-                background = median_background(image for _, image in capture.iter_images(camera, capture.frame_numbers))
+            background = background_model(background_image(capture, camera), silhouette_params)
             for frame, image in capture.iter_images(camera, frames):
                 segmented[frame].append(extract_silhouette(image, background, silhouette_params))
         results = {kind: {"d": [], "a": [], "n": [], "t": []} for kind in ("segmented", "true")}
         for frame in frames:
             posed = pose_body(body, motion, frame)
             vertices, triangles = posed_mesh(posed)
-            truth = [cv2.imread(str(Path(path) / "groundtruth" / "masks" / camera / f"{frame:06d}.png"),
-                                cv2.IMREAD_GRAYSCALE) for camera in capture.rig.names]
+            truth = [_true_mask(Path(path), camera, frame) for camera in capture.rig.names]
             for kind, masks in (("segmented", segmented[frame]), ("true", truth)):
                 start = time.thread_time()
                 observations = reconstruct(masks, capture.rig, capture.volume, params)
-                results[kind]["t"].append(time.thread_time() - start)
-                distance, angle = surface_errors(observations, vertices, triangles, posed.vertex_normals)
-                results[kind]["d"].append(distance)
-                results[kind]["a"].append(angle)
-                results[kind]["n"].append(len(observations))
-        for kind, r in results.items():
-            d, a = np.concatenate(r["d"]), np.concatenate(r["a"])
-            print(f"{Path(path).name:12s} {kind:10s} {np.mean(r['n']):6.0f} {np.median(d) * 1e3:7.1f} "
-                  f"{np.percentile(d, 95) * 1e3:7.1f} {np.median(a):8.1f} {np.mean(d > OUTLIER_DISTANCE_M):8.3f} "
-                  f"{np.median(r['t']) * 1e3:9.1f}")
+                _score(results[kind], observations, time.thread_time() - start, posed, vertices, triangles)
+        _print_rows(Path(path).name, results)
 
 
 def main() -> None:

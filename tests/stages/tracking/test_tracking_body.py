@@ -5,7 +5,7 @@ import pytest
 
 from calib.errors import InputError
 from stages.joints import JOINT_NAMES
-from stages.tracking.body import load_body, rotation_about
+from stages.tracking.body import load_body, rotation_about, skew
 from stages.tracking.distances import DISTANCES, all_residuals, ellipsoid_point, pose_jacobian, residuals
 
 STEP = 1e-6  # central differences: truncation ~STEP², round-off ~1e-16/STEP
@@ -14,6 +14,17 @@ STEP = 1e-6  # central differences: truncation ~STEP², round-off ~1e-16/STEP
 def _random_pose(body, seed):
     rng = np.random.default_rng(seed)
     return body.clip(body.zero_pose() + rng.normal(0.0, 0.5, body.pose_size))
+
+
+def _random_data(body, count, spread, seed):
+    """``count`` points around chest height with unit normals, and every (datum, ellipsoid) pair (i, p)."""
+    rng = np.random.default_rng(seed)
+    y = rng.normal(0.0, spread, (count, 3)) + [0.0, 0.0, 1.0]
+    n = rng.normal(size=(count, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    i = np.repeat(np.arange(count), body.n_ellipsoids)
+    p = np.tile(np.arange(body.n_ellipsoids), count)
+    return y, n, i, p
 
 
 def _numeric_jacobian(f, pose):
@@ -94,8 +105,7 @@ def test_ellipsoid_rotation_derivative_is_skew_times_rotation():
     kin = body.fk(pose)
     d = body.dof_names.index("l_upperarm.flex")
     numeric = _numeric_jacobian(lambda q: body.ellipsoids(q).R, pose)[..., d]
-    w = kin.axis[d]
-    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    K = skew(kin.axis[d])
     moved = body.moves[d, body.ellipsoid_segment]
     expected = np.where(moved[:, None, None], K @ body.ellipsoids(kin).R, 0.0)
     np.testing.assert_allclose(numeric, expected, atol=1e-7)
@@ -104,12 +114,7 @@ def test_ellipsoid_rotation_derivative_is_skew_times_rotation():
 @pytest.mark.parametrize("distance", DISTANCES)
 def test_residual_jacobian_matches_finite_differences(distance):
     body = load_body("default")
-    rng = np.random.default_rng(2)
-    y = rng.normal(0.0, 0.3, (20, 3)) + [0.0, 0.0, 1.0]
-    n = rng.normal(size=(20, 3))
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    i = np.repeat(np.arange(20), body.n_ellipsoids)
-    p = np.tile(np.arange(body.n_ellipsoids), 20)
+    y, n, i, p = _random_data(body, 20, 0.3, seed=2)
 
     def e(q):
         kin = body.fk(q)
@@ -141,14 +146,9 @@ def test_normal_point_lies_on_the_ellipsoid_with_the_given_normal():
 @pytest.mark.parametrize("distance", DISTANCES)
 def test_dense_residuals_equal_pairwise_ones(distance):
     body = load_body("paper")
-    rng = np.random.default_rng(5)
-    y = rng.normal(0.0, 0.4, (30, 3)) + [0.0, 0.0, 1.0]
-    n = rng.normal(size=(30, 3))
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    y, n, i, p = _random_data(body, 30, 0.4, seed=5)
     kin = body.fk(_random_pose(body, 6))
     ell = body.ellipsoids(kin)
-    i = np.repeat(np.arange(30), body.n_ellipsoids)
-    p = np.tile(np.arange(body.n_ellipsoids), 30)
     pairwise = residuals(y, n, i, p, kin, ell, distance=distance).e
     dense = all_residuals(y, n, ell, distance=distance)
     np.testing.assert_allclose(dense.reshape(pairwise.shape), pairwise, atol=1e-12)
