@@ -42,12 +42,19 @@ from calib.formats import load_rig, save_rig
 from pipeline import atomic, frames_io
 from pipeline.capture import Capture, capture_summary
 from pipeline.export_io import JOINTS_FILE, write_exports, write_joints_csv, write_overlay_video
+from pipeline.frame_tasks import (
+    background_path,
+    observations_path,
+    reconstruction_task,
+    silhouette_path,
+    silhouettes_task,
+)
 from pipeline.report import write_report
 from pipeline.runner import Stage, StageContext
 from stages.export import ExportParams
 from stages.joints import JOINT_NAMES
-from stages.reconstruction import Observations, ReconstructionParams, reconstruct
-from stages.silhouettes import SilhouetteParams, background_model, extract_silhouette, median_background
+from stages.reconstruction import Observations, ReconstructionParams
+from stages.silhouettes import SilhouetteParams, median_background
 from stages.tracking.body import load_body
 from stages.tracking.tracker import FrameResult, TrackerParams, TrackerState, track_frame
 
@@ -80,16 +87,10 @@ def read_calibration(folder: Path) -> tuple[Rig, dict]:
 
 #: Frames sampled per camera for a temporal-median background when no clean plate is given.
 MEDIAN_BACKGROUND_FRAMES = 25
-#: Below this many observations a frame is reported: the tracker will only predict its pose.
-FEW_OBSERVATIONS = 30
-
-
-def silhouette_path(out_dir: Path, camera: str, frame: int) -> Path:
-    return out_dir / camera / frames_io.frame_name(frame, ".png")
-
-
-def background_path(out_dir: Path, camera: str) -> Path:
-    return out_dir / "background" / f"{camera}.png"
+#: Frames per chunk of the silhouette stage on videos: each chunk seeks its videos, and a seek decodes
+#: from the last keyframe (about 10 ms per camera on the samples, as much as segmenting three frames),
+#: so chunks are twice the runner's longest.
+VIDEO_CHUNK_FRAMES = 50
 
 
 def spread_frames(frames: Sequence[int], count: int) -> list[int]:
@@ -119,45 +120,15 @@ def _backgrounds(ctx: StageContext) -> None:
             frames_io.write_image(path, background_image(ctx.capture, camera))
 
 
-def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: SilhouetteParams, out_dir: Path) -> None:
-    """Worker: masks of every camera for a chunk of consecutive frames (one decoder per camera)."""
-    for camera in capture.rig.names:
-        if capture.silhouettes_given:
-            masks = ((frame, capture.read_silhouette(camera, frame)) for frame in chunk)
-        else:
-            background = background_model(frames_io.read_image(background_path(out_dir, camera)), params)
-            masks = ((frame, extract_silhouette(image, background, params))
-                     for frame, image in capture.iter_images(camera, chunk))
-        for frame, mask in masks:
-            frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
-
-
 def run_silhouettes(ctx: StageContext) -> int:
     """Per frame and camera, the person's mask: given ones as they are, else background subtraction."""
     if not ctx.capture.silhouettes_given:
         _backgrounds(ctx)
     names = ctx.capture.rig.names
     task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir)
-    return ctx.map_frames(task, lambda frame: [silhouette_path(ctx.out_dir, c, frame) for c in names])
-
-
-def observations_path(out_dir: Path, frame: int) -> Path:
-    return out_dir / frames_io.frame_name(frame, ".ply")
-
-
-def reconstruction_task(chunk: Sequence[int], *, capture: Capture, params: ReconstructionParams,
-                        masks_dir: Path, out_dir: Path) -> None:
-    """Worker: points and normals of a chunk of frames from the silhouette stage's masks."""
-    for frame in chunk:
-        masks = [frames_io.read_mask(silhouette_path(masks_dir, camera, frame)) for camera in capture.rig.names]
-        empty = [camera for camera, mask in zip(capture.rig.names, masks, strict=True) if not mask.any()]
-        if empty:
-            log.warning("frame %d: empty silhouette in camera(s) %s", frame, ", ".join(empty))
-        observations = reconstruct(masks, capture.rig, capture.volume, params)
-        if len(observations) < FEW_OBSERVATIONS:
-            log.warning("frame %d: only %d observations (person out of view or silhouettes disagree)",
-                        frame, len(observations))
-        frames_io.write_ply(observations_path(out_dir, frame), observations.points, observations.normals)
+    videos = ctx.capture.media == "videos" and not ctx.capture.silhouettes_given
+    return ctx.map_frames(task, lambda frame: [silhouette_path(ctx.out_dir, c, frame) for c in names],
+                          chunk_size=VIDEO_CHUNK_FRAMES if videos else None)
 
 
 def run_reconstruction(ctx: StageContext) -> int:

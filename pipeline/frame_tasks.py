@@ -1,0 +1,103 @@
+"""The per-frame work of the silhouette and reconstruction stages, as it runs in a worker.
+
+A worker of ``--workers N`` is a spawned process that imports the module of the task it unpickles
+before its first chunk. These tasks live apart from :mod:`pipeline.graph`, which imports the tracker
+(numba) and the report (matplotlib): a worker then starts in about half the time, which on a capture
+of a hundred frames is several milliseconds per frame of the silhouette stage.
+
+Within a worker, frames are the unit of parallelism: OpenCV's own threads are switched off while a
+chunk runs (on small images they mostly synchronise, a fifth more CPU for the same wall time), and
+each camera's background model is built once per worker rather than once per chunk.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import cv2
+
+from pipeline import frames_io
+from pipeline.capture import Capture
+from stages.reconstruction import ReconstructionParams, reconstruct
+from stages.silhouettes import BackgroundModel, SilhouetteParams, background_model, extract_silhouette
+
+log = logging.getLogger(__name__)
+
+#: Below this many observations a frame is reported: the tracker will only predict its pose.
+FEW_OBSERVATIONS = 30
+#: Background models a worker keeps (a few MB each): enough for every camera of a large rig.
+CACHED_BACKGROUNDS = 32
+
+
+def silhouette_path(out_dir: Path, camera: str, frame: int) -> Path:
+    return out_dir / camera / frames_io.frame_name(frame, ".png")
+
+
+def background_path(out_dir: Path, camera: str) -> Path:
+    return out_dir / "background" / f"{camera}.png"
+
+
+def observations_path(out_dir: Path, frame: int) -> Path:
+    return out_dir / frames_io.frame_name(frame, ".ply")
+
+
+@contextlib.contextmanager
+def single_threaded_opencv() -> Iterator[None]:
+    """OpenCV without its worker threads inside the block, restored after it."""
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def cached_background_model(path: Path, params: SilhouetteParams) -> BackgroundModel:
+    """The background model of the image at ``path``, read and built once per worker.
+
+    Reading a colour PNG and building the model cost about 12 ms per camera, as much as segmenting
+    four frames; the file's modification time and size are part of the key, so a rewritten background
+    is read again.
+    """
+    status = os.stat(path)
+    return _background_model(str(path), status.st_mtime_ns, status.st_size, params)
+
+
+@functools.lru_cache(maxsize=CACHED_BACKGROUNDS)
+def _background_model(path: str, mtime_ns: int, size: int, params: SilhouetteParams) -> BackgroundModel:
+    return background_model(frames_io.read_image(path), params)
+
+
+def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: SilhouetteParams, out_dir: Path) -> None:
+    """Worker: masks of every camera for a chunk of consecutive frames (one decoder per camera)."""
+    with single_threaded_opencv():
+        for camera in capture.rig.names:
+            if capture.silhouettes_given:
+                masks = ((frame, capture.read_silhouette(camera, frame)) for frame in chunk)
+            else:
+                background = cached_background_model(background_path(out_dir, camera), params)
+                masks = ((frame, extract_silhouette(image, background, params))
+                         for frame, image in capture.iter_images(camera, chunk))
+            for frame, mask in masks:
+                frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
+
+
+def reconstruction_task(chunk: Sequence[int], *, capture: Capture, params: ReconstructionParams,
+                        masks_dir: Path, out_dir: Path) -> None:
+    """Worker: points and normals of a chunk of frames from the silhouette stage's masks."""
+    with single_threaded_opencv():
+        for frame in chunk:
+            masks = [frames_io.read_mask(silhouette_path(masks_dir, camera, frame)) for camera in capture.rig.names]
+            empty = [camera for camera, mask in zip(capture.rig.names, masks, strict=True) if not mask.any()]
+            if empty:
+                log.warning("frame %d: empty silhouette in camera(s) %s", frame, ", ".join(empty))
+            observations = reconstruct(masks, capture.rig, capture.volume, params)
+            if len(observations) < FEW_OBSERVATIONS:
+                log.warning("frame %d: only %d observations (person out of view or silhouettes disagree)",
+                            frame, len(observations))
+            frames_io.write_ply(observations_path(out_dir, frame), observations.points, observations.normals)
