@@ -25,6 +25,7 @@ import yaml
 
 from calib.errors import InputError
 from stages.joints import JOINT_NAMES
+from stages.tracking import compiled
 
 ROOT_DOF_NAMES = ("tx", "ty", "tz", "yaw", "pitch", "roll")
 # Root rotation order: yaw about world z, then pitch about the body's (negative) right axis so that a
@@ -261,14 +262,6 @@ class BodyModel:
         return pose_or_kin if isinstance(pose_or_kin, Kinematics) else self.fk(pose_or_kin)
 
 
-def rotation_about(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) about unit axes (..., 3) by angles (...) (Rodrigues' formula)."""
-    K = skew(axis)
-    s = np.sin(angle)[..., None, None]
-    c = np.cos(angle)[..., None, None]
-    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
-
-
 def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices [v]× (..., 3, 3) of vectors v (..., 3)."""
     v = np.asarray(v, dtype=float)
@@ -299,26 +292,9 @@ def _principal_axes(A: np.ndarray, like: np.ndarray) -> tuple[np.ndarray, np.nda
 def _forward_kinematics(body: BodyModel, pose: np.ndarray) -> Kinematics:
     if pose.shape != (body.pose_size,):
         raise ValueError(f"pose has shape {pose.shape}, expected ({body.pose_size},)")
-    n_seg = len(body.segment_names)
-    local = rotation_about(body.dof_axis, np.where(body.dof_revolute, pose, 0.0))  # (D,3,3)
-    R = np.empty((n_seg, 3, 3))
-    t = np.empty((n_seg, 3))
-    axis = np.empty((body.pose_size, 3))
-    origin = np.empty((body.pose_size, 3))
-    dof_start = np.searchsorted(body.dof_segment, np.arange(n_seg + 1))
-    for s in range(n_seg):
-        p = body.parent[s]
-        R_s = np.eye(3) if p < 0 else R[p]
-        t_s = np.zeros(3) if p < 0 else t[p] + R[p] @ body.offset[s]
-        for d in range(dof_start[s], dof_start[s + 1]):
-            axis[d] = R_s @ body.dof_axis[d]
-            if body.dof_revolute[d]:
-                origin[d] = t_s
-                R_s = R_s @ local[d]
-            else:
-                t_s = t_s + axis[d] * pose[d]
-                origin[d] = t_s
-        R[s], t[s] = R_s, t_s
+    dof_start = np.searchsorted(body.dof_segment, np.arange(len(body.segment_names) + 1))
+    R, t, axis, origin = compiled.forward_kinematics(body.parent, body.offset, dof_start, body.dof_axis,
+                                                     body.dof_revolute, pose)
     return Kinematics(R=R, t=t, axis=axis, origin=origin)
 
 

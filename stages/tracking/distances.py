@@ -94,12 +94,12 @@ def residuals(y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, kin: K
         raise ValueError(f"distance={distance!r}, expected one of {DISTANCES}")
     y_k, n_k, t = y[i], n[i], ellipsoids.t[p]
     if distance == "algebraic":
-        Q = _shape(ellipsoids, -2.0)[p]
+        Q = shape_matrices(ellipsoids, -2.0)[p]
         return _algebraic(y_k, Q, t, ellipsoids.semi_axes[p], kin, jacobian, scale)
     if distance == "normals":
-        x, A_y, A_n = _normal_point(n_k, _entries(_shape(ellipsoids, 2.0), p), t, jacobian)
+        x, A_y, A_n = _normal_point(n_k, _entries(shape_matrices(ellipsoids, 2.0), p), t, jacobian)
     else:
-        x, A_y, A_n = _radial_point(y_k, _shape(ellipsoids, -2.0)[p], t)
+        x, A_y, A_n = _radial_point(y_k, shape_matrices(ellipsoids, -2.0)[p], t)
     e = y_k - x
     if not jacobian:
         return Residuals(e=e, B=None)
@@ -120,12 +120,12 @@ def all_residuals(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
         raise ValueError(f"distance={distance!r}, expected one of {DISTANCES}")
     P = len(ellipsoids.t)
     if distance == "normals":
-        M = _shape(ellipsoids, 2.0)  # (P,3,3) symmetric, so (nᵀ M)ᵀ = M n
+        M = shape_matrices(ellipsoids, 2.0)  # (P,3,3) symmetric, so (nᵀ M)ᵀ = M n
         u = (n @ M.transpose(1, 0, 2).reshape(3, 3 * P)).reshape(-1, P, 3)  # (I,P,3): one matrix product
         lam = 1.0 / np.sqrt(np.einsum("ipa,ia->ip", u, n))  # eq. (4)
         return y[:, None, :] - ellipsoids.t[None] - lam[:, :, None] * u
     v = y[:, None, :] - ellipsoids.t[None]  # (I,P,3)
-    q = np.einsum("ipa,ipa->ip", v, np.einsum("ipa,pab->ipb", v, _shape(ellipsoids, -2.0)))
+    q = np.einsum("ipa,ipa->ip", v, np.einsum("ipa,pab->ipb", v, shape_matrices(ellipsoids, -2.0)))
     if distance == "points":
         return v * (1.0 - 1.0 / np.sqrt(np.maximum(q, _Q_MIN)))[:, :, None]  # y − (t + v/√q)
     return (0.5 * ellipsoids.semi_axes.min(axis=1)[None, :] * (q - 1.0))[:, :, None]
@@ -154,7 +154,7 @@ def normal_spread(n: np.ndarray, ellipsoids: Ellipsoids, p: np.ndarray | None = 
     """
     if p is not None:
         return symmetric_matrices(normal_spread_entries(n, ellipsoids, p))
-    M, M2 = _shape(ellipsoids, 2.0), _shape(ellipsoids, 4.0)  # M² = R diag(semi_axes⁴) Rᵀ
+    M, M2 = shape_matrices(ellipsoids, 2.0), shape_matrices(ellipsoids, 4.0)  # M² = R diag(semi_axes⁴) Rᵀ
     u = np.einsum("pab,ib->ipa", M, n)  # (I,P,3)
     w = np.einsum("pab,ib->ipa", M2, n)  # M u = M² n
     lam2 = (1.0 / np.einsum("ipa,ia->ip", u, n))[..., None, None]  # λ² of eq. (4)
@@ -171,7 +171,7 @@ def normal_spread_entries(n: np.ndarray, ellipsoids: Ellipsoids, p: np.ndarray) 
     memory. A² = λ² (M² − λ² (w uᵀ + u wᵀ) + λ⁴ |u|² u uᵀ) with u = M n, w = M u, since A = λ (M − λ² u uᵀ)
     is symmetric.
     """
-    M, M2 = _entries(_shape(ellipsoids, 2.0), p), _entries(_shape(ellipsoids, 4.0), p)
+    M, M2 = _entries(shape_matrices(ellipsoids, 2.0), p), _entries(shape_matrices(ellipsoids, 4.0), p)
     n = (n[:, 0], n[:, 1], n[:, 2])
     u = _symmetric_times(M, n)
     w = _symmetric_times(M, u)
@@ -187,62 +187,19 @@ def symmetric_matrices(entries: tuple[np.ndarray, ...]) -> np.ndarray:
     return np.stack([m00, m01, m02, m01, m11, m12, m02, m12, m22], axis=1).reshape(-1, 3, 3)
 
 
-def residual_bounds(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
-                    distance: str = "normals") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every pair's |e_ip|², (n_iᵀ e_ip)² and a bound on ‖A_ip‖² (P, I each) from matrix products alone.
+def residual_lower_bound(y: np.ndarray, ellipsoids: Ellipsoids, *, distance: str = "normals") -> np.ndarray:
+    """A lower bound on every pair's |e_ip|² (P, I), from the centres' distances alone.
 
-    Ellipsoid-major (P, I), the order of the pairs everywhere else, and numpy's fast one for
-    broadcasting an ellipsoid's constants along a row. For the "normals" distance, by quadratic forms
-    of the normal (M = R D⁻¹ Rᵀ, u = M n, λ = (nᵀ M n)^(-1/2), eq. 4):
-
-    - e = y − t − λ u, so |e|² = |y − t|² − 2 λ (yᵀ M n − (M t)ᵀ n) + λ² nᵀ M² n, exactly;
-    - x_ip is where the tangent plane with normal n touches the ellipsoid: nᵀ e = nᵀ (y − t) − (nᵀ M n)^½;
-    - A = λ (M − λ² u uᵀ) (`normal_spread`) is symmetric, so ‖A‖² ≤ ‖A‖_F² = tr A² =
-      λ² (tr M² − 2 λ² nᵀ M³ n + λ⁴ (nᵀ M² n)²) (at most twice ‖A‖², A having rank 2).
-
-    For the other distances: x_ip lies on the ellipsoid, within its largest semi-axis a_p of t_p, so
-    |e| ≥ |y − t| − a_p ("points"; 0 for "algebraic", which has no such point), and the other two are 0.
-
-    Parameters
-    ----------
-    y, n : (I, 3) float
-        Points (metres) and unit outward normals.
-    ellipsoids : Ellipsoids
-        The P posed ellipsoids.
-    distance : {"normals", "points", "algebraic"}
-
-    Returns
-    -------
-    norm2, along2, spread : (P, I) float
-        m², m², m² per rad².
+    For the point distances x_ip lies on ellipsoid p, within its largest semi-axis a_p of t_p, so
+    |e| ≥ |y − t_p| − a_p; the algebraic distance has no such point, and its bound is 0. Ellipsoid-major
+    (P, I), the order of the pairs everywhere else.
     """
     t = ellipsoids.t
-    zeros = np.zeros((len(t), len(y)))
     if distance == "algebraic":
-        return zeros, zeros, zeros
+        return np.zeros((len(t), len(y)))
     centre = (t * t).sum(1)[:, None] - 2.0 * t @ y.T + (y * y).sum(1)  # |y − t|²
-    if distance != "normals":
-        norm = np.maximum(np.sqrt(np.maximum(centre, 0.0)) - ellipsoids.semi_axes.max(axis=1)[:, None], 0.0)
-        return norm * norm, zeros, zeros
-    M, M2, M3 = (_shape(ellipsoids, power) for power in (2.0, 4.0, 6.0))
-    q, q2, q3 = _quadratic_form(n, np.concatenate([M, M2, M3])).reshape(3, len(t), -1)  # nᵀ M n, nᵀ M² n, nᵀ M³ n
-    lam2 = 1.0 / q
-    lam = np.sqrt(lam2)
-    # (y − t)ᵀ M n = y_iᵀ M_p n_i − (M_p t_p)ᵀ n_i, one product over the 9 + 3 terms
-    tMn = np.c_[M.reshape(-1, 9), -np.einsum("pab,pb->pa", M, t)] @ np.r_[
-        (y[:, :, None] * n[:, None, :]).reshape(-1, 9).T, n.T]
-    u2 = lam2 * q2  # λ² |u|²
-    along = (n * y).sum(1) - t @ n.T - q * lam
-    spread = lam2 * (np.trace(M2, axis1=1, axis2=2)[:, None] - 2.0 * lam2 * q3 + u2 * u2)
-    return centre - 2.0 * lam * tMn + u2, along * along, spread
-
-
-def _quadratic_form(v: np.ndarray, A: np.ndarray) -> np.ndarray:
-    """v_iᵀ A_j v_i (J, I) for vectors v (I, 3) and symmetric A (J, 3, 3), as one matrix product."""
-    products = np.stack([v[:, 0] ** 2, v[:, 1] ** 2, v[:, 2] ** 2,
-                         2.0 * v[:, 0] * v[:, 1], 2.0 * v[:, 0] * v[:, 2], 2.0 * v[:, 1] * v[:, 2]])
-    entries = np.stack([A[:, 0, 0], A[:, 1, 1], A[:, 2, 2], A[:, 0, 1], A[:, 0, 2], A[:, 1, 2]], axis=1)
-    return entries @ products
+    gap = np.maximum(np.sqrt(np.maximum(centre, 0.0)) - ellipsoids.semi_axes.max(axis=1)[:, None], 0.0)
+    return gap * gap
 
 
 def ellipsoid_point(n: np.ndarray, R: np.ndarray, t: np.ndarray, semi_axes: np.ndarray) -> np.ndarray:
@@ -255,11 +212,11 @@ def ellipsoid_point(n: np.ndarray, R: np.ndarray, t: np.ndarray, semi_axes: np.n
     R, t, semi_axes : (K, 3, 3), (K, 3), (K, 3) float
         Ellipsoid of each row.
     """
-    return _normal_point(n, _entries(_shape(Ellipsoids(R=R, t=t, semi_axes=semi_axes), 2.0)), t, False)[0]
+    return _normal_point(n, _entries(shape_matrices(Ellipsoids(R=R, t=t, semi_axes=semi_axes), 2.0)), t, False)[0]
 
 
-def _shape(ellipsoids: Ellipsoids, power: float) -> np.ndarray:
-    """R diag(semi_axes**power) Rᵀ (E, 3, 3): D⁻¹ for power 2, D for power −2."""
+def shape_matrices(ellipsoids: Ellipsoids, power: float) -> np.ndarray:
+    """R diag(semi_axes**power) Rᵀ (E, 3, 3): D⁻¹ for power 2 (M of eq. 4), D for power −2 (Q of eq. 1)."""
     R = ellipsoids.R
     return np.einsum("eab,eb,ecb->eac", R, ellipsoids.semi_axes**power, R)
 

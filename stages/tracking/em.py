@@ -22,15 +22,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.tracking import compiled
 from stages.tracking.body import BodyModel, Ellipsoids, Kinematics
 from stages.tracking.distances import (
     DISTANCES,
-    SYMMETRIC_ENTRIES,
-    normal_spread,
-    normal_spread_entries,
-    residual_bounds,
+    residual_lower_bound,
     residual_size,
     residuals,
+    shape_matrices,
     symmetric_matrices,
 )
 
@@ -45,7 +44,7 @@ PI_FLOOR = 1e-4
 # from the M-step is what makes it fast (each datum keeps a handful of ellipsoids).
 PRUNE_POSTERIOR = 1e-3
 # The E-step skips a pair whose joint density π_p N(y_i | x_ip, Σ_ip) is provably below this fraction of
-# the outlier term π_{P+1} / V (`_candidate_pairs`): its posterior is below it too, every other
+# the outlier term π_{P+1} / V (`_e_step`): its posterior is below it too, every other
 # posterior changes by less than P times it (relative), and ln P(Y | Λ) by less than I·P times it.
 NEGLIGIBLE_POSTERIOR = 1e-9
 # Prior strength: a DOF with prior weight 1 is held to its predicted value with this standard
@@ -149,18 +148,18 @@ class EStep:
         Posterior of the outlier class, t_{i,P+1}.
     log_likelihood : float
         ln P(Y | Λ) of eq. (12), nats.
-    pairs : (2, K) int or None
+    pairs : (2, K) int
         Datum i and ellipsoid p of the pairs with t_ip > PRUNE_POSTERIOR (those the M-step uses),
-        sorted by ellipsoid; None: not recorded.
-    precision : (K, k, k) float or None
+        sorted by ellipsoid.
+    precision : (K, k, k) float
         Σ_ip⁻¹ of those pairs at the E-step's pose and Σ, for the M-step of the same iteration.
     """
 
     t: np.ndarray
     t_outlier: np.ndarray
     log_likelihood: float
-    pairs: np.ndarray | None = None
-    precision: np.ndarray | None = None
+    pairs: np.ndarray
+    precision: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -221,9 +220,9 @@ def e_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixt
     """Posteriors t_ip (Horaud et al. 2009 eq. 13) and log-likelihood (eq. 12), by log-sum-exp.
 
     With `normal_noise_rad` σ_n > 0 (and the "normals" distance), component p's Gaussian for datum i
-    has the covariance Σ_ip = Σ + σ_n² A_ip A_ipᵀ (`pair_covariances`) instead of Σ. Pairs whose joint
-    density is provably below NEGLIGIBLE_POSTERIOR times the outlier term are skipped (t_ip = 0), which
-    leaves a few ellipsoids per datum; the result equals the dense computation to that precision.
+    has the covariance Σ_ip = Σ + σ_n² A_ip A_ipᵀ (`distances.normal_spread`) instead of Σ. Pairs whose
+    joint density is provably below NEGLIGIBLE_POSTERIOR times the outlier term are skipped (t_ip = 0),
+    which leaves a few ellipsoids per datum; the result equals the dense computation to that precision.
 
     Parameters
     ----------
@@ -239,16 +238,34 @@ def e_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixt
 
 def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixture, V: float, distance: str,
             normal_noise_rad: float) -> EStep:
-    """`e_step` on the posed ellipsoids, over the pairs that `_candidate_pairs` cannot rule out."""
+    """`e_step` on the posed ellipsoids: compiled for the paper's distance, numpy for the others."""
     I, P = len(y), len(ellipsoids.t)
+    k = residual_size(distance)
     if I == 0:
-        return EStep(t=np.zeros((0, P)), t_outlier=np.zeros(0), log_likelihood=0.0)
+        return EStep(t=np.zeros((0, P)), t_outlier=np.zeros(0), log_likelihood=0.0,
+                     pairs=np.zeros((2, 0), dtype=int), precision=np.zeros((0, k, k)))
     log_outlier = np.log(mixture.pi[P]) - np.log(V)  # ln π_{P+1} / V
-    p, i = _candidate_pairs(y, n, ellipsoids, mixture, log_outlier, distance, normal_noise_rad)
-    e, mahalanobis, log_det, inverse = _pair_terms(y, n, i, p, ellipsoids, mixture.Sigma, distance,
-                                                   normal_noise_rad)
-    k = e.shape[1]
-    log_joint = np.log(mixture.pi[p]) - 0.5 * (mahalanobis + log_det + k * np.log(2.0 * np.pi))  # ln π_p N_ip
+    # Squared Mahalanobis distance beyond which ln π_p N_ip is below ln(NEGLIGIBLE_POSTERIOR π_{P+1} / V),
+    # using det Σ_ip ≥ det Σ: (P,)
+    log_norm = -0.5 * (np.linalg.slogdet(mixture.Sigma)[1] + k * np.log(2.0 * np.pi))
+    reach = -2.0 * (log_outlier + np.log(NEGLIGIBLE_POSTERIOR) - np.log(mixture.pi[:P]) - log_norm)
+    largest = np.linalg.eigvalsh(mixture.Sigma)[-1]
+    if distance == "normals":
+        noise2 = normal_noise_rad**2
+        a = ellipsoids.semi_axes
+        # Σ_ip's largest eigenvalue is at most c + σ_n² ‖A_ip‖², ‖A_ip‖ at most the largest radius of
+        # curvature a_max² / a_min (`compiled.e_step`).
+        bounds = np.c_[a.max(axis=1), reach, largest + noise2 * (a.max(axis=1) ** 2 / a.min(axis=1)) ** 2]
+        t, t_outlier, log_likelihood, pairs, precision = compiled.e_step(
+            y, n, ellipsoids.t, shape_matrices(ellipsoids, 2.0), shape_matrices(ellipsoids, 4.0), bounds,
+            mixture.Sigma, largest, np.log(mixture.pi[:P]), log_outlier, noise2, PRUNE_POSTERIOR)
+        return EStep(t=t, t_outlier=t_outlier, log_likelihood=log_likelihood, pairs=pairs,
+                     precision=symmetric_matrices(tuple(precision.T)))
+    # eᵀ Σ⁻¹ e ≥ |e|² / c, c the largest eigenvalue of Σ
+    p, i = np.nonzero(residual_lower_bound(y, ellipsoids, distance=distance) <= reach[:, None] * largest)
+    e = residuals(y, n, i, p, None, ellipsoids, distance=distance).e
+    W = np.linalg.inv(mixture.Sigma)
+    log_joint = np.log(mixture.pi[p]) + log_norm - 0.5 * ((e @ W) * e).sum(1)  # ln π_p N_ip
     dense = np.full((P, I), -np.inf)  # ln π_p N_ip, −∞ for the skipped pairs
     dense[p, i] = log_joint
     peak = np.maximum(dense.max(axis=0), log_outlier)
@@ -260,50 +277,7 @@ def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixtu
     log_likelihood = float(np.sum(peak + np.log(evidence)))  # Σ_i ln P(y_i | n_i), eq. (12)
     used = posterior > PRUNE_POSTERIOR
     return EStep(t=t, t_outlier=np.exp(log_outlier - peak) / evidence, log_likelihood=log_likelihood,
-                 pairs=np.stack([i[used], p[used]]), precision=_precisions(inverse, used))
-
-
-def _candidate_pairs(y, n, ellipsoids, mixture, log_outlier, distance, normal_noise_rad):
-    """Pairs (p, i), sorted by ellipsoid, whose π_p N(y_i | x_ip, Σ_ip) may reach NEGLIGIBLE_POSTERIOR · π_{P+1}/V.
-
-    An upper bound on ln π_p N_ip from `distances.residual_bounds` (exact |e| and |nᵀ e|, ‖A‖ bounded, for
-    the "normals" distance, |e| ≥ |y − t_p| − a_p for "points", nothing for "algebraic", which keeps every
-    pair), with c the largest eigenvalue of Σ:
-    det Σ_ip ≥ det Σ, and Σ_ip ⪯ C = c I + σ_n² A Aᵀ, of which n_i is an eigenvector with eigenvalue c
-    (A n = 0) and whose other eigenvalues are at most c + σ_n² ‖A‖², so that
-
-        eᵀ Σ_ip⁻¹ e ≥ eᵀ C⁻¹ e ≥ (nᵀ e)² / c + (|e|² − (nᵀ e)²) / (c + σ_n² ‖A‖²).
-    """
-    Sigma = mixture.Sigma
-    c = np.linalg.eigvalsh(Sigma)[-1]
-    if distance != "normals":
-        normal_noise_rad = 0.0
-    log_norm = -0.5 * (np.linalg.slogdet(Sigma)[1] + len(Sigma) * np.log(2.0 * np.pi))
-    threshold = log_outlier + np.log(NEGLIGIBLE_POSTERIOR) - np.log(mixture.pi[:-1]) - log_norm
-    norm2, along2, spread = residual_bounds(y, n, ellipsoids, distance=distance)  # (P, I)
-    mahalanobis = along2 / c + np.maximum(norm2 - along2, 0.0) / (c + normal_noise_rad**2 * spread)
-    return np.nonzero(mahalanobis <= -2.0 * threshold[:, None])  # ln π_p N_ip may reach the threshold
-
-
-def _pair_terms(y, n, i, p, ellipsoids, Sigma, distance, normal_noise_rad):
-    """Residuals e_ip (K, k), eᵀ Σ_ip⁻¹ e and ln det Σ_ip (K,) of the pairs (i, p), and Σ_ip⁻¹.
-
-    Σ_ip⁻¹ is Σ⁻¹ (k, k) when shared, else the six distinct entries (K,) of every Σ_ip⁻¹ (`_precisions`).
-    """
-    e = residuals(y, n, i, p, None, ellipsoids, distance=distance).e
-    if distance != "normals" or normal_noise_rad <= 0.0:
-        W = np.linalg.inv(Sigma)
-        return e, ((e @ W) * e).sum(1), np.full(len(e), np.linalg.slogdet(Sigma)[1]), W
-    spread = normal_spread_entries(n[i], ellipsoids, p)
-    C = tuple(Sigma[a, b] + normal_noise_rad**2 * s for s, (a, b) in zip(spread, SYMMETRIC_ENTRIES, strict=True))
-    return e, *_mahalanobis_sym3(e, C)
-
-
-def _precisions(inverse, used: np.ndarray) -> np.ndarray:
-    """Σ_ip⁻¹ (K', k, k) of the pairs `used` (K,) bool, from `_pair_terms`' Σ⁻¹ or distinct entries."""
-    if isinstance(inverse, tuple):
-        return symmetric_matrices(tuple(w[used] for w in inverse))
-    return np.broadcast_to(inverse, (np.count_nonzero(used),) + inverse.shape)
+                 pairs=np.stack([i[used], p[used]]), precision=np.broadcast_to(W, (np.count_nonzero(used), k, k)))
 
 
 def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixture: Mixture,
@@ -336,15 +310,10 @@ def _m_step(y, n, body, kin, pose, mixture, estep, distance, prior_pose, gauss_n
             estimate_lengths, normal_noise_rad, min_outlier_prior, max_sigma_m) -> tuple[MStep, Kinematics]:
     """`m_step` from the pose's kinematics `kin`; also returns the kinematics of the new pose.
 
-    The pairs' Σ_ip⁻¹ are the E-step's (same pose, same Σ), computed here only for an EStep without them.
+    The pairs' Σ_ip⁻¹ are the E-step's (same pose, same Σ).
     """
     I, P = estep.t.shape
-    if estep.pairs is None:  # not recorded: the pairs above PRUNE_POSTERIOR, grouped by ellipsoid
-        p, i = np.nonzero(estep.t.T > PRUNE_POSTERIOR)
-        inverse = _pair_terms(y, n, i, p, body.ellipsoids(kin), mixture.Sigma, distance, normal_noise_rad)[3]
-        precision = _precisions(inverse, np.ones(len(i), dtype=bool))
-    else:
-        (i, p), precision = estep.pairs, estep.precision
+    (i, p), precision = estep.pairs, estep.precision
     t = estep.t[i, p]  # (K,)
     W = _cholesky(precision) * np.sqrt(t)[:, None, None]  # t_ip Σ_ip⁻¹ = W Wᵀ: weighted residual Wᵀ e
     problem = _Problem(y, n, i, p, W, distance, prior_pose if prior_pose is not None else pose,
@@ -355,8 +324,9 @@ def _m_step(y, n, body, kin, pose, mixture, estep, distance, prior_pose, gauss_n
         pose, body, kin, e = _gauss_newton_step(problem, body, kin, pose)
     scatter = (e * t[:, None]).T @ e
     if distance == "normals" and normal_noise_rad > 0.0:  # minus the normals' share, at the new pose
-        spread = normal_spread_entries(n[i], body.ellipsoids(kin), p)
-        scatter = scatter - normal_noise_rad**2 * symmetric_matrices(tuple(np.atleast_1d(t @ s) for s in spread))[0]
+        ellipsoids = body.ellipsoids(kin)
+        spread = compiled.weighted_spread(n, i, p, t, shape_matrices(ellipsoids, 2.0), shape_matrices(ellipsoids, 4.0))
+        scatter = scatter - normal_noise_rad**2 * symmetric_matrices(tuple(spread[:, None]))[0]
     Sigma = scatter / max(t.sum(), np.finfo(float).tiny)
     pi = np.empty(P + 1)
     pi[:P] = estep.t.sum(axis=0) / I
@@ -410,51 +380,11 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
                      log_likelihood=tuple(history), outlier_fraction=outliers)
 
 
-def pair_covariances(n: np.ndarray, ellipsoids, Sigma: np.ndarray, distance: str, normal_noise_rad: float,
-                     p: np.ndarray | None = None) -> np.ndarray:
-    """Covariance of each datum-ellipsoid pair: Σ + σ_n² A_ip A_ipᵀ (`distances.normal_spread`).
-
-    Returns Σ itself (k, k) when the normals' noise does not enter (σ_n = 0, or a distance that does
-    not use the normals), else (I, P, 3, 3) for all pairs or (K, 3, 3) for the pairs of ellipsoids `p`.
-    """
-    if distance != "normals" or normal_noise_rad <= 0.0:
-        return Sigma
-    return Sigma + normal_noise_rad**2 * normal_spread(n, ellipsoids, p)
-
-
-def log_gaussian(e: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
-    """ln N(e | 0, Σ) for residuals e (..., k); Σ (k, k) shared, or (..., 3, 3) one per residual."""
-    if Sigma.ndim > 2:
-        mahalanobis, log_det, _ = _mahalanobis_sym3(e, tuple(Sigma[..., a, b] for a, b in SYMMETRIC_ENTRIES))
-        return -0.5 * (mahalanobis + log_det + 3 * np.log(2.0 * np.pi))
-    k = Sigma.shape[0]
-    L = np.linalg.cholesky(Sigma)
-    z = (e.reshape(-1, k) @ np.linalg.inv(L).T).reshape(e.shape)  # L⁻¹ e, row by row
-    log_det = 2.0 * np.log(np.diag(L)).sum()
-    return -0.5 * (np.einsum("...a,...a->...", z, z) + log_det + k * np.log(2.0 * np.pi))
-
-
-def _mahalanobis_sym3(e: np.ndarray, C: tuple[np.ndarray, ...]):
-    """eᵀ C⁻¹ e, ln det C and C⁻¹ for residuals e (..., 3) and symmetric positive definite C.
-
-    C and the returned C⁻¹ are given by their six distinct entries (`SYMMETRIC_ENTRIES`), each (...).
-    By cofactors (C⁻¹ = adj C / det C): LAPACK's per-matrix overhead would dominate the E-step's
-    thousands of pairs.
-    """
-    a, d, g, b, c, f = C
-    c00, c01, c02 = d * g - f * f, c * f - b * g, b * f - c * d
-    c11, c12, c22 = a * g - c * c, b * c - a * f, a * d - b * b
-    det = a * c00 + b * c01 + c * c02
-    x, y, z = e[..., 0], e[..., 1], e[..., 2]
-    quadratic = c00 * x * x + c11 * y * y + c22 * z * z + 2.0 * (c01 * x * y + c02 * x * z + c12 * y * z)
-    inverse = tuple(cofactor / det for cofactor in (c00, c11, c22, c01, c02, c12))
-    return quadratic / det, np.log(det), inverse
-
-
 def _cholesky(W: np.ndarray) -> np.ndarray:
     """Lower-triangular L (K, k, k) with W = L Lᵀ for symmetric positive definite W (K, k, k), k = 1 or 3.
 
-    Written out for 3 × 3 (the Cholesky–Banachiewicz recurrences) for the same reason as `_mahalanobis_sym3`.
+    Written out for 3 × 3 (the Cholesky–Banachiewicz recurrences): LAPACK's per-matrix overhead would dominate
+    for thousands of pairs.
     """
     if W.shape[1] == 1:
         return np.sqrt(W)
@@ -488,10 +418,12 @@ class _Problem:
     estimate_scale: bool
     estimate_lengths: bool
 
-    def residuals(self, body, kin, *, jacobian=False):
-        """The pairs' residuals on `body` posed by the kinematics `kin`."""
-        return residuals(self.y, self.n, self.i, self.p, kin, body.ellipsoids(kin), distance=self.distance,
-                         jacobian=jacobian, scale=jacobian and self.estimate_scale)
+    def residuals(self, body: BodyModel, kin: Kinematics) -> np.ndarray:
+        """The pairs' residuals e (K, k) on `body` posed by the kinematics `kin`."""
+        ellipsoids = body.ellipsoids(kin)
+        if self.distance == "normals":
+            return compiled.residuals(self.y, self.n, self.i, self.p, ellipsoids.t, shape_matrices(ellipsoids, 2.0))
+        return residuals(self.y, self.n, self.i, self.p, kin, ellipsoids, distance=self.distance).e
 
     def cost(self, body, pose, e):
         """Eq. (14) for fixed t_ip plus the priors on the weakly observed DOFs and the segment lengths."""
@@ -509,26 +441,18 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, kin: Kinematics, pose
     `estimate_lengths`. The normal equations are summed per ellipsoid in rigid-velocity coordinates
     (H_p = Σ_k t_k B_kᵀ Σ⁻¹ B_k, 6 × 6) and mapped to the DOFs by the segment twists: H = Σ_p T_pᵀ H_p T_p.
     """
-    res = problem.residuals(body, kin, jacobian=True)
     W, D = problem.W, body.pose_size
-    K, k = res.e.shape
-    r = _whitened(W, res.e)  # (K,k) Wᵀ e
-    Bw = _whitened(W, res.B)  # (K,k,6) Wᵀ B
-    starts = np.flatnonzero(np.r_[True, problem.p[1:] != problem.p[:-1]])
-    ends = np.r_[starts[1:], K]
-    T = body.segment_twists(kin)[body.ellipsoid_segment[problem.p[starts]]]  # (P',6,D)
-    H6 = np.empty((len(starts), 6, 6))
-    for q, (a, b) in enumerate(zip(starts, ends, strict=True)):
-        block = Bw[a:b].reshape(-1, 6)
-        H6[q] = block.T @ block
-    g6 = np.add.reduceat(np.einsum("kai,ka->ki", Bw, r), starts)  # (P',6)
-    TH = T.transpose(0, 2, 1) @ H6  # (P',D,6)
-    extra = _extra_columns(problem, body, pose, res)  # (K,k,X)
+    e, r, Bw, H6, g6, J_scale = _linearised(problem, body, kin)
+    starts = np.flatnonzero(np.r_[True, problem.p[1:] != problem.p[:-1]])  # each present ellipsoid's pairs
+    present = problem.p[starts]
+    T = body.segment_twists(kin)[body.ellipsoid_segment[present]]  # (P',6,D)
+    TH = T.transpose(0, 2, 1) @ H6[present]  # (P',D,6)
+    extra = _extra_columns(problem, body, pose, e, J_scale)  # (K,k,X)
     X = extra.shape[2]
     H = np.zeros((D + X, D + X))
     g = np.zeros(D + X)
     H[:D, :D] = np.einsum("pdj,pje->de", TH, T)
-    g[:D] = np.einsum("pid,pi->d", T, g6)
+    g[:D] = np.einsum("pid,pi->d", T, g6[present])
     if X:
         Xw = _whitened(W, extra)
         H[:D, D:] = np.einsum("pid,pix->dx", T, np.add.reduceat(np.einsum("kai,kax->kix", Bw, Xw), starts))
@@ -543,7 +467,7 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, kin: Kinematics, pose
         prior[-G:] = 1.0 / LENGTH_PRIOR_SD**2
         g[-G:] += np.log(body.length_factors) / LENGTH_PRIOR_SD**2
     H += np.diag(prior)
-    cost = problem.cost(body, pose, res.e)
+    cost = problem.cost(body, pose, e)
     diag = np.diag(H) + RIDGE
     damping = LM_DAMPING
     for _ in range(LM_TRIES):
@@ -551,11 +475,37 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, kin: Kinematics, pose
         candidate = body.clip(pose + step[:D])
         body_c = _updated_body(problem, body, step[D:])
         kin_c = body_c.fk(candidate)
-        e_c = problem.residuals(body_c, kin_c).e
+        e_c = problem.residuals(body_c, kin_c)
         if problem.cost(body_c, candidate, e_c) <= cost:
             return candidate, body_c, kin_c, e_c
         damping *= LM_GROWTH
-    return pose, body, kin, res.e
+    return pose, body, kin, e
+
+
+def _linearised(problem: _Problem, body: BodyModel, kin: Kinematics):
+    """The pairs' residuals e and, whitened, r = Wᵀ e and Bw = Wᵀ B (B = de/d(ω, v)); per ellipsoid
+    H_p = Σ Bwᵀ Bw (P, 6, 6) and g_p = Σ Bwᵀ r (P, 6); and de/d(ln s) (or None without `estimate_scale`).
+
+    Compiled for the paper's distance (`compiled.normal_equations`), numpy for the others.
+    """
+    P = body.n_ellipsoids
+    if problem.distance == "normals":
+        ellipsoids = body.ellipsoids(kin)
+        e, r, Bw, H6, g6, J_scale = compiled.normal_equations(
+            problem.y, problem.n, problem.i, problem.p, problem.W, ellipsoids.t, shape_matrices(ellipsoids, 2.0),
+            kin.t[0])
+        return e, r, Bw, H6, g6, J_scale if problem.estimate_scale else None
+    res = residuals(problem.y, problem.n, problem.i, problem.p, kin, body.ellipsoids(kin), distance=problem.distance,
+                    jacobian=True, scale=problem.estimate_scale)
+    r = _whitened(problem.W, res.e)  # (K,k) Wᵀ e
+    Bw = _whitened(problem.W, res.B)  # (K,k,6) Wᵀ B
+    H6, g6 = np.zeros((P, 6, 6)), np.zeros((P, 6))
+    starts = np.flatnonzero(np.r_[True, problem.p[1:] != problem.p[:-1]])
+    for a, b in zip(starts, np.r_[starts[1:], len(r)], strict=True):
+        block = Bw[a:b].reshape(-1, 6)
+        H6[problem.p[a]] = block.T @ block
+    g6[problem.p[starts]] = np.add.reduceat(np.einsum("kai,ka->ki", Bw, r), starts)
+    return res.e, r, Bw, H6, g6, res.J_scale
 
 
 def _whitened(W: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -565,19 +515,20 @@ def _whitened(W: np.ndarray, X: np.ndarray) -> np.ndarray:
     return np.stack([sum(w[:, a, b] * X[:, a] for a in range(b, k)) for b in range(k)], axis=1)
 
 
-def _extra_columns(problem: _Problem, body: BodyModel, pose: np.ndarray, res) -> np.ndarray:
-    """de/d ln s (analytic) and de/d ln ℓ (forward differences) as columns (K, k, X)."""
+def _extra_columns(problem: _Problem, body: BodyModel, pose: np.ndarray, e: np.ndarray,
+                   J_scale: np.ndarray | None) -> np.ndarray:
+    """de/d ln s (analytic, `J_scale`) and de/d ln ℓ (forward differences from `e`) as columns (K, k, X)."""
     columns = []
     if problem.estimate_scale:
-        columns.append(res.J_scale[:, :, None])
+        columns.append(J_scale[:, :, None])
     if problem.estimate_lengths:
         for g in range(len(body.length_groups)):
             factors = body.length_factors.copy()
             factors[g] *= np.exp(LENGTH_STEP)
             stretched = body.with_lengths(factors)
-            e_g = problem.residuals(stretched, stretched.fk(pose)).e
-            columns.append(((e_g - res.e) / LENGTH_STEP)[:, :, None])
-    return np.concatenate(columns, axis=2) if columns else np.zeros(res.e.shape + (0,))
+            e_g = problem.residuals(stretched, stretched.fk(pose))
+            columns.append(((e_g - e) / LENGTH_STEP)[:, :, None])
+    return np.concatenate(columns, axis=2) if columns else np.zeros(e.shape + (0,))
 
 
 def _updated_body(problem: _Problem, body: BodyModel, step: np.ndarray) -> BodyModel:

@@ -2,10 +2,11 @@
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
 from stages.joints import JOINT_NAMES
-from stages.tracking.body import load_body, rotation_about, skew
+from stages.tracking.body import load_body, skew
 from stages.tracking.distances import DISTANCES, all_residuals, ellipsoid_point, pose_jacobian, residuals
 
 STEP = 1e-6  # central differences: truncation ~STEP², round-off ~1e-16/STEP
@@ -86,9 +87,24 @@ def test_unknown_body_and_bad_height_are_input_errors():
         load_body("default", height_m=-1.0)
 
 
-def test_rotation_about_is_a_rotation():
-    R = rotation_about(np.array([[0.0, 0.0, 1.0]]), np.array([np.pi / 2]))[0]
-    np.testing.assert_allclose(R @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-15)
+@pytest.mark.parametrize("name", ["paper", "default"])
+def test_forward_kinematics_matches_a_rotation_vector_reference(name):
+    body = load_body(name)
+    pose = _random_pose(body, 5)
+    kin = body.fk(pose)
+    R, t = np.empty((len(body.segment_names), 3, 3)), np.empty((len(body.segment_names), 3))
+    for s in range(len(body.segment_names)):  # down the tree, one DOF after the other
+        parent = body.parent[s]
+        R_s = np.eye(3) if parent < 0 else R[parent]
+        t_s = np.zeros(3) if parent < 0 else t[parent] + R[parent] @ body.offset[s]
+        for d in np.flatnonzero(body.dof_segment == s):
+            if body.dof_revolute[d]:
+                R_s = R_s @ Rotation.from_rotvec(body.dof_axis[d] * pose[d]).as_matrix()
+            else:
+                t_s = t_s + R_s @ body.dof_axis[d] * pose[d]
+        R[s], t[s] = R_s, t_s
+    np.testing.assert_allclose(kin.R, R, atol=1e-12)
+    np.testing.assert_allclose(kin.t, t, atol=1e-12)
 
 
 @pytest.mark.parametrize("name", ["paper", "default"])
@@ -130,7 +146,7 @@ def test_residual_jacobian_matches_finite_differences(distance):
 
 def test_normal_point_lies_on_the_ellipsoid_with_the_given_normal():
     rng = np.random.default_rng(4)
-    R = rotation_about(np.array([[0.6, 0.0, 0.8]] * 50), rng.uniform(0, 3, 50))
+    R = Rotation.from_rotvec(np.array([0.6, 0.0, 0.8]) * rng.uniform(0, 3, (50, 1))).as_matrix()
     t = rng.normal(size=(50, 3))
     semi = rng.uniform(0.05, 0.3, (50, 3))
     n = rng.normal(size=(50, 3))

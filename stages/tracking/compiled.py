@@ -1,0 +1,307 @@
+"""Compiled inner loops of EM for the paper's distance (points and normals, Horaud et al. 2009 eq. 4).
+
+Each EM iteration visits every datum-ellipsoid pair a few times (posteriors, normal equations, step
+acceptance); as numpy expressions that is dozens of passes over (I × P) temporaries and hundreds of small
+calls per iteration, which is what bounded the tracker's frame rate. Here each pass is one loop over the
+pairs with the pair's 3 × 3 algebra written out, compiled by numba (cached on disk, so only the first run
+on a machine pays for compilation). The maths is the same as the numpy reference in `distances` and `em`,
+against which the tests check these functions:
+
+- x_ip = t_p + λ M_p n_i with M_p = R_p diag(a_p²) R_pᵀ and λ = (n_iᵀ M_p n_i)^(-1/2) (eq. 4);
+- A_ip = ∂x_ip/∂n_i = λ (M_p − λ² u uᵀ), u = M_p n_i (symmetric; `distances.normal_spread`);
+- Σ_ip = Σ + σ_n² A_ip² and the component density π_p N(y_i | x_ip, Σ_ip) (eqs. 11-13);
+- the rigid derivative de/d(ω, v) = [x]× − A_ip [n_i]×, −I (`distances` module docstring).
+
+Ellipsoid shapes enter as M (P, 3, 3) and M² (P, 3, 3); symmetric 3 × 3 results are returned as their six
+distinct entries in `distances.SYMMETRIC_ENTRIES` order (00, 11, 22, 01, 02, 12).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+# The pair helpers take whole arrays and indices, never row views: a view costs reference counting.
+
+
+@njit(cache=True)
+def _normal_direction(n, i, M, p):
+    """u = M_p n_i and λ = (n_iᵀ M_p n_i)^(-1/2) of eq. (4)."""
+    n0, n1, n2 = n[i, 0], n[i, 1], n[i, 2]
+    u0 = M[p, 0, 0] * n0 + M[p, 0, 1] * n1 + M[p, 0, 2] * n2
+    u1 = M[p, 1, 0] * n0 + M[p, 1, 1] * n1 + M[p, 1, 2] * n2
+    u2 = M[p, 2, 0] * n0 + M[p, 2, 1] * n1 + M[p, 2, 2] * n2
+    return u0, u1, u2, 1.0 / math.sqrt(n0 * u0 + n1 * u1 + n2 * u2)
+
+
+@njit(cache=True)
+def _normal_point(n, i, M, t, p):
+    """u = M_p n_i, λ and x_ip = t_p + λ u of eq. (4)."""
+    u0, u1, u2, lam = _normal_direction(n, i, M, p)
+    return u0, u1, u2, lam, t[p, 0] + lam * u0, t[p, 1] + lam * u1, t[p, 2] + lam * u2
+
+
+@njit(cache=True)
+def _spread(M, M2, p, u0, u1, u2, lam):
+    """A² = λ² (M² − λ² (w uᵀ + u wᵀ) + λ⁴ |u|² u uᵀ), w = M u, as six entries (`distances.normal_spread`)."""
+    w0 = M[p, 0, 0] * u0 + M[p, 0, 1] * u1 + M[p, 0, 2] * u2
+    w1 = M[p, 1, 0] * u0 + M[p, 1, 1] * u1 + M[p, 1, 2] * u2
+    w2 = M[p, 2, 0] * u0 + M[p, 2, 1] * u1 + M[p, 2, 2] * u2
+    lam2 = lam * lam
+    quartic = lam2 * lam2 * (u0 * u0 + u1 * u1 + u2 * u2)
+    s00 = lam2 * (M2[p, 0, 0] - lam2 * 2.0 * w0 * u0 + quartic * u0 * u0)
+    s11 = lam2 * (M2[p, 1, 1] - lam2 * 2.0 * w1 * u1 + quartic * u1 * u1)
+    s22 = lam2 * (M2[p, 2, 2] - lam2 * 2.0 * w2 * u2 + quartic * u2 * u2)
+    s01 = lam2 * (M2[p, 0, 1] - lam2 * (w0 * u1 + u0 * w1) + quartic * u0 * u1)
+    s02 = lam2 * (M2[p, 0, 2] - lam2 * (w0 * u2 + u0 * w2) + quartic * u0 * u2)
+    s12 = lam2 * (M2[p, 1, 2] - lam2 * (w1 * u2 + u1 * w2) + quartic * u1 * u2)
+    return s00, s11, s22, s01, s02, s12
+
+
+@njit(cache=True)
+def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, prune):
+    """Posteriors t_ip (eq. 13), ln P(Y | Λ) (eq. 12) and the M-step's pairs, for Σ_ip = Σ + σ_n² A_ip².
+
+    A pair is skipped (t_ip = 0) when a lower bound on its Mahalanobis distance shows its joint density
+    below `em.NEGLIGIBLE_POSTERIOR` times the outlier term (det Σ_ip ≥ det Σ bounds the rest). Σ_ip ⪯
+    C = c I + σ_n² A², c Σ's largest eigenvalue, of which n_i is an eigenvector with eigenvalue c (A n = 0)
+    and whose other eigenvalues are at most c + σ_n² r_p², r_p the ellipsoid's largest radius of
+    curvature (‖A‖ ≤ r_p: A is the inverse of the shape operator on the tangent plane), so that
+    eᵀ Σ_ip⁻¹ e ≥ (nᵀ e)² / c + (|e|² − (nᵀ e)²) / (c + σ_n² r_p²). Before even e is computed, x_ip lies
+    within the largest semi-axis a_p of t_p, so |e| ≥ |y − t_p| − a_p.
+
+    Parameters
+    ----------
+    y, n : (I, 3) float
+        Points and unit normals.
+    t, M, M2 : (P, 3) and (P, 3, 3) float
+        Ellipsoid centres, M_p and M_p².
+    reach : (P, 3) float
+        Per ellipsoid: a_p, the squared Mahalanobis distance beyond which a pair is negligible, and
+        c + σ_n² r_p².
+    Sigma : (3, 3) float
+    largest : float
+        c, the largest eigenvalue of Σ.
+    log_pi : (P,) float
+        ln π_p of the ellipsoids.
+    log_outlier : float
+        ln (π_{P+1} / V).
+    noise2 : float
+        σ_n² (rad²).
+    prune : float
+        Pairs with t_ip above this are returned for the M-step.
+
+    Returns
+    -------
+    t_ip : (I, P); t_outlier : (I,); log_likelihood : float;
+    pairs : (2, K) int (datum, ellipsoid), sorted by ellipsoid; precision : (K, 6) entries of Σ_ip⁻¹.
+    """
+    I, P = y.shape[0], t.shape[0]
+    posterior = np.zeros((I, P))
+    t_outlier = np.empty(I)
+    log_likelihood = 0.0
+    log_joint = np.empty(P)  # one datum's ln π_p N_ip, −∞ for skipped pairs
+    inverse = np.empty((P, 6))  # and its Σ_ip⁻¹
+    # Pairs above `prune` in datum order; only the first K rows of these buffers are ever touched.
+    kept_i, kept_p, kept_precision = np.empty(I * P, np.int64), np.empty(I * P, np.int64), np.empty((I * P, 6))
+    per_ellipsoid = np.zeros(P + 1, np.int64)
+    K = 0
+    for i in range(I):
+        peak = log_outlier
+        for p in range(P):
+            log_joint[p] = -np.inf
+            d0, d1, d2 = y[i, 0] - t[p, 0], y[i, 1] - t[p, 1], y[i, 2] - t[p, 2]
+            gap = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - reach[p, 0]
+            if gap > 0.0 and gap * gap > reach[p, 1] * reach[p, 2]:
+                continue
+            u0, u1, u2, lam, x0, x1, x2 = _normal_point(n, i, M, t, p)
+            e0, e1, e2 = y[i, 0] - x0, y[i, 1] - x1, y[i, 2] - x2
+            along = n[i, 0] * e0 + n[i, 1] * e1 + n[i, 2] * e2  # n is an eigenvector of Σ_ip ⪯ c I + σ_n² A²
+            across = e0 * e0 + e1 * e1 + e2 * e2 - along * along
+            if along * along / largest + across / reach[p, 2] > reach[p, 1]:
+                continue
+            s00, s11, s22, s01, s02, s12 = _spread(M, M2, p, u0, u1, u2, lam)
+            a, d, g = Sigma[0, 0] + noise2 * s00, Sigma[1, 1] + noise2 * s11, Sigma[2, 2] + noise2 * s22
+            b, c, f = Sigma[0, 1] + noise2 * s01, Sigma[0, 2] + noise2 * s02, Sigma[1, 2] + noise2 * s12
+            c00, c01, c02 = d * g - f * f, c * f - b * g, b * f - c * d  # cofactors: C⁻¹ = adj C / det C
+            c11, c12, c22 = a * g - c * c, b * c - a * f, a * d - b * b
+            det = a * c00 + b * c01 + c * c02
+            h = 1.0 / det
+            quadratic = (c00 * e0 * e0 + c11 * e1 * e1 + c22 * e2 * e2
+                         + 2.0 * (c01 * e0 * e1 + c02 * e0 * e2 + c12 * e1 * e2)) * h
+            log_joint[p] = log_pi[p] - 0.5 * (quadratic + math.log(det) + 3.0 * _LOG_2PI)
+            peak = max(peak, log_joint[p])
+            inverse[p, 0], inverse[p, 1], inverse[p, 2] = c00 * h, c11 * h, c22 * h
+            inverse[p, 3], inverse[p, 4], inverse[p, 5] = c01 * h, c02 * h, c12 * h
+        evidence = math.exp(log_outlier - peak)  # log-sum-exp over the classes, eqs. (12)-(13)
+        for p in range(P):
+            if log_joint[p] > -np.inf:
+                posterior[i, p] = math.exp(log_joint[p] - peak)
+                evidence += posterior[i, p]
+        for p in range(P):
+            if log_joint[p] > -np.inf:
+                posterior[i, p] /= evidence
+                if posterior[i, p] > prune:
+                    kept_i[K], kept_p[K] = i, p
+                    for j in range(6):
+                        kept_precision[K, j] = inverse[p, j]
+                    per_ellipsoid[p + 1] += 1
+                    K += 1
+        t_outlier[i] = math.exp(log_outlier - peak) / evidence
+        log_likelihood += peak + math.log(evidence)
+    start = np.cumsum(per_ellipsoid)  # counting sort of the kept pairs by ellipsoid (stable in i)
+    pairs = np.empty((2, K), dtype=np.int64)
+    precision = np.empty((K, 6))
+    for k in range(K):
+        slot = start[kept_p[k]]
+        start[kept_p[k]] += 1
+        pairs[0, slot], pairs[1, slot] = kept_i[k], kept_p[k]
+        for j in range(6):
+            precision[slot, j] = kept_precision[k, j]
+    return posterior, t_outlier, log_likelihood, pairs, precision
+
+
+@njit(cache=True)
+def residuals(y, n, i, p, t, M):
+    """e_ip = y_i − x_ip (K, 3) of the pairs (i[k], p[k]) (eq. 4)."""
+    K = i.shape[0]
+    e = np.empty((K, 3))
+    for k in range(K):
+        _, _, _, _, x0, x1, x2 = _normal_point(n, i[k], M, t, p[k])
+        e[k, 0], e[k, 1], e[k, 2] = y[i[k], 0] - x0, y[i[k], 1] - x1, y[i[k], 2] - x2
+    return e
+
+
+@njit(cache=True)
+def normal_equations(y, n, i, p, W, t, M, root):
+    """Whitened residuals and rigid derivatives of the pairs, and their normal equations per ellipsoid.
+
+    For pair k with lower-triangular weight W_k (t_ip Σ_ip⁻¹ = W Wᵀ): r_k = W_kᵀ e_k, Bw_k = W_kᵀ B_k with
+    B_k = de/d(ω, v) = [[x]× − A [n]×, −I] (3 × 6), and per ellipsoid H_p = Σ Bwᵀ Bw (6 × 6),
+    g_p = Σ Bwᵀ r (6,). Also de/d(ln s) = −(x − c) for a scaling of the body about its root c
+    (`distances.residuals`, ∂x/∂y = 0 for this distance).
+
+    Returns
+    -------
+    e : (K, 3); r : (K, 3); Bw : (K, 3, 6); H : (P, 6, 6); g : (P, 6); e_scale : (K, 3)
+    """
+    K, P = i.shape[0], t.shape[0]
+    e = np.empty((K, 3))
+    r = np.empty((K, 3))
+    Bw = np.empty((K, 3, 6))
+    H = np.zeros((P, 6, 6))
+    g = np.zeros((P, 6))
+    e_scale = np.empty((K, 3))
+    B = np.empty((3, 6))
+    for k in range(K):
+        q, d = p[k], i[k]
+        u0, u1, u2, lam, x0, x1, x2 = _normal_point(n, d, M, t, q)
+        e[k, 0], e[k, 1], e[k, 2] = y[d, 0] - x0, y[d, 1] - x1, y[d, 2] - x2
+        e_scale[k, 0], e_scale[k, 1], e_scale[k, 2] = root[0] - x0, root[1] - x1, root[2] - x2
+        lam3 = lam * lam * lam
+        # A = λ M − λ³ u uᵀ, then A [n]× column by column: [n]× e_j = n × e_j
+        a00, a11 = lam * M[q, 0, 0] - lam3 * u0 * u0, lam * M[q, 1, 1] - lam3 * u1 * u1
+        a22, a01 = lam * M[q, 2, 2] - lam3 * u2 * u2, lam * M[q, 0, 1] - lam3 * u0 * u1
+        a02, a12 = lam * M[q, 0, 2] - lam3 * u0 * u2, lam * M[q, 1, 2] - lam3 * u1 * u2
+        n0, n1, n2 = n[d, 0], n[d, 1], n[d, 2]
+        # [n]× = [[0, −n2, n1], [n2, 0, −n0], [−n1, n0, 0]]; (A [n]×)_{aj} = Σ_b A_ab [n]×_bj
+        an00, an01, an02 = a01 * n2 - a02 * n1, -a00 * n2 + a02 * n0, a00 * n1 - a01 * n0
+        an10, an11, an12 = a11 * n2 - a12 * n1, -a01 * n2 + a12 * n0, a01 * n1 - a11 * n0
+        an20, an21, an22 = a12 * n2 - a22 * n1, -a02 * n2 + a22 * n0, a02 * n1 - a12 * n0
+        # B = [[x]× − A [n]×, −I]; [x]× = [[0, −x2, x1], [x2, 0, −x0], [−x1, x0, 0]]
+        B[0, 0], B[0, 1], B[0, 2] = -an00, -x2 - an01, x1 - an02
+        B[1, 0], B[1, 1], B[1, 2] = x2 - an10, -an11, -x0 - an12
+        B[2, 0], B[2, 1], B[2, 2] = -x1 - an20, x0 - an21, -an22
+        for a in range(3):
+            for j in range(3):
+                B[a, 3 + j] = -1.0 if a == j else 0.0
+        for b in range(3):  # (Wᵀ X)_b = Σ_{a ≥ b} W_ab X_a (W lower-triangular)
+            acc = 0.0
+            for a in range(b, 3):
+                acc += W[k, a, b] * e[k, a]
+            r[k, b] = acc
+            for j in range(6):
+                acc = 0.0
+                for a in range(b, 3):
+                    acc += W[k, a, b] * B[a, j]
+                Bw[k, b, j] = acc
+        for j in range(6):
+            for l in range(j, 6):
+                H[q, j, l] += Bw[k, 0, j] * Bw[k, 0, l] + Bw[k, 1, j] * Bw[k, 1, l] + Bw[k, 2, j] * Bw[k, 2, l]
+            g[q, j] += Bw[k, 0, j] * r[k, 0] + Bw[k, 1, j] * r[k, 1] + Bw[k, 2, j] * r[k, 2]
+    for q in range(P):
+        for j in range(6):
+            for l in range(j):
+                H[q, j, l] = H[q, l, j]
+    return e, r, Bw, H, g, e_scale
+
+
+@njit(cache=True)
+def weighted_spread(n, i, p, weight, M, M2):
+    """Σ_k w_k A_k² (six entries) over the pairs: the normals' share of the residual scatter (M-step)."""
+    total = np.zeros(6)
+    for k in range(i.shape[0]):
+        u0, u1, u2, lam = _normal_direction(n, i[k], M, p[k])
+        s00, s11, s22, s01, s02, s12 = _spread(M, M2, p[k], u0, u1, u2, lam)
+        w = weight[k]
+        total[0] += w * s00
+        total[1] += w * s11
+        total[2] += w * s22
+        total[3] += w * s01
+        total[4] += w * s02
+        total[5] += w * s12
+    return total
+
+
+@njit(cache=True)
+def forward_kinematics(parent, offset, dof_start, dof_axis, dof_revolute, pose):
+    """Segment frames and world DOF axes of a pose (`body.BodyModel.fk`), down the tree in segment order.
+
+    A segment's frame is its parent's moved by the segment's offset, then turned or shifted by each of
+    its DOFs in turn (Rodrigues' formula about the DOF's axis in the current frame).
+
+    Returns
+    -------
+    R : (S, 3, 3); t : (S, 3); axis : (D, 3); origin : (D, 3)
+    """
+    S, D = parent.shape[0], pose.shape[0]
+    R, t = np.empty((S, 3, 3)), np.empty((S, 3))
+    axis, origin = np.empty((D, 3)), np.empty((D, 3))
+    frame, position, turned = np.empty((3, 3)), np.empty(3), np.empty((3, 3))
+    for s in range(S):
+        q = parent[s]
+        for a in range(3):
+            position[a] = 0.0
+            for b in range(3):
+                frame[a, b] = (1.0 if a == b else 0.0) if q < 0 else R[q, a, b]
+            if q >= 0:
+                position[a] = t[q, a] + (R[q, a, 0] * offset[s, 0] + R[q, a, 1] * offset[s, 1]
+                                         + R[q, a, 2] * offset[s, 2])
+        for d in range(dof_start[s], dof_start[s + 1]):
+            w0, w1, w2 = dof_axis[d, 0], dof_axis[d, 1], dof_axis[d, 2]
+            for a in range(3):
+                axis[d, a] = frame[a, 0] * w0 + frame[a, 1] * w1 + frame[a, 2] * w2
+            if dof_revolute[d]:
+                for a in range(3):
+                    origin[d, a] = position[a]
+                sin, cos = math.sin(pose[d]), 1.0 - math.cos(pose[d])
+                # local = I + sin K + (1 − cos) K², K = [w]×, K² = w wᵀ − I
+                local = np.array([[1.0 + cos * (w0 * w0 - 1.0), -sin * w2 + cos * w0 * w1, sin * w1 + cos * w0 * w2],
+                                  [sin * w2 + cos * w0 * w1, 1.0 + cos * (w1 * w1 - 1.0), -sin * w0 + cos * w1 * w2],
+                                  [-sin * w1 + cos * w0 * w2, sin * w0 + cos * w1 * w2, 1.0 + cos * (w2 * w2 - 1.0)]])
+                for a in range(3):
+                    for b in range(3):
+                        turned[a, b] = frame[a, 0] * local[0, b] + frame[a, 1] * local[1, b] + frame[a, 2] * local[2, b]
+                frame[:, :] = turned
+            else:
+                for a in range(3):
+                    position[a] += axis[d, a] * pose[d]
+                    origin[d, a] = position[a]
+        R[s] = frame
+        t[s] = position
+    return R, t, axis, origin

@@ -1,0 +1,51 @@
+"""The compiled inner loops of EM against the numpy reference of `distances`."""
+
+import numpy as np
+import pytest
+from tracking_testing import random_pose, sample_ellipsoids
+
+from stages.tracking import compiled
+from stages.tracking.body import load_body
+from stages.tracking.distances import normal_spread, residuals, shape_matrices, symmetric_matrices
+
+
+@pytest.fixture(scope="module")
+def pairs():
+    body = load_body("default")
+    rng = np.random.default_rng(30)
+    truth = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, truth, 200, rng, outlier_fraction=0.2)
+    kin = body.fk(truth + rng.normal(0.0, 0.05, body.pose_size))
+    p = np.sort(rng.integers(0, body.n_ellipsoids, 500))  # sorted by ellipsoid, as EM keeps them
+    i = rng.integers(0, len(y), 500)
+    return y, n, i, p, kin, body.ellipsoids(kin), rng
+
+
+def test_residuals_match_the_reference(pairs):
+    y, n, i, p, kin, ell, _ = pairs
+    expected = residuals(y, n, i, p, kin, ell).e
+    np.testing.assert_allclose(compiled.residuals(y, n, i, p, ell.t, shape_matrices(ell, 2.0)), expected, atol=1e-14)
+
+
+def test_normal_equations_match_the_reference(pairs):
+    y, n, i, p, kin, ell, rng = pairs
+    L = np.tril(rng.normal(size=(len(i), 3, 3))) + 3.0 * np.eye(3)  # any lower-triangular weights
+    e, r, Bw, H, g, e_scale = compiled.normal_equations(y, n, i, p, L, ell.t, shape_matrices(ell, 2.0), kin.t[0])
+    ref = residuals(y, n, i, p, kin, ell, jacobian=True, scale=True)
+    Lt = L.transpose(0, 2, 1)
+    np.testing.assert_allclose(e, ref.e, atol=1e-14)
+    np.testing.assert_allclose(e_scale, ref.J_scale, atol=1e-14)
+    np.testing.assert_allclose(r, (Lt @ ref.e[:, :, None])[:, :, 0], atol=1e-12)
+    np.testing.assert_allclose(Bw, Lt @ ref.B, atol=1e-12)
+    for q in range(len(ell.t)):
+        block = Bw[p == q].reshape(-1, 6)
+        np.testing.assert_allclose(H[q], block.T @ block, atol=1e-10)
+        np.testing.assert_allclose(g[q], block.T @ r[p == q].reshape(-1), atol=1e-10)
+
+
+def test_weighted_spread_matches_the_reference(pairs):
+    _, n, i, p, _, ell, rng = pairs
+    w = rng.uniform(0.0, 1.0, len(i))
+    total = compiled.weighted_spread(n, i, p, w, shape_matrices(ell, 2.0), shape_matrices(ell, 4.0))
+    expected = np.einsum("k,kab->ab", w, normal_spread(n[i], ell, p))
+    np.testing.assert_allclose(symmetric_matrices(tuple(total[:, None]))[0], expected, atol=1e-12)
