@@ -101,18 +101,43 @@ def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, p
     t_ip : (I, P); t_outlier : (I,); log_likelihood : float;
     pairs : (2, K) int (datum, ellipsoid), sorted by ellipsoid; precision : (K, 6) entries of Σ_ip⁻¹.
     """
+    I = y.shape[0]
+    log_evidence, posterior, pairs, precision = _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi,
+                                                         np.full(I, log_outlier), noise2, prune, True)
+    return posterior, np.exp(log_outlier - log_evidence), log_evidence.sum(), pairs, precision
+
+
+@njit(cache=True)
+def log_evidence(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2):
+    """ln(exp(b_i) + Σ_p π_p N(y_i | x_ip, Σ_ip)) per datum (I,), pairs skipped as in `e_step`.
+
+    With b_i = ln(π_{P+1} / V) these are the terms of ln P(Y | Λ) (eq. 12); with b_i the evidence of the
+    other ellipsoids (this function on them), they add a few ellipsoids to an evidence computed once,
+    which is how limb hypotheses are scored with the rest of the body fixed. `reach` must be computed
+    for the smallest b_i.
+    """
+    return _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, 1.0, False)[0]
+
+
+@njit(cache=True)
+def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, prune, posteriors):
+    """Per datum ln(exp(b_i) + Σ_p π_p N_ip) and, with `posteriors`, t_ip and the pairs above `prune`.
+
+    The pair's algebra is written out in this one loop rather than in a helper: a helper taking arrays
+    that LLVM does not inline costs more than the arithmetic.
+    """
     I, P = y.shape[0], t.shape[0]
-    posterior = np.zeros((I, P))
-    t_outlier = np.empty(I)
-    log_likelihood = 0.0
+    evidence_log = np.empty(I)
+    posterior = np.zeros((I, P) if posteriors else (0, P))
     log_joint = np.empty(P)  # one datum's ln π_p N_ip, −∞ for skipped pairs
     inverse = np.empty((P, 6))  # and its Σ_ip⁻¹
     # Pairs above `prune` in datum order; only the first K rows of these buffers are ever touched.
-    kept_i, kept_p, kept_precision = np.empty(I * P, np.int64), np.empty(I * P, np.int64), np.empty((I * P, 6))
+    room = I * P if posteriors else 0
+    kept_i, kept_p, kept_precision = np.empty(room, np.int64), np.empty(room, np.int64), np.empty((room, 6))
     per_ellipsoid = np.zeros(P + 1, np.int64)
     K = 0
     for i in range(I):
-        peak = log_outlier
+        peak = log_base[i]
         for p in range(P):
             log_joint[p] = -np.inf
             d0, d1, d2 = y[i, 0] - t[p, 0], y[i, 1] - t[p, 1], y[i, 2] - t[p, 2]
@@ -138,22 +163,22 @@ def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, p
             peak = max(peak, log_joint[p])
             inverse[p, 0], inverse[p, 1], inverse[p, 2] = c00 * h, c11 * h, c22 * h
             inverse[p, 3], inverse[p, 4], inverse[p, 5] = c01 * h, c02 * h, c12 * h
-        evidence = math.exp(log_outlier - peak)  # log-sum-exp over the classes, eqs. (12)-(13)
+        evidence = math.exp(log_base[i] - peak)  # log-sum-exp over the classes, eqs. (12)-(13)
         for p in range(P):
             if log_joint[p] > -np.inf:
-                posterior[i, p] = math.exp(log_joint[p] - peak)
-                evidence += posterior[i, p]
+                evidence += math.exp(log_joint[p] - peak)
+        evidence_log[i] = peak + math.log(evidence)
+        if not posteriors:
+            continue
         for p in range(P):
             if log_joint[p] > -np.inf:
-                posterior[i, p] /= evidence
+                posterior[i, p] = math.exp(log_joint[p] - evidence_log[i])
                 if posterior[i, p] > prune:
                     kept_i[K], kept_p[K] = i, p
                     for j in range(6):
                         kept_precision[K, j] = inverse[p, j]
                     per_ellipsoid[p + 1] += 1
                     K += 1
-        t_outlier[i] = math.exp(log_outlier - peak) / evidence
-        log_likelihood += peak + math.log(evidence)
     start = np.cumsum(per_ellipsoid)  # counting sort of the kept pairs by ellipsoid (stable in i)
     pairs = np.empty((2, K), dtype=np.int64)
     precision = np.empty((K, 6))
@@ -163,7 +188,7 @@ def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, p
         pairs[0, slot], pairs[1, slot] = kept_i[k], kept_p[k]
         for j in range(6):
             precision[slot, j] = kept_precision[k, j]
-    return posterior, t_outlier, log_likelihood, pairs, precision
+    return evidence_log, posterior, pairs, precision
 
 
 @njit(cache=True)

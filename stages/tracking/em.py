@@ -21,11 +21,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import logsumexp
 
 from stages.tracking import compiled
 from stages.tracking.body import BodyModel, Ellipsoids, Kinematics
 from stages.tracking.distances import (
     DISTANCES,
+    all_residuals,
     residual_lower_bound,
     residual_size,
     residuals,
@@ -245,20 +247,12 @@ def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixtu
         return EStep(t=np.zeros((0, P)), t_outlier=np.zeros(0), log_likelihood=0.0,
                      pairs=np.zeros((2, 0), dtype=int), precision=np.zeros((0, k, k)))
     log_outlier = np.log(mixture.pi[P]) - np.log(V)  # ln π_{P+1} / V
-    # Squared Mahalanobis distance beyond which ln π_p N_ip is below ln(NEGLIGIBLE_POSTERIOR π_{P+1} / V),
-    # using det Σ_ip ≥ det Σ: (P,)
-    log_norm = -0.5 * (np.linalg.slogdet(mixture.Sigma)[1] + k * np.log(2.0 * np.pi))
-    reach = -2.0 * (log_outlier + np.log(NEGLIGIBLE_POSTERIOR) - np.log(mixture.pi[:P]) - log_norm)
-    largest = np.linalg.eigvalsh(mixture.Sigma)[-1]
+    reach, log_norm, largest = _reach(mixture.Sigma, np.log(mixture.pi[:P]), log_outlier)
     if distance == "normals":
-        noise2 = normal_noise_rad**2
-        a = ellipsoids.semi_axes
-        # Σ_ip's largest eigenvalue is at most c + σ_n² ‖A_ip‖², ‖A_ip‖ at most the largest radius of
-        # curvature a_max² / a_min (`compiled.e_step`).
-        bounds = np.c_[a.max(axis=1), reach, largest + noise2 * (a.max(axis=1) ** 2 / a.min(axis=1)) ** 2]
         t, t_outlier, log_likelihood, pairs, precision = compiled.e_step(
-            y, n, ellipsoids.t, shape_matrices(ellipsoids, 2.0), shape_matrices(ellipsoids, 4.0), bounds,
-            mixture.Sigma, largest, np.log(mixture.pi[:P]), log_outlier, noise2, PRUNE_POSTERIOR)
+            y, n, ellipsoids.t, shape_matrices(ellipsoids, 2.0), shape_matrices(ellipsoids, 4.0),
+            _compiled_bounds(ellipsoids, reach, largest, normal_noise_rad), mixture.Sigma, largest,
+            np.log(mixture.pi[:P]), log_outlier, normal_noise_rad**2, PRUNE_POSTERIOR)
         return EStep(t=t, t_outlier=t_outlier, log_likelihood=log_likelihood, pairs=pairs,
                      precision=symmetric_matrices(tuple(precision.T)))
     # eᵀ Σ⁻¹ e ≥ |e|² / c, c the largest eigenvalue of Σ
@@ -278,6 +272,48 @@ def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixtu
     used = posterior > PRUNE_POSTERIOR
     return EStep(t=t, t_outlier=np.exp(log_outlier - peak) / evidence, log_likelihood=log_likelihood,
                  pairs=np.stack([i[used], p[used]]), precision=np.broadcast_to(W, (np.count_nonzero(used), k, k)))
+
+
+def log_evidence(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixture, V: float, *,
+                 which: np.ndarray | None = None, base: np.ndarray | None = None, distance: str = "normals",
+                 normal_noise_rad: float = 0.0) -> np.ndarray:
+    """Per datum ln(exp(b_i) + Σ_{p ∈ which} π_p N(y_i | x_ip, Σ_ip)) (I,), pairs skipped as in `e_step`.
+
+    With every ellipsoid and b_i = ln(π_{P+1} / V) (the defaults) these are the terms of ln P(Y | Λ)
+    (eq. 12). Evidence is additive over the classes, so hypotheses that move only a few ellipsoids are
+    scored by computing the others' evidence once (`which` = the others) and passing it as `base`.
+    """
+    P = len(ellipsoids.t)
+    which = np.arange(P) if which is None else np.asarray(which)
+    log_outlier = np.log(mixture.pi[P]) - np.log(V)
+    base = np.full(len(y), log_outlier) if base is None else np.asarray(base, dtype=float)
+    chosen = Ellipsoids(R=ellipsoids.R[which], t=ellipsoids.t[which], semi_axes=ellipsoids.semi_axes[which])
+    log_pi = np.log(mixture.pi[which])
+    if len(y) == 0:
+        return np.zeros(0)
+    reach, log_norm, largest = _reach(mixture.Sigma, log_pi, float(base.min()))
+    if distance == "normals":
+        return compiled.log_evidence(y, n, chosen.t, shape_matrices(chosen, 2.0), shape_matrices(chosen, 4.0),
+                                     _compiled_bounds(chosen, reach, largest, normal_noise_rad), mixture.Sigma,
+                                     largest, log_pi, base, normal_noise_rad**2)
+    e = all_residuals(y, n, chosen, distance=distance)  # (I, P', k)
+    log_joint = log_pi + log_norm - 0.5 * np.einsum("ipa,ab,ipb->ip", e, np.linalg.inv(mixture.Sigma), e)
+    return np.logaddexp(base, logsumexp(log_joint, axis=1))
+
+
+def _reach(Sigma: np.ndarray, log_pi: np.ndarray, log_floor: float) -> tuple[np.ndarray, float, float]:
+    """Squared Mahalanobis distance (P,) beyond which ln π_p N_ip is below ln NEGLIGIBLE_POSTERIOR + `log_floor`
+    (using det Σ_ip ≥ det Σ), with ln of N's normalising constant at Σ and Σ's largest eigenvalue."""
+    log_norm = -0.5 * (np.linalg.slogdet(Sigma)[1] + len(Sigma) * np.log(2.0 * np.pi))
+    reach = -2.0 * (log_floor + np.log(NEGLIGIBLE_POSTERIOR) - log_pi - log_norm)
+    return reach, log_norm, np.linalg.eigvalsh(Sigma)[-1]
+
+
+def _compiled_bounds(ellipsoids: Ellipsoids, reach: np.ndarray, largest: float, normal_noise_rad: float) -> np.ndarray:
+    """`compiled.e_step`'s per-ellipsoid bounds (P, 3): a_max, `reach`, and c + σ_n² (a_max² / a_min)², the
+    bound on Σ_ip's largest eigenvalue (‖A_ip‖ is at most the largest radius of curvature a_max² / a_min)."""
+    a = ellipsoids.semi_axes
+    return np.c_[a.max(axis=1), reach, largest + normal_noise_rad**2 * (a.max(axis=1) ** 2 / a.min(axis=1)) ** 2]
 
 
 def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixture: Mixture,

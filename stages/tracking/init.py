@@ -20,15 +20,15 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from stages.joints import JOINT_NAMES
-from stages.tracking.body import BodyModel, Ellipsoids
-from stages.tracking.distances import all_residuals, residual_size
+from stages.tracking.body import BodyModel
+from stages.tracking.distances import residual_size
 from stages.tracking.em import (
     HEIGHT_RANGE_M,
     EMParams,
     FitResult,
     Mixture,
-    e_step,
     fit,
+    log_evidence,
     volume_size,
 )
 
@@ -47,8 +47,6 @@ _TOP_NEIGHBOURS = 2
 _SCORE_SIGMA_M = 0.06
 # Each round of the refinement keeps the best quarter of its hypotheses (24 → 6 → 1 by default).
 _KEEP_DIVISOR = 4
-# Hypotheses scored together: bounds the (data × ellipsoids) residual arrays to a few megabytes.
-_SCORE_CHUNK = 8
 
 
 @dataclass(frozen=True)
@@ -295,12 +293,11 @@ def _placed(body: BodyModel, pose: np.ndarray, yaw: float, centre: np.ndarray) -
 
 
 def _score(y, n, centre, bodies, poses, yaws, mixture, V, distance) -> np.ndarray:
-    """Log-likelihood (eq. 12) (M, H) of every candidate pose at every heading, computed at once.
+    """Log-likelihood (eq. 12) (M, H) of every candidate pose at every heading.
 
-    `mixture` is the initial one (Σ = σ² I, equal priors), so the Gaussians need no whitening.
     Turning a hypothesis by ψ about the vertical through `centre` is turning the data by −ψ, so the
     data are turned once per heading (H × I rows) and every candidate's ellipsoids (facing +y, centred
-    on the origin) are compared with all of them.
+    on the origin) are compared with all of them at once.
     """
     c, s = np.cos(-yaws), np.sin(-yaws)
     Rz = np.zeros((len(yaws), 3, 3))
@@ -308,23 +305,11 @@ def _score(y, n, centre, bodies, poses, yaws, mixture, V, distance) -> np.ndarra
     offset = np.array([centre[0], centre[1], 0.0])
     y_turned = np.einsum("hab,ib->hia", Rz, y - offset).reshape(-1, 3)  # (H·I, 3)
     n_turned = np.einsum("hab,ib->hia", Rz, n).reshape(-1, 3)
-    ellipsoids = [b.ellipsoids(_placed(b, q, 0.0, np.zeros(2))) for b, q in zip(bodies, poses, strict=True)]
-    P, I, H = bodies[0].n_ellipsoids, len(y), len(yaws)
-    k = len(mixture.Sigma)
-    sigma2 = mixture.Sigma[0, 0]
-    log_pi = np.log(mixture.pi[:P])
-    log_outlier = np.log(mixture.pi[P]) - np.log(V)
-    scores = np.empty((len(poses), H))
-    for start in range(0, len(poses), _SCORE_CHUNK):
-        chunk = ellipsoids[start: start + _SCORE_CHUNK]
-        stacked = Ellipsoids(R=np.concatenate([e.R for e in chunk]), t=np.concatenate([e.t for e in chunk]),
-                             semi_axes=np.concatenate([e.semi_axes for e in chunk]))
-        e = all_residuals(y_turned, n_turned, stacked, distance=distance)  # (H·I, C·P, k)
-        squared = np.einsum("...a,...a->...", e, e).reshape(H, I, len(chunk), P)
-        log_joint = log_pi - 0.5 * (squared / sigma2 + k * np.log(2.0 * np.pi * sigma2))  # Σ = σ² I
-        peak = np.maximum(log_joint.max(axis=3), log_outlier)  # (H,I,C)
-        evidence = np.exp(log_joint - peak[..., None]).sum(axis=3) + np.exp(log_outlier - peak)
-        scores[start: start + len(chunk)] = (peak + np.log(evidence)).sum(axis=1).T
+    scores = np.empty((len(poses), len(yaws)))
+    for m, (b, q) in enumerate(zip(bodies, poses, strict=True)):
+        terms = log_evidence(y_turned, n_turned, b.ellipsoids(_placed(b, q, 0.0, np.zeros(2))), mixture, V,
+                             distance=distance)
+        scores[m] = terms.reshape(len(yaws), -1).sum(axis=1)
     return scores
 
 
@@ -470,8 +455,12 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     mixture = replace(result.mixture, pi=pi / pi.sum())
     V = volume_size(volume)
     subset = rng.permutation(len(y))[:_LIMB_SCORE_POINTS]
-    scores = [e_step(y[subset], n[subset], body, q, mixture, V, distance=em.distance,
-                     normal_noise_rad=em.normal_noise_rad).log_likelihood for q in hypotheses]
+    ys, ns = y[subset], n[subset]
+    # The rest of the body does not move: its evidence is computed once, the limb's added per hypothesis.
+    rest = log_evidence(ys, ns, body.ellipsoids(pose), mixture, V, which=np.flatnonzero(~mine),
+                        distance=em.distance, normal_noise_rad=em.normal_noise_rad)
+    scores = [log_evidence(ys, ns, body.ellipsoids(q), mixture, V, which=np.flatnonzero(mine), base=rest,
+                           distance=em.distance, normal_noise_rad=em.normal_noise_rad).sum() for q in hypotheses]
     best = result
     for q in hypotheses[np.argsort(scores)[::-1][:_LIMB_REFINE]]:
         refined = fit(y, n, body, q, volume, em, mixture=mixture)

@@ -6,7 +6,7 @@ from tracking_testing import VOLUME, random_pose, sample_ellipsoids
 
 from stages.tracking.body import load_body
 from stages.tracking.distances import all_residuals, normal_spread
-from stages.tracking.em import EMParams, Mixture, e_step, fit, m_step, volume_size
+from stages.tracking.em import EMParams, Mixture, e_step, fit, log_evidence, m_step, volume_size
 
 
 @pytest.fixture(scope="module")
@@ -159,3 +159,21 @@ def test_pruned_e_step_equals_the_dense_one(body, distance, noise_deg, sigma_m):
     assert np.mean(estep.t == 0.0) > 0.5  # most pairs were skipped
 
 
+
+
+@pytest.mark.parametrize("distance", ["normals", "points"])
+def test_log_evidence_adds_up_over_ellipsoids(body, distance):
+    rng = np.random.default_rng(18)
+    truth = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, truth, 300, rng, outlier_fraction=0.2)
+    pose = truth + rng.normal(0.0, 0.03, body.pose_size)
+    mixture = Mixture(Sigma=np.diag([1.0, 1.5, 0.7]) * 0.02**2, pi=rng.dirichlet(np.ones(body.n_ellipsoids + 1)))
+    V, sigma_n, ell = volume_size(VOLUME), np.radians(10.0), body.ellipsoids(pose)
+    whole = log_evidence(y, n, ell, mixture, V, distance=distance, normal_noise_rad=sigma_n)
+    estep = e_step(y, n, body, pose, mixture, V, distance=distance, normal_noise_rad=sigma_n)
+    assert whole.sum() == pytest.approx(estep.log_likelihood, rel=1e-12)
+    limb = np.flatnonzero(np.isin(body.ellipsoid_segment, [1, 2, 3]))
+    rest = log_evidence(y, n, ell, mixture, V, which=np.setdiff1d(np.arange(body.n_ellipsoids), limb),
+                        distance=distance, normal_noise_rad=sigma_n)
+    added = log_evidence(y, n, ell, mixture, V, which=limb, base=rest, distance=distance, normal_noise_rad=sigma_n)
+    np.testing.assert_allclose(added, whole, rtol=0, atol=1e-6)
