@@ -29,7 +29,7 @@ _LOG_2PI = math.log(2.0 * math.pi)
 # The pair helpers take whole arrays and indices, never row views: a view costs reference counting.
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _normal_direction(n, i, M, p):
     """u = M_p n_i and λ = (n_iᵀ M_p n_i)^(-1/2) of eq. (4)."""
     n0, n1, n2 = n[i, 0], n[i, 1], n[i, 2]
@@ -39,14 +39,14 @@ def _normal_direction(n, i, M, p):
     return u0, u1, u2, 1.0 / math.sqrt(n0 * u0 + n1 * u1 + n2 * u2)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _normal_point(n, i, M, t, p):
     """u = M_p n_i, λ and x_ip = t_p + λ u of eq. (4)."""
     u0, u1, u2, lam = _normal_direction(n, i, M, p)
     return u0, u1, u2, lam, t[p, 0] + lam * u0, t[p, 1] + lam * u1, t[p, 2] + lam * u2
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _spread(M, M2, p, u0, u1, u2, lam):
     """A² = λ² (M² − λ² (w uᵀ + u wᵀ) + λ⁴ |u|² u uᵀ), w = M u, as six entries (`distances.normal_spread`)."""
     w0 = M[p, 0, 0] * u0 + M[p, 0, 1] * u1 + M[p, 0, 2] * u2
@@ -63,12 +63,15 @@ def _spread(M, M2, p, u0, u1, u2, lam):
     return s00, s11, s22, s01, s02, s12
 
 
-@njit(cache=True)
-def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, prune):
+@njit(cache=True, error_model="numpy")
+def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, prune, first):
     """Posteriors t_ip (eq. 13), ln P(Y | Λ) (eq. 12) and the M-step's pairs, for Σ_ip = Σ + σ_n² A_ip².
 
     A pair is skipped (t_ip = 0) when a lower bound on its Mahalanobis distance shows its joint density
-    below `em.NEGLIGIBLE_POSTERIOR` times the outlier term (det Σ_ip ≥ det Σ bounds the rest). Σ_ip ⪯
+    below `em.NEGLIGIBLE_POSTERIOR` times the largest term of the datum's evidence met so far, the outlier
+    term or a pair's (det Σ_ip ≥ det Σ bounds the rest); the skipped pairs then change the evidence by
+    less than P times that fraction. Visiting first the ellipsoid that explained the datum best in the
+    previous iteration (`first`) makes that largest term a real pair's at once. Σ_ip ⪯
     C = c I + σ_n² A², c Σ's largest eigenvalue, of which n_i is an eigenvector with eigenvalue c (A n = 0)
     and whose other eigenvalues are at most c + σ_n² r_p², r_p the ellipsoid's largest radius of
     curvature (‖A‖ ≤ r_p: A is the inverse of the shape operator on the tangent plane), so that
@@ -82,8 +85,8 @@ def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, p
     t, M, M2 : (P, 3) and (P, 3, 3) float
         Ellipsoid centres, M_p and M_p².
     reach : (P, 3) float
-        Per ellipsoid: a_p, the squared Mahalanobis distance beyond which a pair is negligible, and
-        c + σ_n² r_p².
+        Per ellipsoid: a_p; ρ_p such that a pair is negligible beyond the squared Mahalanobis distance
+        ρ_p − 2 m, m the largest term met so far; and c + σ_n² r_p².
     Sigma : (3, 3) float
     largest : float
         c, the largest eigenvalue of Σ.
@@ -95,6 +98,8 @@ def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, p
         σ_n² (rad²).
     prune : float
         Pairs with t_ip above this are returned for the M-step.
+    first : (I,) int
+        Ellipsoid to visit first for each datum (any, when there is no better guess).
 
     Returns
     -------
@@ -103,24 +108,24 @@ def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, p
     """
     I = y.shape[0]
     log_evidence, posterior, pairs, precision = _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi,
-                                                         np.full(I, log_outlier), noise2, prune, True)
+                                                         np.full(I, log_outlier), noise2, prune, True, first)
     return posterior, np.exp(log_outlier - log_evidence), log_evidence.sum(), pairs, precision
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def log_evidence(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2):
     """ln(exp(b_i) + Σ_p π_p N(y_i | x_ip, Σ_ip)) per datum (I,), pairs skipped as in `e_step`.
 
     With b_i = ln(π_{P+1} / V) these are the terms of ln P(Y | Λ) (eq. 12); with b_i the evidence of the
     other ellipsoids (this function on them), they add a few ellipsoids to an evidence computed once,
-    which is how limb hypotheses are scored with the rest of the body fixed. `reach` must be computed
-    for the smallest b_i.
+    which is how limb hypotheses are scored with the rest of the body fixed.
     """
-    return _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, 1.0, False)[0]
+    first = np.zeros(y.shape[0], np.int64)
+    return _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, 1.0, False, first)[0]
 
 
-@njit(cache=True)
-def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, prune, posteriors):
+@njit(cache=True, error_model="numpy")
+def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, prune, posteriors, first):
     """Per datum ln(exp(b_i) + Σ_p π_p N_ip) and, with `posteriors`, t_ip and the pairs above `prune`.
 
     The pair's algebra is written out in this one loop rather than in a helper: a helper taking arrays
@@ -137,18 +142,20 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
     per_ellipsoid = np.zeros(P + 1, np.int64)
     K = 0
     for i in range(I):
-        peak = log_base[i]
-        for p in range(P):
+        peak = log_base[i]  # the largest term of the evidence met so far
+        for step in range(P):
+            p = (first[i] + step) % P
             log_joint[p] = -np.inf
+            limit = reach[p, 1] - 2.0 * peak  # squared Mahalanobis distance of a negligible pair
             d0, d1, d2 = y[i, 0] - t[p, 0], y[i, 1] - t[p, 1], y[i, 2] - t[p, 2]
             gap = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - reach[p, 0]
-            if gap > 0.0 and gap * gap > reach[p, 1] * reach[p, 2]:
+            if gap > 0.0 and gap * gap > limit * reach[p, 2]:
                 continue
             u0, u1, u2, lam, x0, x1, x2 = _normal_point(n, i, M, t, p)
             e0, e1, e2 = y[i, 0] - x0, y[i, 1] - x1, y[i, 2] - x2
             along = n[i, 0] * e0 + n[i, 1] * e1 + n[i, 2] * e2  # n is an eigenvector of Σ_ip ⪯ c I + σ_n² A²
             across = e0 * e0 + e1 * e1 + e2 * e2 - along * along
-            if along * along / largest + across / reach[p, 2] > reach[p, 1]:
+            if along * along / largest + across / reach[p, 2] > limit:
                 continue
             s00, s11, s22, s01, s02, s12 = _spread(M, M2, p, u0, u1, u2, lam)
             a, d, g = Sigma[0, 0] + noise2 * s00, Sigma[1, 1] + noise2 * s11, Sigma[2, 2] + noise2 * s22
@@ -191,7 +198,7 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
     return evidence_log, posterior, pairs, precision
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def residuals(y, n, i, p, t, M):
     """e_ip = y_i − x_ip (K, 3) of the pairs (i[k], p[k]) (eq. 4)."""
     K = i.shape[0]
@@ -202,7 +209,7 @@ def residuals(y, n, i, p, t, M):
     return e
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def normal_equations(y, n, i, p, W, t, M, root):
     """Whitened residuals and rigid derivatives of the pairs, and their normal equations per ellipsoid.
 
@@ -266,7 +273,7 @@ def normal_equations(y, n, i, p, W, t, M, root):
     return e, r, Bw, H, g, e_scale
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def weighted_spread(n, i, p, weight, M, M2):
     """Σ_k w_k A_k² (six entries) over the pairs: the normals' share of the residual scatter (M-step)."""
     total = np.zeros(6)
@@ -283,7 +290,7 @@ def weighted_spread(n, i, p, weight, M, M2):
     return total
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def forward_kinematics(parent, offset, dof_start, dof_axis, dof_revolute, pose):
     """Segment frames and world DOF axes of a pose (`body.BodyModel.fk`), down the tree in segment order.
 

@@ -239,22 +239,27 @@ def e_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixt
 
 
 def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixture, V: float, distance: str,
-            normal_noise_rad: float) -> EStep:
-    """`e_step` on the posed ellipsoids: compiled for the paper's distance, numpy for the others."""
+            normal_noise_rad: float, previous: EStep | None = None) -> EStep:
+    """`e_step` on the posed ellipsoids: compiled for the paper's distance, numpy for the others.
+
+    `previous`, the E-step of the previous iteration, only says which ellipsoid to try first for each datum.
+    """
     I, P = len(y), len(ellipsoids.t)
     k = residual_size(distance)
     if I == 0:
         return EStep(t=np.zeros((0, P)), t_outlier=np.zeros(0), log_likelihood=0.0,
                      pairs=np.zeros((2, 0), dtype=int), precision=np.zeros((0, k, k)))
     log_outlier = np.log(mixture.pi[P]) - np.log(V)  # ln π_{P+1} / V
-    reach, log_norm, largest = _reach(mixture.Sigma, np.log(mixture.pi[:P]), log_outlier)
     if distance == "normals":
+        reach, _, largest = _reach(mixture.Sigma, np.log(mixture.pi[:P]), 0.0)
+        first = np.zeros(I, dtype=int) if previous is None else previous.t.argmax(axis=1)
         t, t_outlier, log_likelihood, pairs, precision = compiled.e_step(
             y, n, ellipsoids.t, shape_matrices(ellipsoids, 2.0), shape_matrices(ellipsoids, 4.0),
             _compiled_bounds(ellipsoids, reach, largest, normal_noise_rad), mixture.Sigma, largest,
-            np.log(mixture.pi[:P]), log_outlier, normal_noise_rad**2, PRUNE_POSTERIOR)
+            np.log(mixture.pi[:P]), log_outlier, normal_noise_rad**2, PRUNE_POSTERIOR, first)
         return EStep(t=t, t_outlier=t_outlier, log_likelihood=log_likelihood, pairs=pairs,
                      precision=symmetric_matrices(tuple(precision.T)))
+    reach, log_norm, largest = _reach(mixture.Sigma, np.log(mixture.pi[:P]), log_outlier)
     # eᵀ Σ⁻¹ e ≥ |e|² / c, c the largest eigenvalue of Σ
     p, i = np.nonzero(residual_lower_bound(y, ellipsoids, distance=distance) <= reach[:, None] * largest)
     e = residuals(y, n, i, p, None, ellipsoids, distance=distance).e
@@ -291,11 +296,12 @@ def log_evidence(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: 
     log_pi = np.log(mixture.pi[which])
     if len(y) == 0:
         return np.zeros(0)
-    reach, log_norm, largest = _reach(mixture.Sigma, log_pi, float(base.min()))
     if distance == "normals":
+        reach, _, largest = _reach(mixture.Sigma, log_pi, 0.0)
         return compiled.log_evidence(y, n, chosen.t, shape_matrices(chosen, 2.0), shape_matrices(chosen, 4.0),
                                      _compiled_bounds(chosen, reach, largest, normal_noise_rad), mixture.Sigma,
                                      largest, log_pi, base, normal_noise_rad**2)
+    log_norm = -0.5 * (np.linalg.slogdet(mixture.Sigma)[1] + len(mixture.Sigma) * np.log(2.0 * np.pi))
     e = all_residuals(y, n, chosen, distance=distance)  # (I, P', k)
     log_joint = log_pi + log_norm - 0.5 * np.einsum("ipa,ab,ipb->ip", e, np.linalg.inv(mixture.Sigma), e)
     return np.logaddexp(base, logsumexp(log_joint, axis=1))
@@ -303,7 +309,10 @@ def log_evidence(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: 
 
 def _reach(Sigma: np.ndarray, log_pi: np.ndarray, log_floor: float) -> tuple[np.ndarray, float, float]:
     """Squared Mahalanobis distance (P,) beyond which ln π_p N_ip is below ln NEGLIGIBLE_POSTERIOR + `log_floor`
-    (using det Σ_ip ≥ det Σ), with ln of N's normalising constant at Σ and Σ's largest eigenvalue."""
+    (using det Σ_ip ≥ det Σ), with ln of N's normalising constant at Σ and Σ's largest eigenvalue.
+
+    With `log_floor` 0 the compiled loops subtract twice the largest term met so far themselves.
+    """
     log_norm = -0.5 * (np.linalg.slogdet(Sigma)[1] + len(Sigma) * np.log(2.0 * np.pi))
     reach = -2.0 * (log_floor + np.log(NEGLIGIBLE_POSTERIOR) - log_pi - log_norm)
     return reach, log_norm, np.linalg.eigvalsh(Sigma)[-1]
@@ -404,7 +413,7 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
                              params.gauss_newton_steps, params.estimate_scale, params.estimate_lengths,
                              params.normal_noise_rad, params.min_outlier_prior, params.max_sigma_m)
         pose, mixture, body = mstep.pose, mstep.mixture, mstep.body
-        estep = _e_step(y, n, body.ellipsoids(kin), mixture, V, params.distance, params.normal_noise_rad)
+        estep = _e_step(y, n, body.ellipsoids(kin), mixture, V, params.distance, params.normal_noise_rad, estep)
         iterations += 1
         history.append(estep.log_likelihood)
         moved = joints
