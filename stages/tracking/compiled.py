@@ -125,6 +125,24 @@ def log_evidence(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2
 
 
 @njit(cache=True, error_model="numpy")
+def hypothesis_scores(y, n, blocks, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2):
+    """Σ over each block of data of `log_evidence`, for H posed sets of ellipsoids at once: (H, B).
+
+    `t`, `M`, `M2` and `reach` are `log_evidence`'s with a leading hypothesis axis (H, P, ...); data
+    block b is rows blocks[b]:blocks[b + 1] of y and n (the data turned to one heading, say).
+    """
+    H, B = t.shape[0], blocks.shape[0] - 1
+    first = np.zeros(y.shape[0], np.int64)
+    sums = np.zeros((H, B))
+    for h in range(H):
+        terms = _mixture(y, n, t[h], M[h], M2[h], reach[h], Sigma, largest, log_pi, log_base, noise2, 1.0, False,
+                         first)[0]
+        for b in range(B):
+            sums[h, b] = terms[blocks[b]:blocks[b + 1]].sum()
+    return sums
+
+
+@njit(cache=True, error_model="numpy")
 def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, prune, posteriors, first):
     """Per datum ln(exp(b_i) + Σ_p π_p N_ip) and, with `posteriors`, t_ip and the pairs above `prune`.
 

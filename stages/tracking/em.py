@@ -18,6 +18,7 @@ t_ip (`t`).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -305,6 +306,37 @@ def log_evidence(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: 
     e = all_residuals(y, n, chosen, distance=distance)  # (I, P', k)
     log_joint = log_pi + log_norm - 0.5 * np.einsum("ipa,ab,ipb->ip", e, np.linalg.inv(mixture.Sigma), e)
     return np.logaddexp(base, logsumexp(log_joint, axis=1))
+
+
+def hypothesis_scores(y: np.ndarray, n: np.ndarray, hypotheses: Sequence[Ellipsoids], mixture: Mixture, V: float,
+                      *, which: np.ndarray | None = None, base: np.ndarray | None = None,
+                      blocks: np.ndarray | None = None, distance: str = "normals",
+                      normal_noise_rad: float = 0.0) -> np.ndarray:
+    """`log_evidence` summed over blocks of data (default one block: ln P(Y | Λ), eq. 12) for many posed
+    bodies at once, (H, B): initialisation and limb re-initialisation score hundreds of hypotheses.
+
+    `blocks` (B + 1,) are the rows where each block starts, then the number of data.
+    """
+    blocks = np.array([0, len(y)]) if blocks is None else np.asarray(blocks)
+    P = len(hypotheses[0].t)
+    which = np.arange(P) if which is None else np.asarray(which)
+    if distance != "normals" or len(y) == 0:
+        return np.array([np.add.reduceat(np.r_[log_evidence(y, n, ell, mixture, V, which=which, base=base,
+                                                               distance=distance), 0.0], blocks)[:-1]
+                         for ell in hypotheses]).reshape(len(hypotheses), len(blocks) - 1)
+    log_outlier = np.log(mixture.pi[P]) - np.log(V)
+    base = np.full(len(y), log_outlier) if base is None else np.asarray(base, dtype=float)
+    chosen = Ellipsoids(R=np.concatenate([ell.R[which] for ell in hypotheses]),
+                        t=np.concatenate([ell.t[which] for ell in hypotheses]),
+                        semi_axes=np.concatenate([ell.semi_axes[which] for ell in hypotheses]))
+    log_pi = np.log(mixture.pi[which])
+    reach, _, largest = _reach(mixture.Sigma, np.tile(log_pi, len(hypotheses)), 0.0)
+    stack = (len(hypotheses), len(which))
+    return compiled.hypothesis_scores(
+        y, n, blocks, chosen.t.reshape(*stack, 3), shape_matrices(chosen, 2.0).reshape(*stack, 3, 3),
+        shape_matrices(chosen, 4.0).reshape(*stack, 3, 3),
+        _compiled_bounds(chosen, reach, largest, normal_noise_rad).reshape(*stack, 3), mixture.Sigma, largest,
+        log_pi, base, normal_noise_rad**2)
 
 
 def _reach(Sigma: np.ndarray, log_pi: np.ndarray, log_floor: float) -> tuple[np.ndarray, float, float]:

@@ -28,6 +28,7 @@ from stages.tracking.em import (
     FitResult,
     Mixture,
     fit,
+    hypothesis_scores,
     log_evidence,
     volume_size,
 )
@@ -305,12 +306,9 @@ def _score(y, n, centre, bodies, poses, yaws, mixture, V, distance) -> np.ndarra
     offset = np.array([centre[0], centre[1], 0.0])
     y_turned = np.einsum("hab,ib->hia", Rz, y - offset).reshape(-1, 3)  # (H·I, 3)
     n_turned = np.einsum("hab,ib->hia", Rz, n).reshape(-1, 3)
-    scores = np.empty((len(poses), len(yaws)))
-    for m, (b, q) in enumerate(zip(bodies, poses, strict=True)):
-        terms = log_evidence(y_turned, n_turned, b.ellipsoids(_placed(b, q, 0.0, np.zeros(2))), mixture, V,
+    hypotheses = [b.ellipsoids(_placed(b, q, 0.0, np.zeros(2))) for b, q in zip(bodies, poses, strict=True)]
+    return hypothesis_scores(y_turned, n_turned, hypotheses, mixture, V, blocks=np.arange(len(yaws) + 1) * len(y),
                              distance=distance)
-        scores[m] = terms.reshape(len(yaws), -1).sum(axis=1)
-    return scores
 
 
 def _cloud_top(y: np.ndarray) -> float:
@@ -459,8 +457,9 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     # The rest of the body does not move: its evidence is computed once, the limb's added per hypothesis.
     rest = log_evidence(ys, ns, body.ellipsoids(pose), mixture, V, which=np.flatnonzero(~mine),
                         distance=em.distance, normal_noise_rad=em.normal_noise_rad)
-    scores = [log_evidence(ys, ns, body.ellipsoids(q), mixture, V, which=np.flatnonzero(mine), base=rest,
-                           distance=em.distance, normal_noise_rad=em.normal_noise_rad).sum() for q in hypotheses]
+    scores = hypothesis_scores(ys, ns, [body.ellipsoids(q) for q in hypotheses], mixture, V,
+                               which=np.flatnonzero(mine), base=rest, distance=em.distance,
+                               normal_noise_rad=em.normal_noise_rad)[:, 0]
     best = result
     for q in hypotheses[np.argsort(scores)[::-1][:_LIMB_REFINE]]:
         refined = fit(y, n, body, q, volume, em, mixture=mixture)

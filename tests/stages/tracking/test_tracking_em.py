@@ -6,7 +6,16 @@ from tracking_testing import VOLUME, random_pose, sample_ellipsoids
 
 from stages.tracking.body import load_body
 from stages.tracking.distances import all_residuals, normal_spread
-from stages.tracking.em import EMParams, Mixture, e_step, fit, log_evidence, m_step, volume_size
+from stages.tracking.em import (
+    EMParams,
+    Mixture,
+    e_step,
+    fit,
+    hypothesis_scores,
+    log_evidence,
+    m_step,
+    volume_size,
+)
 
 
 @pytest.fixture(scope="module")
@@ -177,3 +186,19 @@ def test_log_evidence_adds_up_over_ellipsoids(body, distance):
                         distance=distance, normal_noise_rad=sigma_n)
     added = log_evidence(y, n, ell, mixture, V, which=limb, base=rest, distance=distance, normal_noise_rad=sigma_n)
     np.testing.assert_allclose(added, whole, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("distance", ["normals", "points"])
+def test_hypothesis_scores_sum_log_evidence_per_block(body, distance):
+    rng = np.random.default_rng(19)
+    truth = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, truth, 200, rng, outlier_fraction=0.2)
+    mixture = Mixture.initial(body.n_ellipsoids, 0.03)
+    V, sigma_n = volume_size(VOLUME), np.radians(10.0)
+    hypotheses = [body.ellipsoids(truth + rng.normal(0.0, 0.05, body.pose_size)) for _ in range(4)]
+    blocks = np.array([0, 50, 120, len(y)])
+    scores = hypothesis_scores(y, n, hypotheses, mixture, V, blocks=blocks, distance=distance,
+                               normal_noise_rad=sigma_n)
+    expected = [[log_evidence(y, n, ell, mixture, V, distance=distance, normal_noise_rad=sigma_n)[a:b].sum()
+                 for a, b in zip(blocks[:-1], blocks[1:], strict=True)] for ell in hypotheses]
+    np.testing.assert_allclose(scores, expected, rtol=1e-12)
