@@ -104,12 +104,13 @@ def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, p
     Returns
     -------
     t_ip : (I, P); t_outlier : (I,); log_likelihood : float;
-    pairs : (2, K) int (datum, ellipsoid), sorted by ellipsoid; precision : (K, 6) entries of Σ_ip⁻¹.
+    pairs : (2, K) int (datum, ellipsoid), sorted by ellipsoid;
+    weights : (K, 3, 3) lower-triangular W with t_ip Σ_ip⁻¹ = W Wᵀ (the M-step's whitening, eq. 14).
     """
     I = y.shape[0]
-    log_evidence, posterior, pairs, precision = _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi,
-                                                         np.full(I, log_outlier), noise2, prune, True, first)
-    return posterior, np.exp(log_outlier - log_evidence), log_evidence.sum(), pairs, precision
+    log_evidence, posterior, pairs, weights = _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi,
+                                                       np.full(I, log_outlier), noise2, prune, True, first)
+    return posterior, np.exp(log_outlier - log_evidence), log_evidence.sum(), pairs, weights
 
 
 @njit(cache=True, error_model="numpy")
@@ -206,14 +207,27 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
                     K += 1
     start = np.cumsum(per_ellipsoid)  # counting sort of the kept pairs by ellipsoid (stable in i)
     pairs = np.empty((2, K), dtype=np.int64)
-    precision = np.empty((K, 6))
+    weights = np.zeros((K, 3, 3))
     for k in range(K):
         slot = start[kept_p[k]]
         start[kept_p[k]] += 1
         pairs[0, slot], pairs[1, slot] = kept_i[k], kept_p[k]
-        for j in range(6):
-            precision[slot, j] = kept_precision[k, j]
-    return evidence_log, posterior, pairs, precision
+        _cholesky(kept_precision[k], posterior[kept_i[k], kept_p[k]], weights, slot)
+    return evidence_log, posterior, pairs, weights
+
+
+@njit(cache=True, error_model="numpy")
+def _cholesky(entries, scale, L, k):
+    """L[k] = the lower-triangular Cholesky factor of `scale` times the symmetric matrix of six `entries`
+    (the Cholesky–Banachiewicz recurrences written out for 3 × 3)."""
+    a00, a11, a22 = scale * entries[0], scale * entries[1], scale * entries[2]
+    a01, a02, a12 = scale * entries[3], scale * entries[4], scale * entries[5]
+    l00 = math.sqrt(a00)
+    l10, l20 = a01 / l00, a02 / l00
+    l11 = math.sqrt(a11 - l10 * l10)
+    l21 = (a12 - l20 * l10) / l11
+    L[k, 0, 0], L[k, 1, 0], L[k, 2, 0], L[k, 1, 1], L[k, 2, 1] = l00, l10, l20, l11, l21
+    L[k, 2, 2] = math.sqrt(a22 - l20 * l20 - l21 * l21)
 
 
 @njit(cache=True, error_model="numpy")
@@ -289,6 +303,70 @@ def normal_equations(y, n, i, p, W, t, M, root):
             for l in range(j):
                 H[q, j, l] = H[q, l, j]
     return e, r, Bw, H, g, e_scale
+
+
+@njit(cache=True, error_model="numpy")
+def whitened_norm2(W, e):
+    """Σ_k |W_kᵀ e_k|² for lower-triangular W (K, k, k) and residuals e (K, k): twice eq. (14)'s data term."""
+    total = 0.0
+    for k in range(e.shape[0]):
+        for b in range(e.shape[1]):
+            acc = 0.0
+            for a in range(b, e.shape[1]):
+                acc += W[k, a, b] * e[k, a]
+            total += acc * acc
+    return total
+
+
+@njit(cache=True, error_model="numpy")
+def pose_normal_equations(H6, g6, ellipsoid_segment, moves, axis, origin, revolute):
+    """H = Σ_p T_pᵀ H_p T_p (D, D) and g = Σ_p T_pᵀ g_p (D,) from the per-ellipsoid blocks (P, 6, 6), (P, 6).
+
+    T_p (6, D) holds the rigid velocity (ω, v) of ellipsoid p's segment per unit change of each DOF
+    (`body.BodyModel.segment_twists`): (w_d, o_d × w_d) for a revolute DOF with world axis w_d through
+    o_d, (0, w_d) for a translation, zero for a DOF that does not move the segment (`moves` (D, S)).
+    """
+    D, P = axis.shape[0], H6.shape[0]
+    twist = np.zeros((D, 6))
+    for d in range(D):
+        w0, w1, w2 = axis[d, 0], axis[d, 1], axis[d, 2]
+        if revolute[d]:
+            o0, o1, o2 = origin[d, 0], origin[d, 1], origin[d, 2]
+            twist[d, 0], twist[d, 1], twist[d, 2] = w0, w1, w2
+            twist[d, 3], twist[d, 4], twist[d, 5] = o1 * w2 - o2 * w1, o2 * w0 - o0 * w2, o0 * w1 - o1 * w0
+        else:
+            twist[d, 3], twist[d, 4], twist[d, 5] = w0, w1, w2
+    H, g = np.zeros((D, D)), np.zeros(D)
+    dofs = np.empty(D, np.int64)
+    HT = np.empty((6, D))
+    for p in range(P):
+        s = ellipsoid_segment[p]
+        m = 0
+        for d in range(D):
+            if moves[d, s]:
+                dofs[m] = d
+                m += 1
+        for a in range(m):  # H_p T_p on the DOFs that move the segment, then T_pᵀ (H_p T_p)
+            for j in range(6):
+                acc = 0.0
+                for l in range(6):
+                    acc += H6[p, j, l] * twist[dofs[a], l]
+                HT[j, a] = acc
+        for a in range(m):
+            da = dofs[a]
+            for b in range(a, m):
+                acc = 0.0
+                for j in range(6):
+                    acc += twist[da, j] * HT[j, b]
+                H[da, dofs[b]] += acc
+            acc = 0.0
+            for j in range(6):
+                acc += twist[da, j] * g6[p, j]
+            g[da] += acc
+    for a in range(D):  # only one triangle was summed (DOFs of a chain are in increasing order)
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g
 
 
 @njit(cache=True, error_model="numpy")

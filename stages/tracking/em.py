@@ -154,15 +154,16 @@ class EStep:
     pairs : (2, K) int
         Datum i and ellipsoid p of the pairs with t_ip > PRUNE_POSTERIOR (those the M-step uses),
         sorted by ellipsoid.
-    precision : (K, k, k) float
-        Σ_ip⁻¹ of those pairs at the E-step's pose and Σ, for the M-step of the same iteration.
+    weights : (K, k, k) float
+        Lower-triangular W_ip with t_ip Σ_ip⁻¹ = W Wᵀ at the E-step's pose and Σ: the whitening of those
+        pairs in the M-step of the same iteration (eq. 14's term is ½ |Wᵀ e|²).
     """
 
     t: np.ndarray
     t_outlier: np.ndarray
     log_likelihood: float
     pairs: np.ndarray
-    precision: np.ndarray
+    weights: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -249,17 +250,16 @@ def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixtu
     k = residual_size(distance)
     if I == 0:
         return EStep(t=np.zeros((0, P)), t_outlier=np.zeros(0), log_likelihood=0.0,
-                     pairs=np.zeros((2, 0), dtype=int), precision=np.zeros((0, k, k)))
+                     pairs=np.zeros((2, 0), dtype=int), weights=np.zeros((0, k, k)))
     log_outlier = np.log(mixture.pi[P]) - np.log(V)  # ln π_{P+1} / V
     if distance == "normals":
         reach, _, largest = _reach(mixture.Sigma, np.log(mixture.pi[:P]), 0.0)
         first = np.zeros(I, dtype=int) if previous is None else previous.t.argmax(axis=1)
-        t, t_outlier, log_likelihood, pairs, precision = compiled.e_step(
+        t, t_outlier, log_likelihood, pairs, weights = compiled.e_step(
             y, n, ellipsoids.t, shape_matrices(ellipsoids, 2.0), shape_matrices(ellipsoids, 4.0),
             _compiled_bounds(ellipsoids, reach, largest, normal_noise_rad), mixture.Sigma, largest,
             np.log(mixture.pi[:P]), log_outlier, normal_noise_rad**2, PRUNE_POSTERIOR, first)
-        return EStep(t=t, t_outlier=t_outlier, log_likelihood=log_likelihood, pairs=pairs,
-                     precision=symmetric_matrices(tuple(precision.T)))
+        return EStep(t=t, t_outlier=t_outlier, log_likelihood=log_likelihood, pairs=pairs, weights=weights)
     reach, log_norm, largest = _reach(mixture.Sigma, np.log(mixture.pi[:P]), log_outlier)
     # eᵀ Σ⁻¹ e ≥ |e|² / c, c the largest eigenvalue of Σ
     p, i = np.nonzero(residual_lower_bound(y, ellipsoids, distance=distance) <= reach[:, None] * largest)
@@ -276,8 +276,9 @@ def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixtu
     t[i, p] = posterior
     log_likelihood = float(np.sum(peak + np.log(evidence)))  # Σ_i ln P(y_i | n_i), eq. (12)
     used = posterior > PRUNE_POSTERIOR
+    weights = _cholesky(np.broadcast_to(W, (np.count_nonzero(used), k, k))) * np.sqrt(posterior[used])[:, None, None]
     return EStep(t=t, t_outlier=np.exp(log_outlier - peak) / evidence, log_likelihood=log_likelihood,
-                 pairs=np.stack([i[used], p[used]]), precision=np.broadcast_to(W, (np.count_nonzero(used), k, k)))
+                 pairs=np.stack([i[used], p[used]]), weights=weights)
 
 
 def log_evidence(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixture, V: float, *,
@@ -387,13 +388,12 @@ def _m_step(y, n, body, kin, pose, mixture, estep, distance, prior_pose, gauss_n
             estimate_lengths, normal_noise_rad, min_outlier_prior, max_sigma_m) -> tuple[MStep, Kinematics]:
     """`m_step` from the pose's kinematics `kin`; also returns the kinematics of the new pose.
 
-    The pairs' Σ_ip⁻¹ are the E-step's (same pose, same Σ).
+    The pairs' weights t_ip Σ_ip⁻¹ are the E-step's (same pose, same Σ).
     """
     I, P = estep.t.shape
-    (i, p), precision = estep.pairs, estep.precision
+    i, p = estep.pairs
     t = estep.t[i, p]  # (K,)
-    W = _cholesky(precision) * np.sqrt(t)[:, None, None]  # t_ip Σ_ip⁻¹ = W Wᵀ: weighted residual Wᵀ e
-    problem = _Problem(y, n, i, p, W, distance, prior_pose if prior_pose is not None else pose,
+    problem = _Problem(y, n, i, p, estep.weights, distance, prior_pose if prior_pose is not None else pose,
                        body.prior_weight / PRIOR_SIGMA_RAD**2, estimate_scale,
                        estimate_lengths and len(body.length_groups) > 0)
     e = None
@@ -504,9 +504,8 @@ class _Problem:
 
     def cost(self, body, pose, e):
         """Eq. (14) for fixed t_ip plus the priors on the weakly observed DOFs and the segment lengths."""
-        r = _whitened(self.W, e)
         ln_l = np.log(body.length_factors) if self.estimate_lengths else np.zeros(0)
-        return 0.5 * ((r**2).sum() + (self.prior * (pose - self.prior_pose) ** 2).sum()
+        return 0.5 * (compiled.whitened_norm2(self.W, e) + (self.prior * (pose - self.prior_pose) ** 2).sum()
                       + (ln_l**2).sum() / LENGTH_PRIOR_SD**2)
 
 
@@ -520,17 +519,15 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, kin: Kinematics, pose
     """
     W, D = problem.W, body.pose_size
     e, r, Bw, H6, g6, J_scale = _linearised(problem, body, kin)
-    starts = np.flatnonzero(np.r_[True, problem.p[1:] != problem.p[:-1]])  # each present ellipsoid's pairs
-    present = problem.p[starts]
-    T = body.segment_twists(kin)[body.ellipsoid_segment[present]]  # (P',6,D)
-    TH = T.transpose(0, 2, 1) @ H6[present]  # (P',D,6)
     extra = _extra_columns(problem, body, pose, e, J_scale)  # (K,k,X)
     X = extra.shape[2]
     H = np.zeros((D + X, D + X))
     g = np.zeros(D + X)
-    H[:D, :D] = np.einsum("pdj,pje->de", TH, T)
-    g[:D] = np.einsum("pid,pi->d", T, g6[present])
-    if X:
+    H[:D, :D], g[:D] = compiled.pose_normal_equations(H6, g6, body.ellipsoid_segment, body.moves, kin.axis,
+                                                      kin.origin, body.dof_revolute)
+    if X:  # the size and length columns are summed per pair's ellipsoid like the pose's
+        starts = np.flatnonzero(np.r_[True, problem.p[1:] != problem.p[:-1]])  # each present ellipsoid's pairs
+        T = body.segment_twists(kin)[body.ellipsoid_segment[problem.p[starts]]]  # (P',6,D)
         Xw = _whitened(W, extra)
         H[:D, D:] = np.einsum("pid,pix->dx", T, np.add.reduceat(np.einsum("kai,kax->kix", Bw, Xw), starts))
         H[D:, :D] = H[:D, D:].T

@@ -49,3 +49,22 @@ def test_weighted_spread_matches_the_reference(pairs):
     total = compiled.weighted_spread(n, i, p, w, shape_matrices(ell, 2.0), shape_matrices(ell, 4.0))
     expected = np.einsum("k,kab->ab", w, normal_spread(n[i], ell, p))
     np.testing.assert_allclose(symmetric_matrices(tuple(total[:, None]))[0], expected, atol=1e-12)
+
+
+def test_pose_normal_equations_match_the_segment_twists():
+    body = load_body("default")
+    rng = np.random.default_rng(31)
+    kin = body.fk(random_pose(body, rng))
+    A = rng.normal(size=(body.n_ellipsoids, 6, 6))
+    H6, g6 = A @ A.transpose(0, 2, 1), rng.normal(size=(body.n_ellipsoids, 6))
+    H, g = compiled.pose_normal_equations(H6, g6, body.ellipsoid_segment, body.moves, kin.axis, kin.origin,
+                                          body.dof_revolute)
+    T = body.segment_twists(kin)[body.ellipsoid_segment]  # (P, 6, D)
+    np.testing.assert_allclose(H, np.einsum("pjd,pjk,pke->de", T, H6, T), atol=1e-10)
+    np.testing.assert_allclose(g, np.einsum("pjd,pj->d", T, g6), atol=1e-12)
+
+
+def test_whitened_norm_is_the_weighted_sum_of_squares(pairs):
+    *_, rng = pairs
+    W, e = np.tril(rng.normal(size=(50, 3, 3))), rng.normal(size=(50, 3))
+    assert compiled.whitened_norm2(W, e) == pytest.approx(np.einsum("ka,kab,kcb,kc->", e, W, W, e), rel=1e-12)

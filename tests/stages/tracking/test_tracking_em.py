@@ -202,3 +202,18 @@ def test_hypothesis_scores_sum_log_evidence_per_block(body, distance):
     expected = [[log_evidence(y, n, ell, mixture, V, distance=distance, normal_noise_rad=sigma_n)[a:b].sum()
                  for a, b in zip(blocks[:-1], blocks[1:], strict=True)] for ell in hypotheses]
     np.testing.assert_allclose(scores, expected, rtol=1e-12)
+
+
+def test_e_step_weights_whiten_each_pair_by_its_posterior_and_covariance(body):
+    rng = np.random.default_rng(20)
+    truth = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, truth, 300, rng, outlier_fraction=0.2)
+    pose = truth + rng.normal(0.0, 0.03, body.pose_size)
+    mixture = Mixture(Sigma=np.diag([1.0, 1.5, 0.7]) * 0.02**2, pi=rng.dirichlet(np.ones(body.n_ellipsoids + 1)))
+    sigma_n = np.radians(10.0)
+    estep = e_step(y, n, body, pose, mixture, volume_size(VOLUME), normal_noise_rad=sigma_n)
+    i, p = estep.pairs
+    assert np.all(np.diff(p) >= 0) and np.all(estep.t[i, p] > 1e-3)
+    covariance = mixture.Sigma + sigma_n**2 * normal_spread(n[i], body.ellipsoids(pose), p)
+    expected = estep.t[i, p][:, None, None] * np.linalg.inv(covariance)
+    np.testing.assert_allclose(estep.weights @ estep.weights.transpose(0, 2, 1), expected, rtol=1e-9, atol=1e-9)
