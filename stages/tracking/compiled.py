@@ -76,7 +76,8 @@ def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, p
     and whose other eigenvalues are at most c + σ_n² r_p², r_p the ellipsoid's largest radius of
     curvature (‖A‖ ≤ r_p: A is the inverse of the shape operator on the tangent plane), so that
     eᵀ Σ_ip⁻¹ e ≥ (nᵀ e)² / c + (|e|² − (nᵀ e)²) / (c + σ_n² r_p²). Before even e is computed, x_ip lies
-    within the largest semi-axis a_p of t_p, so |e| ≥ |y − t_p| − a_p.
+    within the largest semi-axis a_p of t_p, so |e| ≥ |y − t_p| − a_p; after it, the pair's own
+    ‖A‖² ≤ tr A² = λ² (tr M² − 2 λ² nᵀ M³ n + λ⁴ (nᵀ M² n)²) replaces r_p² at a third of Σ_ip's cost.
 
     Parameters
     ----------
@@ -84,9 +85,9 @@ def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, p
         Points and unit normals.
     t, M, M2 : (P, 3) and (P, 3, 3) float
         Ellipsoid centres, M_p and M_p².
-    reach : (P, 3) float
+    reach : (P, 4) float
         Per ellipsoid: a_p; ρ_p such that a pair is negligible beyond the squared Mahalanobis distance
-        ρ_p − 2 m, m the largest term met so far; and c + σ_n² r_p².
+        ρ_p − 2 m, m the largest term met so far; c + σ_n² r_p²; and tr M_p².
     Sigma : (3, 3) float
     largest : float
         c, the largest eigenvalue of Σ.
@@ -175,6 +176,14 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
             along = n[i, 0] * e0 + n[i, 1] * e1 + n[i, 2] * e2  # n is an eigenvector of Σ_ip ⪯ c I + σ_n² A²
             across = e0 * e0 + e1 * e1 + e2 * e2 - along * along
             if along * along / largest + across / reach[p, 2] > limit:
+                continue
+            w0 = M[p, 0, 0] * u0 + M[p, 0, 1] * u1 + M[p, 0, 2] * u2  # ‖A‖² ≤ tr A² (A has rank 2), by w = M u
+            w1 = M[p, 1, 0] * u0 + M[p, 1, 1] * u1 + M[p, 1, 2] * u2
+            w2 = M[p, 2, 0] * u0 + M[p, 2, 1] * u1 + M[p, 2, 2] * u2
+            lam2 = lam * lam
+            u_u = u0 * u0 + u1 * u1 + u2 * u2
+            trace = lam2 * (reach[p, 3] - 2.0 * lam2 * (u0 * w0 + u1 * w1 + u2 * w2) + lam2 * lam2 * u_u * u_u)
+            if along * along / largest + across / (largest + noise2 * trace) > limit:
                 continue
             s00, s11, s22, s01, s02, s12 = _spread(M, M2, p, u0, u1, u2, lam)
             a, d, g = Sigma[0, 0] + noise2 * s00, Sigma[1, 1] + noise2 * s11, Sigma[2, 2] + noise2 * s22

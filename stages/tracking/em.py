@@ -336,7 +336,7 @@ def hypothesis_scores(y: np.ndarray, n: np.ndarray, hypotheses: Sequence[Ellipso
     return compiled.hypothesis_scores(
         y, n, blocks, chosen.t.reshape(*stack, 3), shape_matrices(chosen, 2.0).reshape(*stack, 3, 3),
         shape_matrices(chosen, 4.0).reshape(*stack, 3, 3),
-        _compiled_bounds(chosen, reach, largest, normal_noise_rad).reshape(*stack, 3), mixture.Sigma, largest,
+        _compiled_bounds(chosen, reach, largest, normal_noise_rad).reshape(*stack, 4), mixture.Sigma, largest,
         log_pi, base, normal_noise_rad**2)
 
 
@@ -352,10 +352,12 @@ def _reach(Sigma: np.ndarray, log_pi: np.ndarray, log_floor: float) -> tuple[np.
 
 
 def _compiled_bounds(ellipsoids: Ellipsoids, reach: np.ndarray, largest: float, normal_noise_rad: float) -> np.ndarray:
-    """`compiled.e_step`'s per-ellipsoid bounds (P, 3): a_max, `reach`, and c + σ_n² (a_max² / a_min)², the
-    bound on Σ_ip's largest eigenvalue (‖A_ip‖ is at most the largest radius of curvature a_max² / a_min)."""
+    """`compiled.e_step`'s per-ellipsoid bounds (P, 4): a_max, `reach`, c + σ_n² (a_max² / a_min)², the
+    bound on Σ_ip's largest eigenvalue (‖A_ip‖ is at most the largest radius of curvature a_max² / a_min),
+    and tr M² = Σ a⁴."""
     a = ellipsoids.semi_axes
-    return np.c_[a.max(axis=1), reach, largest + normal_noise_rad**2 * (a.max(axis=1) ** 2 / a.min(axis=1)) ** 2]
+    return np.c_[a.max(axis=1), reach, largest + normal_noise_rad**2 * (a.max(axis=1) ** 2 / a.min(axis=1)) ** 2,
+                 (a**4).sum(axis=1)]
 
 
 def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixture: Mixture,
