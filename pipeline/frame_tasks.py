@@ -1,9 +1,10 @@
 """The per-frame work of the silhouette and reconstruction stages, as it runs in a worker.
 
 A worker of ``--workers N`` is a spawned process that imports the module of the task it unpickles
-before its first chunk. These tasks live apart from :mod:`pipeline.graph`, which imports the tracker
-(numba) and the report (matplotlib): a worker then starts in about half the time, which on a capture
-of a hundred frames is several milliseconds per frame of the silhouette stage.
+before its first chunk, and the first stage run in the pool includes that start in its wall time. These
+tasks live apart from :mod:`pipeline.graph`, which imports the tracker (numba) and the report
+(matplotlib): a worker starts in about 0.5 s rather than 0.8 s, which on a capture of a hundred frames
+is several milliseconds per frame.
 
 Within a worker, frames are the unit of parallelism: OpenCV's own threads are switched off while a
 chunk runs (on small images they mostly synchronise, a fifth more CPU for the same wall time), and

@@ -113,10 +113,17 @@ def _backgrounds(ctx: StageContext) -> None:
     """Write one background image per camera (:func:`background_image`).
 
     Computed once in this process, before the per-frame work, so every worker reads the same model.
+    A clean plate that is a PNG already is copied byte for byte: decoding and encoding it again cost
+    about 25 ms per camera, more than a tenth of a second on a six-camera rig.
     """
     for camera in ctx.capture.rig.names:
         path = background_path(ctx.out_dir, camera)
-        if not path.exists():
+        plate = ctx.capture.background_paths.get(camera)
+        if path.exists():
+            continue
+        if plate is not None and plate.suffix.lower() == ".png":
+            atomic.write_bytes(path, plate.read_bytes())
+        else:
             frames_io.write_image(path, background_image(ctx.capture, camera))
 
 

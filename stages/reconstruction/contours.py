@@ -44,6 +44,8 @@ class Outline:
         Cumulative outline length in pixels over the concatenated contours, for even sampling.
     usable : (L,) bool
         False near the image border, where the outline is the frame's edge rather than a rim.
+    bounds : (x, y, width, height)
+        The box around every foreground pixel, specks included (all zero for an empty mask).
     """
 
     pixels: np.ndarray
@@ -52,6 +54,7 @@ class Outline:
     contour: np.ndarray
     arc_length: np.ndarray
     usable: np.ndarray
+    bounds: tuple[int, int, int, int]
 
     def __len__(self) -> int:
         return len(self.pixels)
@@ -64,10 +67,11 @@ def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
     pixel staircase) and moved half a pixel outwards onto the true outline.
     """
     contours, _ = cv2.findContours(mask, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    bounds = cv2.boundingRect(np.concatenate(contours)) if contours else (0, 0, 0, 0)
     pieces = [c.reshape(-1, 2).astype(np.float64) for c in contours if len(c) >= MIN_CONTOUR_POINTS]
     if not pieces:
         empty = np.zeros((0, 2))
-        return Outline(empty, empty, empty, np.zeros(0, int), np.zeros(0), np.zeros(0, bool))
+        return Outline(empty, empty, empty, np.zeros(0, int), np.zeros(0), np.zeros(0, bool), bounds)
     height, width = mask.shape
     all_pixels, all_tangents, all_outward, all_ids, all_steps = [], [], [], [], []
     for index, raw in enumerate(pieces):
@@ -95,6 +99,7 @@ def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
         np.concatenate(all_ids),
         np.cumsum(np.concatenate(all_steps)),
         usable,
+        bounds,
     )
 
 
@@ -116,9 +121,7 @@ def cone_normals(camera: Camera, pixels: np.ndarray, tangents: np.ndarray, outwa
     """
     if len(pixels) == 0:
         return np.zeros((0, 3))
-    ray = camera.pixel_rays(pixels)  # (L, 3)
-    along = camera.pixel_rays(pixels + tangents)
-    beside = camera.pixel_rays(pixels + outward)
+    ray, along, beside = np.split(camera.pixel_rays(np.concatenate([pixels, pixels + tangents, pixels + outward])), 3)
     normals = np.cross(ray, along)
     flip = np.einsum("ij,ij->i", normals, beside - ray) < 0
     normals[flip] *= -1.0

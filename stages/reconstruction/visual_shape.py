@@ -101,10 +101,6 @@ def rim_points(
     camera_of, pixels = rays
     if len(camera_of) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    # Every outline point's cone face normal, computed once: the rays' normals and the faces their edges
-    # end on are both looked up here.
-    faces = [cone_normals(camera, ours.pixels, ours.tangents, ours.outward)
-             for camera, ours in zip(cameras, outlines, strict=True)]
     origins = np.stack([camera.centre for camera in cameras])[camera_of]  # (M, 3)
     directions = np.zeros((len(camera_of), 3))
     normals = np.zeros((len(camera_of), 3))
@@ -112,17 +108,17 @@ def rim_points(
         chosen = camera_of == index
         if chosen.any():
             directions[chosen] = camera.pixel_rays(outlines[index].pixels[pixels[chosen]])
-            normals[chosen] = faces[index][pixels[chosen]]
+            normals[chosen] = _faces(camera, outlines[index], pixels[chosen])
 
     # Inside tests accept points up to a pixel outside a silhouette: a grazing ray that runs along another
     # view's outline would otherwise flicker in and out with the pixel grid and break into pieces.
-    tolerant = [_dilated(mask) for mask in masks]
+    tolerant = [_dilated(mask, ours.bounds) for mask, ours in zip(masks, outlines, strict=True)]
     edges = _viewing_edges(cameras, tolerant, outlines, volume, origins, directions, camera_of,
                            tolerated_views=tolerated_views, samples_per_ray=samples_per_ray)
     d = directions[edges.ray]
     count = len(edges.ray)
     t_ends, m_ends = _snap_to_cones(  # both ends at once: (2E,)
-        cameras, outlines, faces, np.concatenate([origins[edges.ray]] * 2), np.concatenate([d, d]),
+        cameras, outlines, np.concatenate([origins[edges.ray]] * 2), np.concatenate([d, d]),
         np.concatenate([edges.t_near, edges.t_far]), np.concatenate([edges.camera_near, edges.camera_far]),
     )
     t_near, t_far, m_near, m_far = t_ends[:count], t_ends[count:], m_ends[:count], m_ends[count:]
@@ -142,10 +138,10 @@ def rim_points(
     return points, point_normals
 
 
-def _dilated(mask: np.ndarray) -> np.ndarray:
-    """``mask`` (H, W) grown by one pixel, dilating only the box around its foreground (a person fills a
-    small part of the frame; dilating the whole image cost as much as a third of the ray tests)."""
-    left, top, width, height = cv2.boundingRect(mask)
+def _dilated(mask: np.ndarray, bounds: tuple[int, int, int, int]) -> np.ndarray:
+    """``mask`` (H, W) grown by one pixel, dilating only the box ``bounds`` around its foreground (a person
+    fills a small part of the frame; dilating the whole image cost as much as a third of the ray tests)."""
+    left, top, width, height = bounds
     if width == 0:
         return mask
     rows = slice(max(top - 1, 0), top + height + 1)
@@ -375,12 +371,21 @@ def _hull_halfplanes(camera: Camera, pixels: np.ndarray) -> tuple[np.ndarray, np
     return e, np.einsum("ij,ij->i", e, hull) + margin
 
 
-def _snap_to_cones(cameras, outlines, faces, o, d, t_end, camera_end) -> tuple[np.ndarray, np.ndarray]:
+def _faces(camera: Camera, ours: Outline, index: np.ndarray) -> np.ndarray:
+    """(n, 3) outward unit normals of the viewing-cone faces at outline points ``index`` (n,) of ``ours``.
+
+    Computed for the points asked for only: the rays and the edge ends use about a third of the outline,
+    and the normals cost three undistortions per point.
+    """
+    return cone_normals(camera, ours.pixels[index], ours.tangents[index], ours.outward[index])
+
+
+def _snap_to_cones(cameras, outlines, o, d, t_end, camera_end) -> tuple[np.ndarray, np.ndarray]:
     """Edge ends moved onto the exact cone faces, and those faces' outward unit normals (E, 3).
 
     The end ``o + t d`` (E, 3) found on the pixel grid is projected into the camera whose cone it lies
     on; the nearest point of that camera's smoothed outline gives the face (the plane through the camera
-    centre and the outline's tangent line, its normal looked up in ``faces``: (L, 3) per outline), and
+    centre and the outline's tangent line, with the normal of :func:`_faces`), and
     the end moves to where the ray meets that plane. A ray nearly parallel to the face (or a move longer
     than ``MAX_SNAP_M``) keeps the grid position. Ends on
     the working volume keep their position and get a zero normal.
@@ -395,7 +400,7 @@ def _snap_to_cones(cameras, outlines, faces, o, d, t_end, camera_end) -> tuple[n
             continue
         tree = cKDTree(ours.pixels, balanced_tree=False, compact_nodes=False)  # built once, queried once
         pixel_distance, nearest = tree.query(camera.project(X[chosen]))
-        m[chosen] = faces[index][nearest]
+        m[chosen] = _faces(camera, ours, nearest)
         facing = np.einsum("ij,ij->i", m[chosen], d[chosen])
         with np.errstate(divide="ignore", invalid="ignore"):
             t_plane = np.einsum("ij,ij->i", m[chosen], camera.centre - o[chosen]) / facing
