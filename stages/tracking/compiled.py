@@ -64,7 +64,7 @@ def _spread(M, M2, p, u0, u1, u2, lam):
 
 
 @njit(cache=True, error_model="numpy")
-def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, prune, first):
+def e_step(y, n, t, M, M2, semi_axes, Sigma, log_pi, log_outlier, noise2, log_negligible, prune, first):
     """Posteriors t_ip (eq. 13), ln P(Y | Λ) (eq. 12) and the M-step's pairs, for Σ_ip = Σ + σ_n² A_ip².
 
     A pair is skipped (t_ip = 0) when a lower bound on its Mahalanobis distance shows its joint density
@@ -83,20 +83,17 @@ def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, p
     ----------
     y, n : (I, 3) float
         Points and unit normals.
-    t, M, M2 : (P, 3) and (P, 3, 3) float
-        Ellipsoid centres, M_p and M_p².
-    reach : (P, 4) float
-        Per ellipsoid: a_p; ρ_p such that a pair is negligible beyond the squared Mahalanobis distance
-        ρ_p − 2 m, m the largest term met so far; c + σ_n² r_p²; and tr M_p².
+    t, M, M2, semi_axes : (P, 3), (P, 3, 3), (P, 3, 3), (P, 3) float
+        Ellipsoid centres, M_p, M_p² (`shapes`) and semi-axes.
     Sigma : (3, 3) float
-    largest : float
-        c, the largest eigenvalue of Σ.
     log_pi : (P,) float
         ln π_p of the ellipsoids.
     log_outlier : float
         ln (π_{P+1} / V).
     noise2 : float
         σ_n² (rad²).
+    log_negligible : float
+        ln of that fraction (`em.NEGLIGIBLE_POSTERIOR`).
     prune : float
         Pairs with t_ip above this are returned for the M-step.
     first : (I,) int
@@ -106,16 +103,18 @@ def e_step(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_outlier, noise2, p
     -------
     t_ip : (I, P); t_outlier : (I,); log_likelihood : float;
     pairs : (2, K) int (datum, ellipsoid), sorted by ellipsoid;
-    weights : (K, 3, 3) lower-triangular W with t_ip Σ_ip⁻¹ = W Wᵀ (the M-step's whitening, eq. 14).
+    weights : (K, 3, 3) lower-triangular W with t_ip Σ_ip⁻¹ = W Wᵀ (the M-step's whitening, eq. 14);
+    best : (I,) int, each datum's ellipsoid of largest posterior (the next E-step's `first`).
     """
     I = y.shape[0]
-    log_evidence, posterior, pairs, weights = _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi,
-                                                       np.full(I, log_outlier), noise2, prune, True, first)
-    return posterior, np.exp(log_outlier - log_evidence), log_evidence.sum(), pairs, weights
+    reach, largest = _bounds(semi_axes, Sigma, log_pi, log_negligible, noise2)
+    log_evidence, posterior, pairs, weights, best = _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi,
+                                                             np.full(I, log_outlier), noise2, prune, True, first)
+    return posterior, np.exp(log_outlier - log_evidence), log_evidence.sum(), pairs, weights, best
 
 
 @njit(cache=True, error_model="numpy")
-def log_evidence(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2):
+def log_evidence(y, n, t, M, M2, semi_axes, Sigma, log_pi, log_base, noise2, log_negligible):
     """ln(exp(b_i) + Σ_p π_p N(y_i | x_ip, Σ_ip)) per datum (I,), pairs skipped as in `e_step`.
 
     With b_i = ln(π_{P+1} / V) these are the terms of ln P(Y | Λ) (eq. 12); with b_i the evidence of the
@@ -123,21 +122,23 @@ def log_evidence(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2
     which is how limb hypotheses are scored with the rest of the body fixed.
     """
     first = np.zeros(y.shape[0], np.int64)
+    reach, largest = _bounds(semi_axes, Sigma, log_pi, log_negligible, noise2)
     return _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, 1.0, False, first)[0]
 
 
 @njit(cache=True, error_model="numpy")
-def hypothesis_scores(y, n, blocks, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2):
+def hypothesis_scores(y, n, blocks, t, M, M2, semi_axes, Sigma, log_pi, log_base, noise2, log_negligible):
     """Σ over each block of data of `log_evidence`, for H posed sets of ellipsoids at once: (H, B).
 
-    `t`, `M`, `M2` and `reach` are `log_evidence`'s with a leading hypothesis axis (H, P, ...); data
+    `t`, `M`, `M2` and `semi_axes` are `log_evidence`'s with a leading hypothesis axis (H, P, ...); data
     block b is rows blocks[b]:blocks[b + 1] of y and n (the data turned to one heading, say).
     """
     H, B = t.shape[0], blocks.shape[0] - 1
     first = np.zeros(y.shape[0], np.int64)
     sums = np.zeros((H, B))
     for h in range(H):
-        terms = _mixture(y, n, t[h], M[h], M2[h], reach[h], Sigma, largest, log_pi, log_base, noise2, 1.0, False,
+        reach, largest = _bounds(semi_axes[h], Sigma, log_pi, log_negligible, noise2)
+        terms = _mixture(y, n, t[h], M[h], M2[h], reach, Sigma, largest, log_pi, log_base, noise2, 1.0, False,
                          first)[0]
         for b in range(B):
             sums[h, b] = terms[blocks[b]:blocks[b + 1]].sum()
@@ -160,6 +161,7 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
     room = I * P if posteriors else 0
     kept_i, kept_p, kept_precision = np.empty(room, np.int64), np.empty(room, np.int64), np.empty((room, 6))
     per_ellipsoid = np.zeros(P + 1, np.int64)
+    best = first.copy()
     K = 0
     for i in range(I):
         peak = log_base[i]  # the largest term of the evidence met so far
@@ -195,7 +197,8 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
             quadratic = (c00 * e0 * e0 + c11 * e1 * e1 + c22 * e2 * e2
                          + 2.0 * (c01 * e0 * e1 + c02 * e0 * e2 + c12 * e1 * e2)) * h
             log_joint[p] = log_pi[p] - 0.5 * (quadratic + math.log(det) + 3.0 * _LOG_2PI)
-            peak = max(peak, log_joint[p])
+            if log_joint[p] > peak:
+                peak, best[i] = log_joint[p], p
             inverse[p, 0], inverse[p, 1], inverse[p, 2] = c00 * h, c11 * h, c22 * h
             inverse[p, 3], inverse[p, 4], inverse[p, 5] = c01 * h, c02 * h, c12 * h
         evidence = math.exp(log_base[i] - peak)  # log-sum-exp over the classes, eqs. (12)-(13)
@@ -222,7 +225,58 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
         start[kept_p[k]] += 1
         pairs[0, slot], pairs[1, slot] = kept_i[k], kept_p[k]
         _cholesky(kept_precision[k], posterior[kept_i[k], kept_p[k]], weights, slot)
-    return evidence_log, posterior, pairs, weights
+    return evidence_log, posterior, pairs, weights, best
+
+
+@njit(cache=True, error_model="numpy")
+def _bounds(semi_axes, Sigma, log_pi, log_negligible, noise2):
+    """The pruning bounds of `e_step` per ellipsoid (P, 4) and c, Σ's largest eigenvalue.
+
+    Columns: a_p; ρ_p = −2 (ln negligible − ln π_p − ln N₀), N₀ = (2π)^(−3/2) det Σ^(−1/2) the Gaussian's
+    peak at Σ, so that a pair whose squared Mahalanobis distance exceeds ρ_p − 2 m is negligible against
+    a term m; c + σ_n² r_p² with r_p = a_max² / a_min the largest radius of curvature; tr M_p² = Σ a⁴.
+    """
+    a, d, g, b, c, f = Sigma[0, 0], Sigma[1, 1], Sigma[2, 2], Sigma[0, 1], Sigma[0, 2], Sigma[1, 2]
+    det = a * (d * g - f * f) + b * (c * f - b * g) + c * (b * f - c * d)
+    log_peak = -0.5 * (math.log(det) + 3.0 * _LOG_2PI)
+    # largest eigenvalue of a symmetric 3 × 3 matrix, closed form (trigonometric solution of the cubic)
+    mean = (a + d + g) / 3.0
+    off = b * b + c * c + f * f
+    spread = math.sqrt(((a - mean) ** 2 + (d - mean) ** 2 + (g - mean) ** 2 + 2.0 * off) / 6.0)
+    largest = mean
+    if spread > 0.0:
+        ba, bd, bg = (a - mean) / spread, (d - mean) / spread, (g - mean) / spread
+        bb, bc, bf = b / spread, c / spread, f / spread
+        half_det = 0.5 * (ba * (bd * bg - bf * bf) - bb * (bb * bg - bf * bc) + bc * (bb * bf - bd * bc))
+        largest = mean + 2.0 * spread * math.cos(math.acos(min(1.0, max(-1.0, half_det))) / 3.0)
+    P = semi_axes.shape[0]
+    reach = np.empty((P, 4))
+    for p in range(P):
+        a_max = max(semi_axes[p, 0], semi_axes[p, 1], semi_axes[p, 2])
+        a_min = min(semi_axes[p, 0], semi_axes[p, 1], semi_axes[p, 2])
+        reach[p, 0] = a_max
+        reach[p, 1] = -2.0 * (log_negligible - log_pi[p] - log_peak)
+        reach[p, 2] = largest + noise2 * (a_max * a_max / a_min) ** 2
+        reach[p, 3] = semi_axes[p, 0] ** 4 + semi_axes[p, 1] ** 4 + semi_axes[p, 2] ** 4
+    return reach, largest
+
+
+@njit(cache=True, error_model="numpy")
+def shapes(R, semi_axes):
+    """M = R diag(a²) Rᵀ and M² = R diag(a⁴) Rᵀ (E, 3, 3) each of posed ellipsoids (M of eq. 4)."""
+    E = R.shape[0]
+    M, M2 = np.empty((E, 3, 3)), np.empty((E, 3, 3))
+    for e in range(E):
+        for a in range(3):
+            for b in range(a, 3):
+                m = m2 = 0.0
+                for k in range(3):
+                    s2 = semi_axes[e, k] * semi_axes[e, k]
+                    m += R[e, a, k] * s2 * R[e, b, k]
+                    m2 += R[e, a, k] * s2 * s2 * R[e, b, k]
+                M[e, a, b] = M[e, b, a] = m
+                M2[e, a, b] = M2[e, b, a] = m2
+    return M, M2
 
 
 @njit(cache=True, error_model="numpy")

@@ -32,7 +32,6 @@ from stages.tracking.distances import (
     residual_lower_bound,
     residual_size,
     residuals,
-    shape_matrices,
     symmetric_matrices,
 )
 
@@ -157,6 +156,8 @@ class EStep:
     weights : (K, k, k) float
         Lower-triangular W_ip with t_ip Σ_ip⁻¹ = W Wᵀ at the E-step's pose and Σ: the whitening of those
         pairs in the M-step of the same iteration (eq. 14's term is ½ |Wᵀ e|²).
+    best : (I,) int
+        Each datum's ellipsoid of largest posterior (where the next iteration's E-step starts).
     """
 
     t: np.ndarray
@@ -164,6 +165,7 @@ class EStep:
     log_likelihood: float
     pairs: np.ndarray
     weights: np.ndarray
+    best: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -250,22 +252,24 @@ def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixtu
     k = residual_size(distance)
     if I == 0:
         return EStep(t=np.zeros((0, P)), t_outlier=np.zeros(0), log_likelihood=0.0,
-                     pairs=np.zeros((2, 0), dtype=int), weights=np.zeros((0, k, k)))
+                     pairs=np.zeros((2, 0), dtype=int), weights=np.zeros((0, k, k)), best=np.zeros(0, dtype=int))
     log_outlier = np.log(mixture.pi[P]) - np.log(V)  # ln π_{P+1} / V
     if distance == "normals":
-        reach, _, largest = _reach(mixture.Sigma, np.log(mixture.pi[:P]), 0.0)
-        first = np.zeros(I, dtype=int) if previous is None else previous.t.argmax(axis=1)
-        t, t_outlier, log_likelihood, pairs, weights = compiled.e_step(
-            y, n, ellipsoids.t, shape_matrices(ellipsoids, 2.0), shape_matrices(ellipsoids, 4.0),
-            _compiled_bounds(ellipsoids, reach, largest, normal_noise_rad), mixture.Sigma, largest,
-            np.log(mixture.pi[:P]), log_outlier, normal_noise_rad**2, PRUNE_POSTERIOR, first)
-        return EStep(t=t, t_outlier=t_outlier, log_likelihood=log_likelihood, pairs=pairs, weights=weights)
-    reach, log_norm, largest = _reach(mixture.Sigma, np.log(mixture.pi[:P]), log_outlier)
-    # eᵀ Σ⁻¹ e ≥ |e|² / c, c the largest eigenvalue of Σ
-    p, i = np.nonzero(residual_lower_bound(y, ellipsoids, distance=distance) <= reach[:, None] * largest)
+        first = np.zeros(I, dtype=int) if previous is None else previous.best
+        t, t_outlier, log_likelihood, pairs, weights, best = compiled.e_step(
+            y, n, ellipsoids.t, *compiled.shapes(ellipsoids.R, ellipsoids.semi_axes), ellipsoids.semi_axes,
+            mixture.Sigma, np.log(mixture.pi[:P]), log_outlier, normal_noise_rad**2, np.log(NEGLIGIBLE_POSTERIOR),
+            PRUNE_POSTERIOR, first)
+        return EStep(t=t, t_outlier=t_outlier, log_likelihood=log_likelihood, pairs=pairs, weights=weights, best=best)
+    # Squared Mahalanobis distance (P,) beyond which ln π_p N_ip is below ln(NEGLIGIBLE_POSTERIOR π_{P+1} / V)
+    # (the Gaussian's peak is at most N₀ = N(0 | 0, Σ)), and eᵀ Σ⁻¹ e ≥ |e|² / c, c Σ's largest eigenvalue.
+    log_peak = -0.5 * (np.linalg.slogdet(mixture.Sigma)[1] + k * np.log(2.0 * np.pi))
+    reach = -2.0 * (log_outlier + np.log(NEGLIGIBLE_POSTERIOR) - np.log(mixture.pi[:P]) - log_peak)
+    bound = residual_lower_bound(y, ellipsoids, distance=distance) / np.linalg.eigvalsh(mixture.Sigma)[-1]
+    p, i = np.nonzero(bound <= reach[:, None])
     e = residuals(y, n, i, p, None, ellipsoids, distance=distance).e
     W = np.linalg.inv(mixture.Sigma)
-    log_joint = np.log(mixture.pi[p]) + log_norm - 0.5 * ((e @ W) * e).sum(1)  # ln π_p N_ip
+    log_joint = np.log(mixture.pi[p]) + log_peak - 0.5 * ((e @ W) * e).sum(1)  # ln π_p N_ip
     dense = np.full((P, I), -np.inf)  # ln π_p N_ip, −∞ for the skipped pairs
     dense[p, i] = log_joint
     peak = np.maximum(dense.max(axis=0), log_outlier)
@@ -278,7 +282,7 @@ def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixtu
     used = posterior > PRUNE_POSTERIOR
     weights = _cholesky(np.broadcast_to(W, (np.count_nonzero(used), k, k))) * np.sqrt(posterior[used])[:, None, None]
     return EStep(t=t, t_outlier=np.exp(log_outlier - peak) / evidence, log_likelihood=log_likelihood,
-                 pairs=np.stack([i[used], p[used]]), weights=weights)
+                 pairs=np.stack([i[used], p[used]]), weights=weights, best=t.argmax(axis=1))
 
 
 def log_evidence(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixture, V: float, *,
@@ -299,10 +303,8 @@ def log_evidence(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: 
     if len(y) == 0:
         return np.zeros(0)
     if distance == "normals":
-        reach, _, largest = _reach(mixture.Sigma, log_pi, 0.0)
-        return compiled.log_evidence(y, n, chosen.t, shape_matrices(chosen, 2.0), shape_matrices(chosen, 4.0),
-                                     _compiled_bounds(chosen, reach, largest, normal_noise_rad), mixture.Sigma,
-                                     largest, log_pi, base, normal_noise_rad**2)
+        return compiled.log_evidence(y, n, chosen.t, *compiled.shapes(chosen.R, chosen.semi_axes), chosen.semi_axes,
+                                     mixture.Sigma, log_pi, base, normal_noise_rad**2, np.log(NEGLIGIBLE_POSTERIOR))
     log_norm = -0.5 * (np.linalg.slogdet(mixture.Sigma)[1] + len(mixture.Sigma) * np.log(2.0 * np.pi))
     e = all_residuals(y, n, chosen, distance=distance)  # (I, P', k)
     log_joint = log_pi + log_norm - 0.5 * np.einsum("ipa,ab,ipb->ip", e, np.linalg.inv(mixture.Sigma), e)
@@ -330,34 +332,12 @@ def hypothesis_scores(y: np.ndarray, n: np.ndarray, hypotheses: Sequence[Ellipso
     chosen = Ellipsoids(R=np.concatenate([ell.R[which] for ell in hypotheses]),
                         t=np.concatenate([ell.t[which] for ell in hypotheses]),
                         semi_axes=np.concatenate([ell.semi_axes[which] for ell in hypotheses]))
-    log_pi = np.log(mixture.pi[which])
-    reach, _, largest = _reach(mixture.Sigma, np.tile(log_pi, len(hypotheses)), 0.0)
     stack = (len(hypotheses), len(which))
+    M, M2 = compiled.shapes(chosen.R, chosen.semi_axes)
     return compiled.hypothesis_scores(
-        y, n, blocks, chosen.t.reshape(*stack, 3), shape_matrices(chosen, 2.0).reshape(*stack, 3, 3),
-        shape_matrices(chosen, 4.0).reshape(*stack, 3, 3),
-        _compiled_bounds(chosen, reach, largest, normal_noise_rad).reshape(*stack, 4), mixture.Sigma, largest,
-        log_pi, base, normal_noise_rad**2)
-
-
-def _reach(Sigma: np.ndarray, log_pi: np.ndarray, log_floor: float) -> tuple[np.ndarray, float, float]:
-    """Squared Mahalanobis distance (P,) beyond which ln π_p N_ip is below ln NEGLIGIBLE_POSTERIOR + `log_floor`
-    (using det Σ_ip ≥ det Σ), with ln of N's normalising constant at Σ and Σ's largest eigenvalue.
-
-    With `log_floor` 0 the compiled loops subtract twice the largest term met so far themselves.
-    """
-    log_norm = -0.5 * (np.linalg.slogdet(Sigma)[1] + len(Sigma) * np.log(2.0 * np.pi))
-    reach = -2.0 * (log_floor + np.log(NEGLIGIBLE_POSTERIOR) - log_pi - log_norm)
-    return reach, log_norm, np.linalg.eigvalsh(Sigma)[-1]
-
-
-def _compiled_bounds(ellipsoids: Ellipsoids, reach: np.ndarray, largest: float, normal_noise_rad: float) -> np.ndarray:
-    """`compiled.e_step`'s per-ellipsoid bounds (P, 4): a_max, `reach`, c + σ_n² (a_max² / a_min)², the
-    bound on Σ_ip's largest eigenvalue (‖A_ip‖ is at most the largest radius of curvature a_max² / a_min),
-    and tr M² = Σ a⁴."""
-    a = ellipsoids.semi_axes
-    return np.c_[a.max(axis=1), reach, largest + normal_noise_rad**2 * (a.max(axis=1) ** 2 / a.min(axis=1)) ** 2,
-                 (a**4).sum(axis=1)]
+        y, n, blocks, chosen.t.reshape(*stack, 3), M.reshape(*stack, 3, 3), M2.reshape(*stack, 3, 3),
+        chosen.semi_axes.reshape(*stack, 3), mixture.Sigma, np.log(mixture.pi[which]), base, normal_noise_rad**2,
+        np.log(NEGLIGIBLE_POSTERIOR))
 
 
 def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixture: Mixture,
@@ -404,7 +384,7 @@ def _m_step(y, n, body, kin, pose, mixture, estep, distance, prior_pose, gauss_n
     scatter = (e * t[:, None]).T @ e
     if distance == "normals" and normal_noise_rad > 0.0:  # minus the normals' share, at the new pose
         ellipsoids = body.ellipsoids(kin)
-        spread = compiled.weighted_spread(n, i, p, t, shape_matrices(ellipsoids, 2.0), shape_matrices(ellipsoids, 4.0))
+        spread = compiled.weighted_spread(n, i, p, t, *compiled.shapes(ellipsoids.R, ellipsoids.semi_axes))
         scatter = scatter - normal_noise_rad**2 * symmetric_matrices(tuple(spread[:, None]))[0]
     Sigma = scatter / max(t.sum(), np.finfo(float).tiny)
     pi = np.empty(P + 1)
@@ -501,7 +481,8 @@ class _Problem:
         """The pairs' residuals e (K, k) on `body` posed by the kinematics `kin`."""
         ellipsoids = body.ellipsoids(kin)
         if self.distance == "normals":
-            return compiled.residuals(self.y, self.n, self.i, self.p, ellipsoids.t, shape_matrices(ellipsoids, 2.0))
+            M = compiled.shapes(ellipsoids.R, ellipsoids.semi_axes)[0]
+            return compiled.residuals(self.y, self.n, self.i, self.p, ellipsoids.t, M)
         return residuals(self.y, self.n, self.i, self.p, kin, ellipsoids, distance=self.distance).e
 
     def cost(self, body, pose, e):
@@ -568,7 +549,8 @@ def _linearised(problem: _Problem, body: BodyModel, kin: Kinematics):
     if problem.distance == "normals":
         ellipsoids = body.ellipsoids(kin)
         e, r, Bw, H6, g6, J_scale = compiled.normal_equations(
-            problem.y, problem.n, problem.i, problem.p, problem.W, ellipsoids.t, shape_matrices(ellipsoids, 2.0),
+            problem.y, problem.n, problem.i, problem.p, problem.W, ellipsoids.t,
+            compiled.shapes(ellipsoids.R, ellipsoids.semi_axes)[0],
             kin.t[0])
         return e, r, Bw, H6, g6, J_scale if problem.estimate_scale else None
     res = residuals(problem.y, problem.n, problem.i, problem.p, kin, body.ellipsoids(kin), distance=problem.distance,

@@ -68,3 +68,22 @@ def test_whitened_norm_is_the_weighted_sum_of_squares(pairs):
     *_, rng = pairs
     W, e = np.tril(rng.normal(size=(50, 3, 3))), rng.normal(size=(50, 3))
     assert compiled.whitened_norm2(W, e) == pytest.approx(np.einsum("ka,kab,kcb,kc->", e, W, W, e), rel=1e-12)
+
+
+def test_shapes_match_the_reference(pairs):
+    *_, ell, _ = pairs
+    M, M2 = compiled.shapes(ell.R, ell.semi_axes)
+    np.testing.assert_allclose(M, shape_matrices(ell, 2.0), atol=1e-15)
+    np.testing.assert_allclose(M2, shape_matrices(ell, 4.0), atol=1e-15)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_pruning_bounds_use_sigmas_largest_eigenvalue(seed):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(3, 3)) * 0.02
+    Sigma = A @ A.T + (np.eye(3) * 1e-4 if seed else 0.0)  # the first one singular-ish, others generic
+    Sigma = np.diag([4e-4, 4e-4, 4e-4]) if seed == 4 else Sigma  # and an isotropic one
+    semi = rng.uniform(0.05, 0.3, (4, 3))
+    reach, largest = compiled._bounds(semi, Sigma, np.log(np.full(4, 0.2)), np.log(1e-9), 0.03)
+    assert largest == pytest.approx(np.linalg.eigvalsh(Sigma)[-1], rel=1e-9)
+    np.testing.assert_allclose(reach[:, 2], largest + 0.03 * (semi.max(1) ** 2 / semi.min(1)) ** 2, rtol=1e-12)
