@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -87,10 +88,10 @@ def read_calibration(folder: Path) -> tuple[Rig, dict]:
 
 #: Frames sampled per camera for a temporal-median background when no clean plate is given.
 MEDIAN_BACKGROUND_FRAMES = 25
-#: Frames per chunk of the silhouette stage on videos: each chunk seeks its videos, and a seek decodes
-#: from the last keyframe (about 10 ms per camera on the samples, as much as segmenting three frames),
-#: so chunks are twice the runner's longest.
-VIDEO_CHUNK_FRAMES = 50
+#: Longest chunk of the silhouette stage on videos (frames). Each chunk seeks its videos, and a seek
+#: decodes from the last keyframe (about 10 ms per camera on the samples, as much as segmenting three
+#: frames), so chunks are as long as this allows; it bounds how unevenly the last chunks load the workers.
+MAX_VIDEO_CHUNK_FRAMES = 200
 
 
 def spread_frames(frames: Sequence[int], count: int) -> list[int]:
@@ -133,9 +134,21 @@ def run_silhouettes(ctx: StageContext) -> int:
         _backgrounds(ctx)
     names = ctx.capture.rig.names
     task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir)
-    videos = ctx.capture.media == "videos" and not ctx.capture.silhouettes_given
-    return ctx.map_frames(task, lambda frame: [silhouette_path(ctx.out_dir, c, frame) for c in names],
-                          chunk_size=VIDEO_CHUNK_FRAMES if videos else None)
+
+    def outputs_of(frame: int) -> list[Path]:
+        return [silhouette_path(ctx.out_dir, camera, frame) for camera in names]
+
+    chunk_size = None
+    if ctx.capture.media == "videos" and not ctx.capture.silhouettes_given:
+        chunk_size = video_chunk_size(len(ctx.pending_frames(outputs_of)), ctx.workers.count)
+    return ctx.map_frames(task, outputs_of, chunk_size=chunk_size)
+
+
+def video_chunk_size(pending: int, workers: int) -> int:
+    """Frames per chunk of ``pending`` video frames: the fewest chunks that are a multiple of ``workers``
+    (so that they share the chunks evenly) and no longer than ``MAX_VIDEO_CHUNK_FRAMES``."""
+    chunks = workers * max(1, math.ceil(pending / (workers * MAX_VIDEO_CHUNK_FRAMES)))
+    return max(1, math.ceil(pending / chunks))
 
 
 def run_reconstruction(ctx: StageContext) -> int:
