@@ -43,8 +43,12 @@ def _first_line(text: str | None) -> str:
     return (text or "").strip().splitlines()[0] if text and text.strip() else ""
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The full parser, with one sub-parser per entry of :data:`SUBCOMMANDS`."""
+def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
+    """The parser, with one sub-parser per entry of :data:`SUBCOMMANDS`.
+
+    With `chosen`, only that subcommand's module is imported (the others get bare sub-parsers, enough to
+    parse a command line that names `chosen`); without it, all are, for the help listing.
+    """
     parser = argparse.ArgumentParser(
         prog="python -m pipeline",
         description="Markerless motion capture: silhouettes -> visual shape -> articulated EM tracker.",
@@ -52,6 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     subparsers = parser.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=True)
     for name, module_path in SUBCOMMANDS.items():
+        if chosen is not None and name != chosen:
+            subparsers.add_parser(name)
+            continue
         module = importlib.import_module(module_path)
         summary = _first_line(module.__doc__)
         sub = subparsers.add_parser(name, help=summary, description=module.__doc__,
@@ -63,7 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse ``argv`` (default: ``sys.argv[1:]``), run the subcommand and return its exit status."""
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    chosen = next((word for word in argv if not word.startswith("-")), None)
+    parser = build_parser(chosen if chosen in SUBCOMMANDS else None)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr, force=True)
