@@ -475,11 +475,12 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, g:
 
 
 def _share(I: np.ndarray, F: np.ndarray, background: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """φ (n,) of colours I (n, 3) between the person's F (n, 3) and the background's (n, 3), and ‖F − bg‖²."""
-    E = F - background  # (n, 3)
-    D = I - background  # (n, 3)
-    EE = np.einsum("nc,nc->n", E, E)
-    return np.einsum("nc,nc->n", D, E) / np.maximum(EE, 1e-6), EE
+    """φ (...) of colours I (..., 3) between the person's F and the background's (both broadcast to I's
+    shape), and ‖F − bg‖²."""
+    E = F - background  # (..., 3)
+    D = I - background
+    EE = np.einsum("...c,...c->...", E, E)
+    return np.einsum("...c,...c->...", D, E) / np.maximum(EE, 1e-6), EE
 
 
 def _full_resolution_score(
@@ -496,16 +497,15 @@ def _full_resolution_score(
     height, width = matte.score.shape
     ds = downsample
     score = cv2.resize(matte.score, (width * ds, height * ds), interpolation=cv2.INTER_LINEAR)
-    mixed = np.abs(matte.phi - 0.5) < 0.5
+    mixed = np.flatnonzero(np.abs(matte.phi - 0.5) < 0.5)  # (m,)
     dy, dx = np.divmod(np.arange(ds * ds), ds)  # (ds²,) offsets in a block
-    rows = (matte.rows[mixed, None] * ds + dy).ravel()  # (m ds²,) box rows and columns of their pixels
-    cols = (matte.cols[mixed, None] * ds + dx).ravel()
-    inside = (rows + origin[0] < image.shape[0]) & (cols + origin[1] < image.shape[1])  # the box may pass the edge
-    rows, cols = rows[inside], cols[inside]
-    index = (rows + origin[0]) * image.shape[1] + cols + origin[1]  # (m',) flat indices in the image
-    block = np.repeat(np.flatnonzero(mixed), ds * ds)[inside]  # (m',) the working pixel of each
-    lam_B = background.reshape(-1, 3).take(index, axis=0) * matte.lam[block, None]  # (m', 3) λB
-    phi, _ = _share(image.reshape(-1, 3).take(index, axis=0), matte.F[block], lam_B)
+    rows = matte.rows[mixed, None] * ds + dy  # (m, ds²) box rows and columns of their pixels
+    cols = matte.cols[mixed, None] * ds + dx
+    # A box passing the image's far edges reads the edge pixels there; those scores are cut off with the box.
+    index = (np.minimum(rows + origin[0], image.shape[0] - 1) * image.shape[1]
+             + np.minimum(cols + origin[1], image.shape[1] - 1))  # (m, ds²) flat indices in the image
+    lam_B = background.reshape(-1, 3).take(index, axis=0) * matte.lam[mixed, None, None]  # (m, ds², 3) λB
+    phi, _ = _share(image.reshape(-1, 3).take(index, axis=0), matte.F[mixed, None], lam_B)
     score.ravel()[rows * (width * ds) + cols] = phi - 0.5
     return score
 
