@@ -455,11 +455,7 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, g:
     outside = cv2.compare(cv2.dilate(mask, depth), 0, cv2.CMP_EQ)
     band = cv2.compare(cv2.dilate(mask, _disk(radius)), cv2.erode(mask, _disk(radius), borderType=cv2.BORDER_REPLICATE),
                        cv2.CMP_GT)
-    points = cv2.findNonZero(band)  # x, y of the pixels near the outline
-    if points is None:  # a mask filling the whole image has no outline
-        points = np.zeros((0, 2), np.int32)
-    points = points.reshape(-1, 2)  # (n, 2)
-    index = points[:, 1] * width + points[:, 0]  # (n,) flat indices: np.take is the fastest gather
+    index = np.flatnonzero(band)  # (n,) flat indices of the pixels near the outline: np.take is the fastest gather
     I, B = np.ascontiguousarray(I), np.ascontiguousarray(B)
     counts = cv2.boxFilter(cv2.merge([core, outside]), cv2.CV_32F, size, normalize=False)
     n_core, n_outside = (counts.reshape(-1, 2).take(index, axis=0) / 255.0).T  # (n,) pixels nearby
@@ -468,10 +464,11 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, g:
     lam = np.where(n_outside > 0, alpha_sum.ravel().take(index) / np.maximum(n_outside, 1.0), np.float32(g))  # λ
     F = F_sum.reshape(-1, 3).take(index, axis=0) / np.maximum(n_core, 1.0)[:, None]  # (n, 3)
     phi, EE = _share(I.reshape(-1, 3).take(index, axis=0), F, lam[:, None] * B.reshape(-1, 3).take(index, axis=0))
-    measured = (n_core > 0) & (EE > MIN_MATTE_CONTRAST**2)
-    score.ravel()[index[measured]] = phi[measured] - 0.5
-    rows, cols = np.divmod(index[measured], width)
-    return _Matte(score, rows, cols, phi[measured], F[measured], lam[measured])
+    measured = np.flatnonzero((n_core > 0) & (EE > MIN_MATTE_CONTRAST**2))
+    phi, index = phi.take(measured), index.take(measured)
+    score.ravel()[index] = phi - 0.5
+    rows, cols = np.divmod(index, width)
+    return _Matte(score, rows, cols, phi, F.take(measured, axis=0), lam.take(measured))
 
 
 def _share(I: np.ndarray, F: np.ndarray, background: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
