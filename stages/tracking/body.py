@@ -243,6 +243,8 @@ class BodyModel:
         if factors.shape != self.length_factors.shape or not np.all(factors > 0):
             raise ValueError(f"length factors: expected {len(self.length_groups)} positive numbers, "
                              f"got {factors.tolist()}")
+        if np.array_equal(factors, self.length_factors):
+            return self
         ratio = np.ones(len(self.segment_names))
         grouped = self.length_group >= 0
         ratio[grouped] = factors[self.length_group[grouped]] / self.length_factors[self.length_group[grouped]]

@@ -374,6 +374,18 @@ _MIRROR_PREFIXES = ("l_", "r_")
 
 
 def body_limbs(body: BodyModel) -> list[Limb]:
+    """The limbs of `body` (`_limbs`), found once per kinematic structure: every frame asks."""
+    key = (body.segment_names, body.dof_names, body.parent.tobytes(), body.dof_segment.tobytes(),
+           body.dof_axis.tobytes())
+    if key not in _LIMBS:
+        _LIMBS[key] = _limbs(body)
+    return _LIMBS[key]
+
+
+_LIMBS: dict[tuple, list[Limb]] = {}
+
+
+def _limbs(body: BodyModel) -> list[Limb]:
     """The limbs of `body`: chains starting at an "l_"/"r_" segment whose parent is neither, with mirrors.
 
     Mirror segments and DOFs are found by swapping the "l_"/"r_" prefix; the sign of a mirrored DOF is
