@@ -179,15 +179,17 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
             across = e0 * e0 + e1 * e1 + e2 * e2 - along * along
             if along * along / largest + across / reach[p, 2] > limit:
                 continue
-            w0 = M[p, 0, 0] * u0 + M[p, 0, 1] * u1 + M[p, 0, 2] * u2  # ‖A‖² ≤ tr A² (A has rank 2), by w = M u
-            w1 = M[p, 1, 0] * u0 + M[p, 1, 1] * u1 + M[p, 1, 2] * u2
-            w2 = M[p, 2, 0] * u0 + M[p, 2, 1] * u1 + M[p, 2, 2] * u2
-            lam2 = lam * lam
-            u_u = u0 * u0 + u1 * u1 + u2 * u2
-            trace = lam2 * (reach[p, 3] - 2.0 * lam2 * (u0 * w0 + u1 * w1 + u2 * w2) + lam2 * lam2 * u_u * u_u)
-            if along * along / largest + across / (largest + noise2 * trace) > limit:
-                continue
-            s00, s11, s22, s01, s02, s12 = _spread(M, M2, p, u0, u1, u2, lam)
+            s00 = s11 = s22 = s01 = s02 = s12 = 0.0  # A² (needed only with normal noise)
+            if noise2 > 0.0:
+                w0 = M[p, 0, 0] * u0 + M[p, 0, 1] * u1 + M[p, 0, 2] * u2  # ‖A‖² ≤ tr A² (A has rank 2)
+                w1 = M[p, 1, 0] * u0 + M[p, 1, 1] * u1 + M[p, 1, 2] * u2
+                w2 = M[p, 2, 0] * u0 + M[p, 2, 1] * u1 + M[p, 2, 2] * u2
+                lam2 = lam * lam
+                u_u = u0 * u0 + u1 * u1 + u2 * u2
+                trace = lam2 * (reach[p, 3] - 2.0 * lam2 * (u0 * w0 + u1 * w1 + u2 * w2) + lam2 * lam2 * u_u * u_u)
+                if along * along / largest + across / (largest + noise2 * trace) > limit:
+                    continue
+                s00, s11, s22, s01, s02, s12 = _spread(M, M2, p, u0, u1, u2, lam)
             a, d, g = Sigma[0, 0] + noise2 * s00, Sigma[1, 1] + noise2 * s11, Sigma[2, 2] + noise2 * s22
             b, c, f = Sigma[0, 1] + noise2 * s01, Sigma[0, 2] + noise2 * s02, Sigma[1, 2] + noise2 * s12
             c00, c01, c02 = d * g - f * f, c * f - b * g, b * f - c * d  # cofactors: C⁻¹ = adj C / det C
