@@ -260,6 +260,28 @@ class BodyModel:
                        joint_offset=np.einsum("jab,jb->ja", S[self.joint_segment], self.joint_offset),
                        length_factors=factors.copy())
 
+    def with_length_groups(self, names: tuple[str, ...]) -> BodyModel:
+        """The same body with only the length groups `names` left free (in that order).
+
+        The segments of the other groups keep their current stretch, now fixed: the tracker estimates
+        only the lengths the data pin down (`TrackerParams.estimate_lengths`), while a group whose
+        estimate trades off against another one (a longer thigh for a shorter shank moves little but the
+        knee) stays at the body file's proportions.
+
+        Raises
+        ------
+        InputError
+            If a name is not one of the body's length groups.
+        """
+        unknown = [name for name in names if name not in self.length_groups]
+        if unknown:
+            raise InputError(f"length groups {unknown}: body {self.name!r} has {list(self.length_groups)}")
+        old = np.array([self.length_groups.index(name) for name in names], dtype=int)
+        new_index = np.full(len(self.length_groups) + 1, -1)  # last entry: segments of no group stay -1
+        new_index[old] = np.arange(len(old))
+        return replace(self, length_groups=tuple(names), length_group=new_index[self.length_group],
+                       length_factors=self.length_factors[old].copy())
+
     def _kinematics(self, pose_or_kin: np.ndarray | Kinematics) -> Kinematics:
         return pose_or_kin if isinstance(pose_or_kin, Kinematics) else self.fk(pose_or_kin)
 

@@ -113,3 +113,18 @@ def test_variant_distances_run_end_to_end(body, distance):
     params = TrackerParams(height_m=1.75, init_headings=4, init_refine=1, distance=distance)
     result, _ = track_frame(None, _obs(body, _walk(body, 1)[0], rng), body, params, VOLUME)
     assert result.status in STATUSES and np.all(np.isfinite(result.joints))
+
+
+def test_only_the_named_length_groups_are_estimated(body):
+    rng = np.random.default_rng(23)
+    truth = _walk(body.scaled(1.75), 3)
+    params = TrackerParams(height_m=1.75, init_headings=6, init_refine=2, estimate_lengths=("shank",))
+    state = None
+    for pose in truth:
+        result, state = track_frame(state, _obs(body, pose, rng), body, params, VOLUME)
+    assert state.length_factors.shape == (1,)
+    assert abs(np.log(state.length_factors[0])) < 0.05  # the data are the file's proportions
+    _, none = track_frame(None, _obs(body, truth[0], rng), body, TrackerParams(height_m=1.75, init_headings=6,
+                                                                               init_refine=2, estimate_lengths=()),
+                          VOLUME)
+    assert none.length_factors.shape == (0,)

@@ -189,3 +189,22 @@ def test_length_factor_stretches_the_segment_along_its_bone():
     back = longer.with_lengths(np.ones(len(body.length_groups)))  # stretches compose: back to the start
     np.testing.assert_allclose(back.joint_positions(back.zero_pose()), before, atol=1e-12)
     np.testing.assert_allclose(back.semi_axes, body.semi_axes, atol=1e-12)
+
+
+def test_length_groups_subset_freezes_the_others_at_their_stretch():
+    body = load_body("default")
+    factors = np.ones(len(body.length_groups))
+    factors[body.length_groups.index("thigh")] = 1.1
+    factors[body.length_groups.index("shank")] = 0.9
+    stretched = body.with_lengths(factors)
+    kept = stretched.with_length_groups(("shank",))
+    assert kept.length_groups == ("shank",)
+    np.testing.assert_allclose(kept.length_factors, [0.9])
+    np.testing.assert_allclose(kept.joint_positions(kept.zero_pose()), stretched.joint_positions(stretched.zero_pose()))
+    back = kept.with_lengths(np.ones(1))  # the shank returns to the file's length, the thigh keeps 1.1
+    expected = body.with_lengths(np.where(np.array(body.length_groups) == "thigh", 1.1, 1.0))
+    np.testing.assert_allclose(back.joint_positions(back.zero_pose()), expected.joint_positions(expected.zero_pose()),
+                               atol=1e-12)
+    assert body.with_length_groups(()).length_factors.shape == (0,)
+    with pytest.raises(InputError, match="forearm"):
+        body.with_length_groups(("forearm",))
