@@ -24,6 +24,15 @@ BORDER_MARGIN_PX = 2.0
 OUTLINE_OFFSET_PX = 0.5
 # Offset (pixels) at which the two sides of a contour point are read to decide which side is inside.
 SIDE_PROBE_PX = 1.5
+# Where an outline is concave the surface behind its rim is saddle-shaped (Koenderink: the outline's
+# curvature has the sign of the surface's Gaussian curvature), so the visual shape's rim placement, which
+# assumes a locally convex surface, misplaces the point; at the junction of a limb and the body the
+# outline also has a corner, whose tangent is ill-defined. Outline points bending outwards more sharply
+# than a circle of CONCAVE_RADIUS_PX pixels, measured along CURVATURE_SCALE_PX contour points (well above
+# the pixel staircase), cast no ray: on the synthetic captures this lowers the median normal error with
+# segmented masks by a degree, and the outliers too.
+CONCAVE_RADIUS_PX = 20.0
+CURVATURE_SCALE_PX = 4.0
 
 
 @dataclass(frozen=True)
@@ -43,7 +52,8 @@ class Outline:
     arc_length : (L,) float
         Cumulative outline length in pixels over the concatenated contours, for even sampling.
     usable : (L,) bool
-        False near the image border, where the outline is the frame's edge rather than a rim.
+        False near the image border, where the outline is the frame's edge rather than a rim, and where
+        the outline is sharply concave (see ``CONCAVE_RADIUS_PX``).
     bounds : (x, y, width, height)
         The box around every foreground pixel, specks included (all zero for an empty mask).
     """
@@ -73,7 +83,7 @@ def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
         empty = np.zeros((0, 2))
         return Outline(empty, empty, empty, np.zeros(0, int), np.zeros(0), np.zeros(0, bool), bounds)
     height, width = mask.shape
-    all_pixels, all_tangents, all_outward, all_ids, all_steps = [], [], [], [], []
+    all_pixels, all_tangents, all_outward, all_ids, all_steps, all_concave = [], [], [], [], [], []
     for index, raw in enumerate(pieces):
         pixels = gaussian_filter1d(raw, smoothing_px, axis=0, mode="wrap") if smoothing_px > 0 else raw
         derivative = gaussian_filter1d(raw, max(smoothing_px, 1.0), axis=0, order=1, mode="wrap")
@@ -86,11 +96,13 @@ def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
         all_outward.append(outward)
         all_ids.append(np.full(len(raw), index))
         all_steps.append(np.linalg.norm(raw - np.roll(raw, 1, axis=0), axis=1))
+        all_concave.append(_bending(raw, outward) > 1.0 / CONCAVE_RADIUS_PX)
     pixels = np.concatenate(all_pixels)
     u, v = pixels[:, 0], pixels[:, 1]
     usable = (
         (u > BORDER_MARGIN_PX) & (v > BORDER_MARGIN_PX)
         & (u < width - 1 - BORDER_MARGIN_PX) & (v < height - 1 - BORDER_MARGIN_PX)
+        & ~np.concatenate(all_concave)
     )
     return Outline(
         pixels,
@@ -101,6 +113,14 @@ def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
         usable,
         bounds,
     )
+
+
+def _bending(raw: np.ndarray, outward: np.ndarray) -> np.ndarray:
+    """(L,) signed curvature (1 / pixels) of the closed contour ``raw`` (L, 2), positive where it bends
+    towards ``outward`` (L, 2), i.e. where the silhouette is concave: r''·n / |r'|² at CURVATURE_SCALE_PX."""
+    first = gaussian_filter1d(raw, CURVATURE_SCALE_PX, axis=0, order=1, mode="wrap")
+    second = gaussian_filter1d(raw, CURVATURE_SCALE_PX, axis=0, order=2, mode="wrap")
+    return np.einsum("ij,ij->i", second, outward) / np.maximum(np.einsum("ij,ij->i", first, first), 1e-12)
 
 
 def _mostly_inside(mask: np.ndarray, probes: np.ndarray) -> bool:
