@@ -1,10 +1,10 @@
 """The per-frame work of the silhouette and reconstruction stages, as it runs in a worker.
 
 A worker of ``--workers N`` is a spawned process that imports the module of the task it unpickles
-before its first chunk, and the first stage run in the pool includes that start in its wall time. These
-tasks live apart from :mod:`pipeline.graph`, which imports the tracker (numba) and the report
-(matplotlib): a worker starts in about 0.5 s rather than 0.8 s, which on a capture of a hundred frames
-is several milliseconds per frame.
+before its first chunk, and a stage's wall time includes the imports its chunks need. These tasks live
+apart from :mod:`pipeline.graph`, which imports the tracker (numba) and the report (matplotlib), and the
+reconstruction (scipy, a quarter of a second) is imported by its own task: a worker is ready for the
+silhouette stage after about 0.3 s rather than 0.8 s, 4 ms per frame of a 112-frame capture.
 
 Within a worker, frames are the unit of parallelism: OpenCV's own threads are switched off while a
 chunk runs (on small images they mostly synchronise, a fifth more CPU for the same wall time), and
@@ -19,13 +19,16 @@ import logging
 import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 
 from pipeline import frames_io
 from pipeline.capture import Capture
-from stages.reconstruction import ReconstructionParams, reconstruct
 from stages.silhouettes import BackgroundModel, SilhouetteParams, background_model, extract_silhouette
+
+if TYPE_CHECKING:
+    from stages.reconstruction import ReconstructionParams
 
 log = logging.getLogger(__name__)
 
@@ -91,6 +94,8 @@ def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: Silhouet
 def reconstruction_task(chunk: Sequence[int], *, capture: Capture, params: ReconstructionParams,
                         masks_dir: Path, out_dir: Path) -> None:
     """Worker: points and normals of a chunk of frames from the silhouette stage's masks."""
+    from stages.reconstruction import reconstruct  # here rather than above: see the module's docstring
+
     with single_threaded_opencv():
         for frame in chunk:
             masks = [frames_io.read_mask(silhouette_path(masks_dir, camera, frame)) for camera in capture.rig.names]
