@@ -25,10 +25,12 @@ from pipeline import atomic
 
 #: Grey level above which a mask pixel counts as person (masks may be saved anti-aliased or as JPEG).
 MASK_THRESHOLD = 127
-#: Masks are written as 1-bit greyscale PNGs (which every reader expands to 0 and 255) at zlib level 1:
-#: an eighth of the pixels to filter and deflate makes writing about 4 times and reading 3 times faster
-#: than 8-bit PNG, and a binary mask compresses about as well at level 1 as at any higher level.
-MASK_PNG_FLAGS = (cv2.IMWRITE_PNG_BILEVEL, 1, cv2.IMWRITE_PNG_COMPRESSION, 1)
+#: Masks are written as 1-bit greyscale PNGs (which every reader expands to 0 and 255), deflated at
+#: level 1 with run-length matches only: an eighth of the bytes of an 8-bit PNG, and runs are all a
+#: binary mask has, so encoding takes 0.4 ms instead of 2.4 ms (default 8-bit: 0.8 ms) and decoding
+#: 0.4 ms instead of 1.5 ms, for files smaller than the default's.
+MASK_PNG_FLAGS = (cv2.IMWRITE_PNG_BILEVEL, 1, cv2.IMWRITE_PNG_COMPRESSION, 1,
+                  cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE)
 
 _PLY_PROPERTIES = ("x", "y", "z", "nx", "ny", "nz")
 _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
