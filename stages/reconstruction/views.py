@@ -31,8 +31,12 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray) -> np.ndarray:
     if np.any(camera.dist):
         r2 = x * x + y * y
         radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        x, y = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-                y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
+        if p1 or p2:
+            x, y = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+                    y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
+        else:  # radial distortion only, common after calibration: a third of the arithmetic
+            x *= radial
+            y *= radial
     fx, fy, cx, cy = (np.float32(value) for value in (camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]))
     # Nearest pixel centre: pixel (0, 0) covers [-0.5, 0.5); the shift makes truncation round.
     u = fx * x + (cx + np.float32(0.5))
