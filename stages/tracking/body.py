@@ -28,6 +28,10 @@ from stages.joints import JOINT_NAMES
 from stages.tracking import compiled
 
 ROOT_DOF_NAMES = ("tx", "ty", "tz", "yaw", "pitch", "roll")
+# Segment-length factors vary between adults by a few per cent of the population's proportions; this
+# is the standard deviation of the prior on ln ℓ towards 0 (the body file's proportions) of a length
+# group whose entry gives no `prior_sd`.
+LENGTH_PRIOR_SD = 0.06
 # Root rotation order: yaw about world z, then pitch about the body's (negative) right axis so that a
 # positive pitch leans forward, then roll about the forward axis. Its gimbal lock (pitch = ±90°, body
 # lying face down) is far from the upright motions tracked here.
@@ -129,6 +133,12 @@ class BodyModel:
         Unit direction, in the segment's frame, along which its length factor stretches it.
     length_factors : (G,) float
         Current length factors (1 = the configuration's proportions).
+    length_prior_sd : (G,) float
+        Standard deviation of the prior on each ln ℓ towards 0 (the file's proportions): how much
+        that factor varies between adults.
+    girth_group : (E,) int
+        Girth factor (a group of `length_groups` whose axis is "girth") scaling each ellipsoid's two
+        short semi-axes, −1 for ellipsoids of fixed girth.
     """
 
     name: str
@@ -155,6 +165,8 @@ class BodyModel:
     length_group: np.ndarray
     length_axis: np.ndarray
     length_factors: np.ndarray
+    length_prior_sd: np.ndarray
+    girth_group: np.ndarray
 
     @property
     def pose_size(self) -> int:
@@ -236,8 +248,10 @@ class BodyModel:
         Segment s of a length group is stretched by S = I + (ℓ − 1) u uᵀ along its axis u (in its
         frame): the offsets of its child joints, the joint centres and ellipsoid centres it carries,
         and the shapes of its ellipsoids (an ellipsoid (x − t)ᵀ A⁻¹ (x − t) = 1 with A = R diag(a²) Rᵀ
-        maps to A' = S A Sᵀ). Stretches along one axis compose, so the change from the current
-        factors is the stretch by their ratio.
+        maps to A' = S A Sᵀ). A girth group instead scales the two short semi-axes of its ellipsoids,
+        joints untouched: bodies differ in build as well as in height, and without it the overall size
+        (`scaled`) is the only way to fit a stouter body, which makes it too tall. Stretches along one
+        axis compose, so the change from the current factors is the stretch by their ratio.
         """
         factors = np.asarray(factors, dtype=float)
         if factors.shape != self.length_factors.shape or not np.all(factors > 0):
@@ -245,9 +259,10 @@ class BodyModel:
                              f"got {factors.tolist()}")
         if np.array_equal(factors, self.length_factors):
             return self
+        group_ratio = factors / self.length_factors
         ratio = np.ones(len(self.segment_names))
         grouped = self.length_group >= 0
-        ratio[grouped] = factors[self.length_group[grouped]] / self.length_factors[self.length_group[grouped]]
+        ratio[grouped] = group_ratio[self.length_group[grouped]]
         u = self.length_axis
         S = np.eye(3) + (ratio - 1.0)[:, None, None] * u[:, :, None] * u[:, None, :]  # (S,3,3)
         offset = self.offset.copy()
@@ -255,6 +270,8 @@ class BodyModel:
         S_e = S[self.ellipsoid_segment]
         A = np.einsum("eab,eb,ecb->eac", self.ellipsoid_rotation, self.semi_axes**2, self.ellipsoid_rotation)
         rotation, semi_axes = _principal_axes(S_e @ A @ S_e.transpose(0, 2, 1), self.ellipsoid_rotation)
+        girth = self.girth_group >= 0
+        semi_axes[girth, 1:] *= group_ratio[self.girth_group[girth], None]
         return replace(self, offset=offset, ellipsoid_rotation=rotation, semi_axes=semi_axes,
                        ellipsoid_centre=np.einsum("eab,eb->ea", S_e, self.ellipsoid_centre),
                        joint_offset=np.einsum("jab,jb->ja", S[self.joint_segment], self.joint_offset),
@@ -280,7 +297,8 @@ class BodyModel:
         new_index = np.full(len(self.length_groups) + 1, -1)  # last entry: segments of no group stay -1
         new_index[old] = np.arange(len(old))
         return replace(self, length_groups=tuple(names), length_group=new_index[self.length_group],
-                       length_factors=self.length_factors[old].copy())
+                       girth_group=new_index[self.girth_group], length_factors=self.length_factors[old].copy(),
+                       length_prior_sd=self.length_prior_sd[old].copy())
 
     def _kinematics(self, pose_or_kin: np.ndarray | Kinematics) -> Kinematics:
         return pose_or_kin if isinstance(pose_or_kin, Kinematics) else self.fk(pose_or_kin)
@@ -402,8 +420,12 @@ def _body_from_dict(spec: dict) -> BodyModel:
 
     groups = spec.get("lengths", {})
     length_group, length_axis = np.full(len(names), -1), np.zeros((len(names), 3))
+    girth_group = np.full(len(e_seg), -1)
     for g, entry in enumerate(groups.values()):
         for seg in entry["segments"]:
+            if entry["axis"] == "girth":
+                girth_group[np.array(e_seg) == index[seg]] = g
+                continue
             length_group[index[seg]] = g
             length_axis[index[seg]] = _AXIS_WORDS[entry["axis"]]
 
@@ -422,7 +444,8 @@ def _body_from_dict(spec: dict) -> BodyModel:
         ellipsoid_rotation=np.array(e_rot), ellipsoid_centre=np.array(e_centre),
         semi_axes=np.array(e_axes), standing_root=joint[0], joint_segment=np.array(j_seg),
         joint_offset=np.array(j_off), length_groups=tuple(groups), length_group=length_group,
-        length_axis=length_axis, length_factors=np.ones(len(groups)))
+        length_axis=length_axis, length_factors=np.ones(len(groups)), girth_group=girth_group,
+        length_prior_sd=np.array([float(entry.get("prior_sd", LENGTH_PRIOR_SD)) for entry in groups.values()]))
 
 
 def _ellipsoid_frame(long_axis: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

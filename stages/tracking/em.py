@@ -52,9 +52,6 @@ NEGLIGIBLE_POSTERIOR = 1e-9
 # Prior strength: a DOF with prior weight 1 is held to its predicted value with this standard
 # deviation (radians) when the data say nothing about it; data dominate it whenever they see it.
 PRIOR_SIGMA_RAD = 0.25
-# Segment-length factors vary between adults by a few per cent of the population's proportions; this
-# is the standard deviation of the prior on ln ℓ towards 0 (the body file's proportions).
-LENGTH_PRIOR_SD = 0.06
 # Length factors a segment may take (people, not caricatures).
 LENGTH_RANGE = (0.75, 1.33)
 # Forward-difference step on ln ℓ for de/d ln ℓ: the stretch acts on ellipsoid shapes, where an
@@ -351,7 +348,7 @@ def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixt
     plus, for DOFs with a prior weight, ½ w_d ((Λ_d − Λ̂_d) / PRIOR_SIGMA_RAD)² towards `prior_pose`;
     joint limits are enforced by clipping each step. Then Σ = Σ t_ip e_ip e_ipᵀ / Σ t_ip at the new
     pose and π_p = (1/I) Σ_i t_ip. With `estimate_scale` the body's height, with `estimate_lengths`
-    its segment-length factors ln ℓ (prior ½ (ln ℓ / LENGTH_PRIOR_SD)²) are further unknowns.
+    its segment-length factors ln ℓ (prior ½ Σ (ln ℓ_g / body.length_prior_sd_g)²) are further unknowns.
 
     With normal noise σ_n, Σ⁻¹ becomes each pair's Σ_ip⁻¹, frozen at the starting pose during the
     Gauss-Newton steps (Σ_ip varies slowly with Λ: only through the ellipsoid's orientation relative to
@@ -487,9 +484,9 @@ class _Problem:
 
     def cost(self, body, pose, e):
         """Eq. (14) for fixed t_ip plus the priors on the weakly observed DOFs and the segment lengths."""
-        ln_l = np.log(body.length_factors) if self.estimate_lengths else np.zeros(0)
+        z = np.log(body.length_factors) / body.length_prior_sd if self.estimate_lengths else np.zeros(0)
         return 0.5 * (compiled.whitened_norm2(self.W, e) + (self.prior * (pose - self.prior_pose) ** 2).sum()
-                      + (ln_l**2).sum() / LENGTH_PRIOR_SD**2)
+                      + (z**2).sum())
 
 
 def _gauss_newton_step(problem: _Problem, body: BodyModel, kin: Kinematics, pose: np.ndarray):
@@ -521,8 +518,8 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, kin: Kinematics, pose
     g[:D] += problem.prior * (pose - problem.prior_pose)
     if problem.estimate_lengths:
         G = len(body.length_groups)
-        prior[-G:] = 1.0 / LENGTH_PRIOR_SD**2
-        g[-G:] += np.log(body.length_factors) / LENGTH_PRIOR_SD**2
+        prior[-G:] = 1.0 / body.length_prior_sd**2
+        g[-G:] += np.log(body.length_factors) / body.length_prior_sd**2
     H += np.diag(prior)
     cost = problem.cost(body, pose, e)
     diag = np.diag(H) + RIDGE

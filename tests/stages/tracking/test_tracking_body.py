@@ -208,3 +208,17 @@ def test_length_groups_subset_freezes_the_others_at_their_stretch():
     assert body.with_length_groups(()).length_factors.shape == (0,)
     with pytest.raises(InputError, match="forearm"):
         body.with_length_groups(("forearm",))
+
+
+def test_girth_factor_scales_only_the_short_semi_axes():
+    body = load_body("default")
+    g = body.length_groups.index("girth")
+    assert body.length_prior_sd[g] > body.length_prior_sd[body.length_groups.index("shank")]  # builds vary more
+    factors = np.ones(len(body.length_groups))
+    factors[g] = 1.2
+    stout = body.with_lengths(factors)
+    np.testing.assert_allclose(stout.joint_positions(stout.zero_pose()), body.joint_positions(body.zero_pose()))
+    np.testing.assert_allclose(stout.semi_axes[:, 0], body.semi_axes[:, 0], rtol=1e-12)
+    np.testing.assert_allclose(stout.semi_axes[:, 1:], body.semi_axes[:, 1:] * 1.2, rtol=1e-12)
+    only = stout.with_length_groups(("girth",))
+    np.testing.assert_allclose(only.with_lengths(np.ones(1)).semi_axes, body.semi_axes, atol=1e-12)
