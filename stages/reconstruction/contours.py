@@ -7,11 +7,12 @@ point the surface normal equals that plane's normal, oriented away from the silh
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import correlate1d, gaussian_filter1d
 
 from calib.camera import Camera
 
@@ -85,8 +86,8 @@ def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
     height, width = mask.shape
     all_pixels, all_tangents, all_outward, all_ids, all_steps, all_concave = [], [], [], [], [], []
     for index, raw in enumerate(pieces):
-        pixels = gaussian_filter1d(raw, smoothing_px, axis=0, mode="wrap") if smoothing_px > 0 else raw
-        derivative = gaussian_filter1d(raw, max(smoothing_px, 1.0), axis=0, order=1, mode="wrap")
+        pixels = _along_contour(raw, smoothing_px, 0) if smoothing_px > 0 else raw
+        derivative = _along_contour(raw, max(smoothing_px, 1.0), 1)
         tangents = derivative / np.maximum(np.linalg.norm(derivative, axis=1, keepdims=True), 1e-12)
         outward = np.column_stack([tangents[:, 1], -tangents[:, 0]])
         if _mostly_inside(mask, pixels + SIDE_PROBE_PX * outward):
@@ -115,11 +116,29 @@ def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
     )
 
 
+def _along_contour(raw: np.ndarray, sigma: float, order: int) -> np.ndarray:
+    """``gaussian_filter1d(raw, sigma, axis=0, order=order, mode="wrap")`` of a closed contour (L, 2), with
+    the weights computed once per (sigma, order): building them was half the cost of filtering a contour."""
+    return correlate1d(raw, _gaussian_weights(sigma, order), axis=0, mode="wrap")
+
+
+@functools.lru_cache(maxsize=16)
+def _gaussian_weights(sigma: float, order: int) -> np.ndarray:
+    """The correlation weights of ``gaussian_filter1d`` for ``sigma`` and derivative ``order``: its response
+    to a unit impulse is its kernel, the weights reversed."""
+    radius = int(4.0 * sigma + 0.5)  # gaussian_filter1d's default truncation at 4 sigma
+    impulse = np.zeros(2 * radius + 1)
+    impulse[radius] = 1.0
+    weights = gaussian_filter1d(impulse, sigma, order=order, mode="constant")[::-1].copy()
+    weights.flags.writeable = False
+    return weights
+
+
 def _bending(raw: np.ndarray, outward: np.ndarray) -> np.ndarray:
     """(L,) signed curvature (1 / pixels) of the closed contour ``raw`` (L, 2), positive where it bends
     towards ``outward`` (L, 2), i.e. where the silhouette is concave: r''·n / |r'|² at CURVATURE_SCALE_PX."""
-    first = gaussian_filter1d(raw, CURVATURE_SCALE_PX, axis=0, order=1, mode="wrap")
-    second = gaussian_filter1d(raw, CURVATURE_SCALE_PX, axis=0, order=2, mode="wrap")
+    first = _along_contour(raw, CURVATURE_SCALE_PX, 1)
+    second = _along_contour(raw, CURVATURE_SCALE_PX, 2)
     return np.einsum("ij,ij->i", second, outward) / np.maximum(np.einsum("ij,ij->i", first, first), 1e-12)
 
 
