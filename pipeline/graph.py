@@ -119,9 +119,9 @@ def _backgrounds(ctx: StageContext) -> None:
     """
     for camera in ctx.capture.rig.names:
         path = background_path(ctx.out_dir, camera)
-        plate = ctx.capture.background_paths.get(camera)
         if path.exists():
             continue
+        plate = ctx.capture.background_paths.get(camera)
         if plate is not None and plate.suffix.lower() == ".png":
             atomic.write_bytes(path, plate.read_bytes())
         else:
