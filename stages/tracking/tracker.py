@@ -5,9 +5,12 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
 "robust tracking"). What the paper leaves open is handled here:
 
 - first frame and after a loss: automatic initialisation from the data (`init.initialise`);
-- unknown height: estimated at the initialisation and refined over the next `scale_frames` frames;
-  the segment-length factors named by `estimate_lengths` (groups of the body file's `lengths`) are
-  estimated with the pose over the same frames (prior towards the body file's proportions), then frozen;
+- unknown height: estimated by the initialisation (the cloud's top, then EM; averaged over the
+  initialisations of the first `scale_frames` frames); the segment-length and girth factors named by
+  `estimate_lengths` (groups of the body file's `lengths`) are estimated with the pose over those frames
+  (prior towards the body file's proportions), then frozen. The tracked frames do not refine the
+  height: their EM, with the girth and lengths free as well, drifted it upward on stout bodies
+  (capsules: 1.84 -> 1.89 m for a 1.75 m subject);
 - failure detection, by absolute checks that a bad start cannot make the norm: an outlier fraction
   above `max_outlier_fraction` or a Σ wider than `failure_sigma_m` triggers a re-initialisation,
   and the better of the two fits (by likelihood) is kept; a frame that was fitted is never dropped:
@@ -27,7 +30,7 @@ import numpy as np
 
 from stages.tracking.body import BodyModel
 from stages.tracking.distances import residual_size
-from stages.tracking.em import HEIGHT_RANGE_M, EMParams, FitResult, Mixture, fit, volume_size
+from stages.tracking.em import EMParams, FitResult, Mixture, fit, volume_size
 from stages.tracking.init import (
     LIMB_MIN_OBSERVATIONS,
     LIMB_SHARE_RATIO,
@@ -91,7 +94,8 @@ class TrackerParams:
     max_predicted_frames : int
         After this many frames without a fit, the subject is lost and the next data re-initialise.
     scale_frames : int
-        Frames over which the height (when unknown) and the segment lengths keep being estimated.
+        Frames over which the height (when unknown: by the initialisations among them) and the length
+        factors keep being estimated.
     init_headings, init_refine : int
         Initialisation: headings per library pose, hypotheses refined by EM.
     normal_noise_deg : float
@@ -282,8 +286,7 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     prediction = sized.clip(state.pose + state.velocity)
     learning = state.height_weight < params.scale_frames
     mixture = Mixture(Sigma=state.Sigma + params.sigma_m**2 * np.eye(len(state.Sigma)), pi=state.pi)
-    frame_em = replace(em, estimate_scale=learning and params.height_m is None,
-                       estimate_lengths=learning and bool(params.estimate_lengths))
+    frame_em = replace(em, estimate_lengths=learning and bool(params.estimate_lengths))
     tracked = fit(y, n, sized, prediction, volume, frame_em, mixture=mixture)
     per_obs = tracked.log_likelihood[-1] / len(y)
     if np.isfinite(state.likelihood_level) and per_obs < state.likelihood_level - params.refit_drop:
@@ -305,9 +308,8 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
         if result.log_likelihood > tracked.log_likelihood[-1] + margin:
             return result, new_state
     height, lengths, weight = state.height_m, state.length_factors, state.height_weight
-    if learning:  # running means of the per-frame estimates (of ln ℓ for the length factors)
+    if learning:  # running mean of the per-frame estimates of ln ℓ
         weight += 1
-        height = float(np.clip(height + (tracked.body.height_m - height) / weight, *HEIGHT_RANGE_M))
         lengths = lengths * (tracked.body.length_factors / lengths) ** (1.0 / weight)
     level = per_obs if not np.isfinite(state.likelihood_level) else (
         (1 - _LEVEL_RATE) * state.likelihood_level + _LEVEL_RATE * per_obs)
