@@ -128,3 +128,18 @@ def test_only_the_named_length_groups_are_estimated(body):
                                                                                init_refine=2, estimate_lengths=()),
                           VOLUME)
     assert none.length_factors.shape == (0,)
+
+
+def test_unknown_height_comes_from_the_initialisation_and_tracked_frames_keep_it(body):
+    rng = np.random.default_rng(24)
+    truth = _walk(body.scaled(1.62), 4)
+    params = TrackerParams(height_m=None, init_headings=6, init_refine=2)
+    heights, statuses = [], []
+    state = None
+    for pose in truth:
+        result, state = track_frame(state, _obs(body.scaled(1.62), pose, rng), body, params, VOLUME)
+        heights.append(state.height_m)
+        statuses.append(result.status)
+    assert statuses[0] == "initialised" and set(statuses[1:]) == {"tracked"}
+    assert abs(heights[0] - 1.62) < 0.05
+    assert heights[1:] == [heights[0]] * 3
