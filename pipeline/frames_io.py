@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import json
 import os
+import struct
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -25,12 +27,8 @@ from pipeline import atomic
 
 #: Grey level above which a mask pixel counts as person (masks may be saved anti-aliased or as JPEG).
 MASK_THRESHOLD = 127
-#: Masks are written as 1-bit greyscale PNGs (which every reader expands to 0 and 255), deflated at
-#: level 1 with run-length matches only: an eighth of the bytes of an 8-bit PNG, and runs are all a
-#: binary mask has, so encoding takes 0.4 ms instead of 2.4 ms (default 8-bit: 0.8 ms) and decoding
-#: 0.4 ms instead of 1.5 ms, for files smaller than the default's.
-MASK_PNG_FLAGS = (cv2.IMWRITE_PNG_BILEVEL, 1, cv2.IMWRITE_PNG_COMPRESSION, 1,
-                  cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE)
+#: The 8-byte signature that starts every PNG file.
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 _PLY_PROPERTIES = ("x", "y", "z", "nx", "ny", "nz")
 _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
@@ -57,12 +55,12 @@ def read_mask(path: str | os.PathLike) -> np.ndarray:
     return cv2.threshold(grey, MASK_THRESHOLD, 255, cv2.THRESH_BINARY)[1]
 
 
-def write_image(path: str | os.PathLike, image: np.ndarray, flags: tuple[int, ...] = ()) -> None:
-    """Atomically write an image (``(H, W)`` or ``(H, W, 3)`` uint8; PNG is lossless) with OpenCV ``flags``."""
+def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Atomically write an image (``(H, W)`` or ``(H, W, 3)`` uint8; PNG is lossless)."""
     if image.dtype != np.uint8 or image.ndim not in (2, 3):
         raise ValueError(f"write_image: expected a (H, W[, 3]) uint8 array, got {image.dtype} {image.shape}")
     with atomic.atomic_output(path) as tmp:
-        if not cv2.imwrite(str(tmp), image, list(flags)):
+        if not cv2.imwrite(str(tmp), image):
             raise OSError(f"{path}: OpenCV could not write the image")
 
 
@@ -70,8 +68,29 @@ def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:
     """Atomically write a ``(H, W) uint8`` mask as PNG (nonzero pixels are saved as 255)."""
     if mask.dtype not in (np.uint8, np.bool_) or mask.ndim != 2:
         raise ValueError(f"write_mask: expected a (H, W) uint8 or bool array, got {mask.dtype} {mask.shape}")
-    binary = cv2.threshold(mask.view(np.uint8), 0, 255, cv2.THRESH_BINARY)[1]
-    write_image(path, binary, MASK_PNG_FLAGS)
+    atomic.write_bytes(path, mask_png(mask))
+
+
+def mask_png(mask: np.ndarray) -> bytes:
+    """The PNG file of a mask (H, W) uint8 or bool: 1 bit per pixel, grey, nonzero pixels white (255).
+
+    Every reader expands 1-bit grey to 0 and 255; an eighth of the bytes of an 8-bit PNG makes writing
+    and reading several times faster. The rows (filter type 0) are deflated at level 1 with run-length
+    matches only, as runs are all a mask has: for a 780 x 580 mask the same bytes as OpenCV's
+    ``IMWRITE_PNG_BILEVEL`` with that strategy in 0.15 ms instead of 0.43 ms (OpenCV's 8-bit default:
+    0.8 ms to write, 1.5 ms to read, against 0.4 ms).
+    """
+    height, width = mask.shape
+    rows = np.zeros((height, (width + 7) // 8 + 1), np.uint8)  # a leading 0 per row: no filter
+    rows[:, 1:] = np.packbits(mask.view(np.uint8), axis=1)
+    deflate = zlib.compressobj(1, zlib.DEFLATED, 15, 8, zlib.Z_RLE)
+    pixels = deflate.compress(rows.tobytes()) + deflate.flush()
+    header = struct.pack(">IIBBBBB", width, height, 1, 0, 0, 0, 0)  # 1 bit, grey, deflate, no filter, no interlace
+    return PNG_SIGNATURE + _png_chunk(b"IHDR", header) + _png_chunk(b"IDAT", pixels) + _png_chunk(b"IEND", b"")
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, normals: np.ndarray) -> None:

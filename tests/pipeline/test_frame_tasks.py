@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 
-import cv2
 import numpy as np
 import pytest
 
@@ -36,11 +35,3 @@ def test_background_model_is_read_again_when_the_file_changes(tmp_path):
     assert second is not first
     assert int(second.image[0, 0, 0]) == 200
 
-
-def test_masks_are_one_bit_pngs_that_read_back_as_0_and_255(tmp_path):
-    mask = np.zeros((30, 50), np.uint8)
-    mask[5:20, 10:40] = 255
-    frames_io.write_mask(tmp_path / "m.png", mask)
-    raw = cv2.imread(str(tmp_path / "m.png"), cv2.IMREAD_UNCHANGED)
-    np.testing.assert_array_equal(raw, mask)  # any reader expands the 1-bit grey levels to 0 and 255
-    assert (tmp_path / "m.png").read_bytes()[24] == 1  # IHDR bit depth

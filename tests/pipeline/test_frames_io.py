@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import open3d as o3d
 import pytest
@@ -35,6 +36,18 @@ def test_mask_round_trip(tmp_path):
     mask[1:3, 2:6] = 1  # any nonzero value is "person"
     frames_io.write_mask(tmp_path / "m.png", mask)
     np.testing.assert_array_equal(frames_io.read_mask(tmp_path / "m.png"), np.where(mask > 0, 255, 0))
+
+
+def test_masks_are_one_bit_pngs_as_opencv_writes_them(tmp_path):
+    mask = np.zeros((580, 780), np.uint8)
+    cv2.ellipse(mask, (390, 290), (80, 220), 0, 0, 360, 255, -1)
+    frames_io.write_mask(tmp_path / "m.png", mask)
+    data = (tmp_path / "m.png").read_bytes()
+    flags = [cv2.IMWRITE_PNG_BILEVEL, 1, cv2.IMWRITE_PNG_COMPRESSION, 1,
+             cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
+    assert len(data) <= len(cv2.imencode(".png", mask, flags)[1])  # the same bytes with the pinned zlib
+    assert data[24] == 1  # IHDR bit depth
+    np.testing.assert_array_equal(cv2.imread(str(tmp_path / "m.png"), cv2.IMREAD_UNCHANGED), mask)
 
 
 def test_ply_round_trip_and_open3d_reads_it(tmp_path):
