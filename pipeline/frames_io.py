@@ -49,10 +49,46 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
 
 def read_mask(path: str | os.PathLike) -> np.ndarray:
     """Read a silhouette mask as ``(H, W) uint8`` with values exactly 0 or 255."""
-    grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    data = Path(path).read_bytes()
+    mask = _unfiltered_one_bit_png(data)
+    if mask is not None:
+        return mask
+    grey = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
     if grey is None:
         raise InputError(f"{path}: not a readable mask image (expected a PNG, 0 = background, 255 = person)")
     return cv2.threshold(grey, MASK_THRESHOLD, 255, cv2.THRESH_BINARY)[1]
+
+
+def _unfiltered_one_bit_png(data: bytes) -> np.ndarray | None:
+    """The (H, W) uint8 0/255 pixels of a 1-bit grey PNG without row filters (as :func:`mask_png` writes
+    them), else None (left to OpenCV).
+
+    Inflating and unpacking the rows directly takes a quarter of OpenCV's time for a 780 x 580 mask
+    (0.2 ms against 0.75 ms on a busy machine), and the reconstruction reads every camera's mask.
+    """
+    if not data.startswith(PNG_SIGNATURE + b"\x00\x00\x00\x0dIHDR") or len(data) < 33:
+        return None
+    width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", data[16:29])
+    if (depth, colour, interlace) != (1, 0, 0):
+        return None
+    pixels, position = [], 8
+    while position + 8 <= len(data):
+        length, kind = struct.unpack(">I4s", data[position : position + 8])
+        if kind == b"IDAT":
+            pixels.append(data[position + 8 : position + 8 + length])
+        elif kind == b"IEND":
+            break
+        position += length + 12
+    try:
+        rows = np.frombuffer(zlib.decompress(b"".join(pixels)), np.uint8)
+    except zlib.error:
+        return None
+    if rows.size != height * ((width + 7) // 8 + 1):
+        return None
+    rows = rows.reshape(height, -1)
+    if rows[:, 0].any():  # a row filter: rare for 1-bit images, and OpenCV knows them all
+        return None
+    return np.unpackbits(rows[:, 1:], axis=1, count=width) * np.uint8(255)
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:

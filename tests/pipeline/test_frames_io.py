@@ -50,6 +50,16 @@ def test_masks_are_one_bit_pngs_as_opencv_writes_them(tmp_path):
     np.testing.assert_array_equal(cv2.imread(str(tmp_path / "m.png"), cv2.IMREAD_UNCHANGED), mask)
 
 
+def test_masks_from_other_writers_are_read_by_opencv_and_thresholded(tmp_path):
+    mask = np.zeros((40, 60), np.uint8)
+    mask[10:30, 15:45] = 200  # anti-aliased or scaled: above the threshold is person
+    mask[10:30, 15] = 100
+    for name, flags in (("grey.png", []), ("one_bit.png", [cv2.IMWRITE_PNG_BILEVEL, 1]), ("m.jpg", [])):
+        source = np.where(mask > 127, 255, 0).astype(np.uint8) if name == "one_bit.png" else mask
+        cv2.imwrite(str(tmp_path / name), source, flags)
+        np.testing.assert_array_equal(frames_io.read_mask(tmp_path / name), np.where(mask > 127, 255, 0))
+
+
 def test_ply_round_trip_and_open3d_reads_it(tmp_path):
     rng = np.random.default_rng(0)
     points = rng.normal(size=(50, 3))
