@@ -11,6 +11,7 @@ import re
 import shutil
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import numpy as np
@@ -80,6 +81,19 @@ def test_help_everywhere(capsys):
             main(argv)
         assert exit_info.value.code == 0
         assert "usage:" in capsys.readouterr().out
+
+
+def test_a_closed_pipe_ends_quietly(monkeypatch, tmp_path):
+    """`python -m pipeline eval runs/x | head -1`: the reader leaves early, the command ends without a traceback."""
+    def broken(args):
+        raise BrokenPipeError
+    module = types.ModuleType("closes_the_pipe")
+    module.add_arguments, module.main = (lambda parser: None), broken
+    monkeypatch.setitem(sys.modules, module.__name__, module)
+    monkeypatch.setitem(SUBCOMMANDS, "eval", module.__name__)
+    with open(tmp_path / "stdout", "w") as stdout:
+        monkeypatch.setattr(sys, "stdout", stdout)
+        assert main(["eval"]) == 0
 
 
 # ---------------------------------------------------------------------------------------------
