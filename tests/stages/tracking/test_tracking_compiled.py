@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from tracking_testing import random_pose, sample_ellipsoids
+from tracking_testing import data_near_a_pose, random_pose
 
 from stages.tracking import compiled
 from stages.tracking.body import load_body
@@ -12,10 +12,7 @@ from stages.tracking.distances import normal_spread, residuals, shape_matrices, 
 @pytest.fixture(scope="module")
 def pairs():
     body = load_body("default")
-    rng = np.random.default_rng(30)
-    truth = random_pose(body, rng)
-    y, n = sample_ellipsoids(body, truth, 200, rng, outlier_fraction=0.2)
-    kin = body.fk(truth + rng.normal(0.0, 0.05, body.pose_size))
+    y, n, kin, rng = data_near_a_pose(body, 30, 200)
     p = np.sort(rng.integers(0, body.n_ellipsoids, 500))  # sorted by ellipsoid, as EM keeps them
     i = rng.integers(0, len(y), 500)
     return y, n, i, p, kin, body.ellipsoids(kin), rng

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from tracking_testing import random_pose, sample_ellipsoids
+from tracking_testing import data_near_a_pose
 
 from stages.tracking.body import load_body
 from stages.tracking.distances import (
@@ -17,10 +17,8 @@ from stages.tracking.distances import (
 @pytest.fixture(scope="module")
 def data():
     body = load_body("default")
-    rng = np.random.default_rng(20)
-    truth = random_pose(body, rng)
-    y, n = sample_ellipsoids(body, truth, 300, rng, outlier_fraction=0.2)
-    return y, n, body.ellipsoids(truth + rng.normal(0.0, 0.05, body.pose_size))
+    y, n, kin, _ = data_near_a_pose(body, 20, 300)
+    return y, n, body.ellipsoids(kin)
 
 
 @pytest.mark.parametrize("distance", ["normals", "points"])

@@ -33,3 +33,12 @@ def random_pose(body, rng, scale=0.3):
     pose[3] = 0.5
     pose[6:] += rng.normal(0.0, scale, body.pose_size - 6)
     return body.clip(pose)
+
+
+def data_near_a_pose(body, seed, count):
+    """Data (20 % outliers) sampled at a random pose, and the kinematics of a pose 0.05 rad away from it:
+    every pair is then a little off, as between EM iterations. Returns y, n, kin, rng."""
+    rng = np.random.default_rng(seed)
+    truth = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, truth, count, rng, outlier_fraction=0.2)
+    return y, n, body.fk(truth + rng.normal(0.0, 0.05, body.pose_size)), rng
