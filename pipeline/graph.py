@@ -173,8 +173,10 @@ def read_tracking(folder: Path, frame: int) -> tuple[FrameResult, TrackerState]:
 def run_tracking(ctx: StageContext) -> int:
     """Fit the articulated body to each frame's observations, in order (frame t starts from t-1).
 
-    Sequential by nature, so it runs in this process; each frame's record (estimate + tracker state)
-    is written atomically, and a resumed run restarts from the state after the last complete frame.
+    Sequential by nature, so it runs in this process, alongside the reconstruction when both have
+    to run (it streams: each frame's observations are read as soon as they exist); each frame's
+    record (estimate + tracker state) is written atomically, and a resumed run restarts from the
+    state after the last complete frame.
     """
     params: TrackerParams = ctx.params
     if params.height_m is None and ctx.capture.height_m is not None:
@@ -187,7 +189,7 @@ def run_tracking(ctx: StageContext) -> int:
     observations_dir = ctx.input_dir("reconstruction")
     with ctx.progress(len(frames), initial=done) as bar:
         for frame in frames[done:]:
-            points, normals = frames_io.read_ply(observations_path(observations_dir, frame))
+            points, normals = frames_io.read_ply(ctx.ready(observations_path(observations_dir, frame)))
             result, state = track_frame(state, Observations(points, normals), body, params, ctx.capture.volume)
             if result.status in ("predicted", "lost"):
                 log.warning("frame %d: pose %s, not exported (%d observations)", frame, result.status, len(points))
@@ -243,7 +245,7 @@ STAGES: tuple[Stage, ...] = (
           params_type=ReconstructionParams, capture_parts=("config", "frames"),
           code=("stages.reconstruction",)),
     Stage("tracking", run_tracking, inputs=("calibration", "reconstruction"), params_type=TrackerParams,
-          capture_parts=("config", "frames"), code=("stages.tracking",)),
+          capture_parts=("config", "frames"), code=("stages.tracking",), streams=True),
     Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
           code=("stages.export", "pipeline.export_io", "pipeline.report")),

@@ -98,6 +98,10 @@ class Stage:
     code : tuple of str
         Modules or packages (import names) whose source is part of its code version, in addition
         to the run function's own source, e.g. ``("stages.silhouettes",)``.
+    streams : bool
+        The stage may run while its last input stage is still writing: it reads each input file
+        through :meth:`StageContext.ready`, which waits for the file. A run then overlaps the two
+        (see :meth:`Runner.run`).
     """
 
     name: str
@@ -106,6 +110,7 @@ class Stage:
     params_type: type | None = None
     capture_parts: tuple[str, ...] = ()
     code: tuple[str, ...] = ()
+    streams: bool = False
 
     def __post_init__(self) -> None:
         if not _STAGE_NAME.match(self.name):
@@ -174,10 +179,28 @@ class StageContext:
     output_root: Path
     workers: Workers
     show_progress: bool = False
+    upstream: cf.Future | None = None
 
     def input_dir(self, stage: str) -> Path:
         """Folder of an upstream stage's results."""
         return self.output_root / stage
+
+    def ready(self, path: Path) -> Path:
+        """``path``, an input file, once it exists.
+
+        While a streaming stage's upstream is still running (``upstream``, the future of its
+        :meth:`Runner.run_stage`), files appear one by one, each complete (they are written
+        atomically); waiting ends with the file, or with the upstream's own error if it failed.
+        """
+        while not path.exists():
+            if self.upstream is None or self.upstream.done():
+                if path.exists():
+                    break
+                if self.upstream is not None:
+                    self.upstream.result()  # the upstream's error, if it failed
+                raise InputError(f"{path}: input file missing (expected the {self.stage} stage's inputs complete)")
+            time.sleep(STREAM_POLL_S)
+        return path
 
     def progress(self, total: int, *, initial: int = 0) -> tqdm:
         """A progress bar over frames on stderr (disabled when not wanted or not a terminal)."""
@@ -236,6 +259,10 @@ class StageContext:
                 for future in running:
                     future.cancel()
         return len(pending)
+
+
+#: How often a streaming stage looks for its next input file, seconds.
+STREAM_POLL_S = 0.002
 
 
 def consecutive_chunks(pending: Sequence[int], frames: Sequence[int], size: int) -> list[tuple[int, ...]]:
@@ -502,17 +529,48 @@ class Runner:
         check_graph(self.stages)
 
     def run(self, selected: Collection[str] | None = None, *, force: bool = False) -> list[StageOutcome]:
-        """Run the ``selected`` stages (default all) in declaration order; return what happened."""
+        """Run the ``selected`` stages (default all) in declaration order; return what happened.
+
+        A streaming stage that has no finished result yet runs alongside its upstream when that one
+        has work to do: the upstream in a background thread (its workers compute the frames), the
+        streaming stage here, reading each frame as it appears. The tracker, sequential by nature,
+        then uses the core the per-frame stage's workers leave idle between chunks.
+        """
         selected = set(selected) if selected is not None else {stage.name for stage in self.stages}
         self.outcomes = []
-        for stage in self.stages:
+        stages = list(self.stages)
+        while stages:
+            stage = stages.pop(0)
             if stage.name not in selected:
                 self.outcomes.append(StageOutcome(stage.name, "not selected"))
-                continue
-            self.outcomes.append(self.run_stage(stage, force=force))
+            elif stages and stages[0].name in selected and self._streams_after(stage, stages[0], force):
+                self.outcomes.extend(self._run_streaming(stage, stages.pop(0), force=force))
+            else:
+                self.outcomes.append(self.run_stage(stage, force=force))
         return self.outcomes
 
-    def run_stage(self, stage: Stage, *, force: bool = False) -> StageOutcome:
+    def _streams_after(self, upstream: Stage, stage: Stage, force: bool) -> bool:
+        """Whether ``stage`` should run alongside ``upstream``: it streams from it, will run anyway (no
+        finished result of its own), and ``upstream`` has work to do."""
+        if not stage.streams or stage.inputs[-1:] != (upstream.name,):
+            return False
+        if read_manifest(self.output_root / stage.name) is not None and not force:
+            return False  # it may still be up to date after the upstream reruns: wait and see
+        status = stage_status(upstream, self.capture, self.params[upstream.name], self.output_root)
+        return force or status.state != "up to date"
+
+    def _run_streaming(self, upstream: Stage, stage: Stage, *, force: bool) -> list[StageOutcome]:
+        with cf.ThreadPoolExecutor(1, thread_name_prefix=upstream.name) as background:
+            running = background.submit(self.run_stage, upstream, force=force)
+            outcome = self.run_stage(stage, force=force, upstream=running)
+        return [running.result(), outcome]
+
+    def run_stage(self, stage: Stage, *, force: bool = False, upstream: cf.Future | None = None) -> StageOutcome:
+        """Run one stage unless up to date. With ``upstream``, the future of its running input stage,
+        it streams (:attr:`Stage.streams`): it starts afresh at once and its record is made when both
+        have finished."""
+        if upstream is not None:
+            return self._run_streaming_stage(stage, upstream)
         folder = self.output_root / stage.name
         expected = expected_record(stage, self.capture, self.params[stage.name], self.output_root)
         if expected.missing:
@@ -545,8 +603,26 @@ class Runner:
                                self.workers, self.show_progress)
         started = time.perf_counter()
         frames = stage.run(context)
-        seconds = time.perf_counter() - started
+        return self._finish(stage, expected, frames, time.perf_counter() - started)
 
+    def _run_streaming_stage(self, stage: Stage, upstream: cf.Future) -> StageOutcome:
+        folder = self.output_root / stage.name
+        if folder.exists():
+            shutil.rmtree(folder)
+        folder.mkdir(parents=True)
+        context = StageContext(stage.name, self.capture, self.params[stage.name], folder, self.output_root,
+                               self.workers, self.show_progress, upstream)
+        started = time.perf_counter()
+        frames = stage.run(context)
+        seconds = time.perf_counter() - started
+        upstream.result()  # its manifest is written: this stage's inputs are known now
+        expected = expected_record(stage, self.capture, self.params[stage.name], self.output_root)
+        atomic.write_text(folder / MARKER, expected.key + "\n")
+        return self._finish(stage, expected, frames, seconds)
+
+    def _finish(self, stage: Stage, expected: Expected, frames: int | None, seconds: float) -> StageOutcome:
+        """Write the manifest of a stage that ran: from now on it is up to date."""
+        folder = self.output_root / stage.name
         manifest = {
             **expected.record,
             "cache_key": expected.key,

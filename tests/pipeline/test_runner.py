@@ -276,3 +276,43 @@ def test_graph_declaration_errors():
         Runner((STAGES[1], STAGES[0]), None, {}, Path("."), None)
     with pytest.raises(ValueError, match="stage name"):
         Stage("Bad Name", run_source)
+
+
+# ---------------------------------------------------------------------------------------------
+# Streaming: a stage that reads its upstream's frames as they appear runs alongside it
+
+
+def run_follower(ctx) -> int:
+    """Reads every per-frame file through ``ctx.ready`` (waiting for it while the upstream runs)."""
+    frames = ctx.capture.frame_numbers
+    for frame in frames:
+        value = frames_io.read_json(ctx.ready(ctx.input_dir("per_frame") / frames_io.frame_name(frame, ".json")))
+        _log(f"follower {frame}")
+        frames_io.write_json(ctx.out_dir / frames_io.frame_name(frame, ".json"), {"twice": 2 * value["v"]})
+    return len(frames)
+
+
+STREAMING = (*STAGES[:2], Stage("follower", run_follower, inputs=("per_frame",), streams=True))
+
+
+def test_a_streaming_stage_runs_alongside_its_upstream_and_ends_up_to_date(setup):
+    capture, out, run, work = setup
+    assert run(stages=STREAMING) == {"source": "ran", "per_frame": "ran", "follower": "ran"}
+    assert sorted(work()) == sorted(["source"] + [f"{stage} {frame}" for frame in capture.frame_numbers
+                                                  for stage in ("per_frame", "follower")])
+    assert [frames_io.read_json(out / "follower" / frames_io.frame_name(frame, ".json"))["twice"]
+            for frame in capture.frame_numbers] == [4.0 * frame for frame in capture.frame_numbers]
+    manifest = json.loads((out / "follower" / MANIFEST).read_text())
+    assert manifest["inputs"]["stage:per_frame"] == json.loads((out / "per_frame" / MANIFEST).read_text())[
+        "outputs"]["digest"]
+    assert run(stages=STREAMING) == {"source": "up to date", "per_frame": "up to date", "follower": "up to date"}
+
+
+def test_an_upstream_failure_stops_the_streaming_stage_without_a_record(setup, monkeypatch):
+    capture, out, run, work = setup
+    monkeypatch.setenv(FAIL_AT, str(capture.frame_numbers[2]))
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        run(stages=STREAMING)
+    assert not (out / "per_frame" / MANIFEST).exists() and not (out / "follower" / MANIFEST).exists()
+    monkeypatch.delenv(FAIL_AT)
+    assert run(stages=STREAMING) == {"source": "up to date", "per_frame": "ran", "follower": "ran"}
