@@ -271,7 +271,9 @@ def format_paper(paper: dict, figure: str | None) -> str:
 SPEED_NOTES = (
     "How: the wall time of `python -m pipeline run <capture> --out <fresh folder> --workers 2`, measured from "
     "outside (interpreter start, imports, video decoding, all five stages, every output written). Stage ms/frame "
-    "= the seconds in the stage's manifest / the capture's frames. Peak memory = `ru_maxrss` of the run's process "
+    "= the seconds in the stage's manifest / the capture's frames; tracking runs alongside reconstruction (it "
+    "streams: each frame is tracked as soon as its observations exist), so those two overlap and each is slowed by "
+    "the other: their sum is more than their share of the wall time. Peak memory = `ru_maxrss` of the run's process "
     "tree (`os.wait4`: the largest single process, workers included). The machine is shared with other work; "
     "the load average before each run says how busy it was.")
 UNSEEN_NOTES = (
