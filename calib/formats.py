@@ -7,14 +7,21 @@ the file and the key.
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Mapping
 from pathlib import Path
+from types import ModuleType
 
-from calib import _anipose, _colmap, _opencv
 from calib.camera import Rig
 from calib.errors import InputError
 
 FORMATS = ("colmap", "opencv", "anipose")
+
+
+def _reader(fmt: str) -> ModuleType:
+    """The private module of a format, imported when first needed: pycolmap alone takes a twentieth of a
+    second, which every worker process of a pipeline run would otherwise pay without reading a model."""
+    return importlib.import_module(f"calib._{fmt}")
 
 
 def _check_format(fmt: str) -> None:
@@ -40,8 +47,8 @@ def load_rig(fmt: str, path: str | Path, *, image_sizes: Mapping[str, tuple[int,
     path = Path(path)
     sizes = dict(image_sizes or {})
     if fmt == "opencv":
-        return _opencv.load(path, sizes)
-    rig = _colmap.load(path) if fmt == "colmap" else _anipose.load(path)
+        return _reader(fmt).load(path, sizes)
+    rig = _reader(fmt).load(path)
     for camera in rig:
         if camera.name in sizes and tuple(sizes[camera.name]) != camera.size:
             raise InputError(
@@ -58,9 +65,4 @@ def save_rig(rig: Rig, fmt: str, path: str | Path) -> None:
     """
     _check_format(fmt)
     path = Path(path)
-    if fmt == "colmap":
-        _colmap.save(rig, path)
-    elif fmt == "opencv":
-        _opencv.save(rig, path)
-    else:
-        _anipose.save(rig, path)
+    _reader(fmt).save(rig, path)
