@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import importlib
 import multiprocessing
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -51,7 +52,8 @@ class Workers:
 
 
 @contextlib.contextmanager
-def make_executor(workers: int = 1, scheduler: str | None = None) -> Iterator[Workers]:
+def make_executor(workers: int = 1, scheduler: str | None = None, *,
+                  preload: Sequence[str] = ()) -> Iterator[Workers]:
     """Start the executor asked for on the command line; shut it down when the block ends.
 
     Parameters
@@ -61,6 +63,9 @@ def make_executor(workers: int = 1, scheduler: str | None = None) -> Iterator[Wo
     scheduler : str or None
         ``--scheduler``: ``"local:N"`` for a Dask LocalCluster of N single-threaded worker processes,
         or the address of a running Dask scheduler (``"tcp://10.0.0.5:8786"``).
+    preload : sequence of str
+        Modules a local pool's processes import as soon as they start (those of the per-frame tasks):
+        their start-up then overlaps what this process does before it submits the first task.
     """
     if scheduler:
         with _dask_executor(scheduler) as dask_workers:
@@ -72,10 +77,17 @@ def make_executor(workers: int = 1, scheduler: str | None = None) -> Iterator[Wo
         yield Workers(InProcessExecutor(), 1, "in-process")
         return
     pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    for _ in range(workers):  # starts the processes now; a failed import shows again in the first real task
+        pool.submit(_import, tuple(preload))
     try:
         yield Workers(pool, workers, f"{workers} local processes")
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _import(modules: tuple[str, ...]) -> None:
+    for module in modules:
+        importlib.import_module(module)
 
 
 @contextlib.contextmanager

@@ -234,6 +234,9 @@ def run_export(ctx: StageContext) -> None:
                                 ctx.out_dir / f"overlay_{camera.name}.mp4", capture.fps)
 
 
+#: Modules the per-frame tasks come from: a local worker pool imports them as its processes start.
+WORKER_MODULES = ("pipeline.frame_tasks",)
+
 STAGES: tuple[Stage, ...] = (
     Stage("calibration", run_calibration,
           capture_parts=("config", "calibration", "image_sizes", "frames"),

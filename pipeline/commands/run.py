@@ -50,12 +50,14 @@ def main(args: argparse.Namespace) -> int:
         params = apply_overrides(params, read_config(args.config), source=f"{args.config}:")
     params = apply_overrides(params, parse_assignments(args.assignments), source="--set")
     selected = select_stages(stages, only=args.only, start=args.start, end=args.end)
-    capture = Capture.open(args.capture)
 
     show_progress = not args.quiet and sys.stderr.isatty()
-    with output_lock(args.out), make_executor(args.workers, args.scheduler) as workers:
-        write_run_record(args.out, capture, params)
-        runner = Runner(stages, capture, params, args.out, workers, show_progress)
-        outcomes = runner.run(selected, force=args.force)
+    # The workers start first: their start-up overlaps the checks of the capture.
+    with make_executor(args.workers, args.scheduler, preload=graph.WORKER_MODULES) as workers:
+        capture = Capture.open(args.capture)
+        with output_lock(args.out):
+            write_run_record(args.out, capture, params)
+            runner = Runner(stages, capture, params, args.out, workers, show_progress)
+            outcomes = runner.run(selected, force=args.force)
     print(format_summary(outcomes))
     return 0
