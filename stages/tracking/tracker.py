@@ -201,9 +201,6 @@ class TrackerState:
         Consecutive frames predicted instead of fitted.
     lost : bool
         The next frame with data must re-initialise.
-    doubtful : bool
-        The last fit failed the failure checks: the next frame also tries a re-initialisation, since
-        a fit to bad data can leave the body far off (turned around) with checks that look normal.
     since_initialisation : int
         Frames tracked since a re-initialisation was last tried (`TrackerParams.reinit_every`).
     """
@@ -218,7 +215,6 @@ class TrackerState:
     likelihood_level: float
     frames_without_fit: int
     lost: bool
-    doubtful: bool = False
     since_initialisation: int = 0
 
     def to_dict(self) -> dict:
@@ -239,7 +235,6 @@ class TrackerState:
                             likelihood_level=np.nan if data["likelihood_level"] is None
                             else float(data["likelihood_level"]),
                             frames_without_fit=int(data["frames_without_fit"]), lost=bool(data["lost"]),
-                            doubtful=bool(data.get("doubtful", False)),
                             since_initialisation=int(data.get("since_initialisation", 0)))
 
 
@@ -300,11 +295,11 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     per_obs = tracked.log_likelihood[-1] / len(y)
     doubtful = _failed(tracked, params)
     periodic = 0 < params.reinit_every <= state.since_initialisation + 1
-    tried = doubtful or state.doubtful or periodic
+    tried = doubtful or periodic
     if tried:
         result, new_state = _initialise(state, y, n, sized, params, volume, em)
         # A fit that passed the checks is replaced only on clear evidence (`reinit_margin`).
-        margin = 0.0 if doubtful or state.doubtful else params.reinit_margin * len(y)
+        margin = 0.0 if doubtful else params.reinit_margin * len(y)
         if result.log_likelihood > tracked.log_likelihood[-1] + margin:
             return result, new_state
     height, lengths, weight = state.height_m, state.length_factors, state.height_weight
@@ -318,7 +313,7 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     velocity = tracked.pose - state.pose if moving else np.zeros_like(state.velocity)
     new_state = TrackerState(pose=tracked.pose, velocity=velocity, height_m=height, length_factors=lengths,
                              height_weight=weight, Sigma=tracked.mixture.Sigma, pi=tracked.mixture.pi,
-                             likelihood_level=level, frames_without_fit=0, lost=False, doubtful=doubtful,
+                             likelihood_level=level, frames_without_fit=0, lost=False,
                              since_initialisation=0 if tried else state.since_initialisation + 1)
     result = FrameResult(pose=tracked.pose, joints=tracked.body.joint_positions(tracked.pose),
                          log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
@@ -404,7 +399,7 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
     new_state = replace(state, pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
                         height_weight=weight, Sigma=fitted.mixture.Sigma, pi=fitted.mixture.pi,
                         likelihood_level=fitted.log_likelihood[-1] / len(y),
-                        frames_without_fit=0, lost=False, doubtful=doubtful, since_initialisation=0)
+                        frames_without_fit=0, lost=False, since_initialisation=0)
     result = FrameResult(pose=fitted.pose, joints=joints, log_likelihood=fitted.log_likelihood[-1],
                          iterations=fitted.iterations, outlier_fraction=fitted.outlier_fraction,
                          status="initialised", height_m=init.height_m, doubtful=doubtful)
