@@ -12,7 +12,8 @@ from stages.tracking.distances import normal_spread, residuals, shape_matrices, 
 @pytest.fixture(scope="module")
 def pairs():
     body = load_body("default")
-    y, n, kin, rng = data_near_a_pose(body, 30, 200)
+    y, n, pose, rng = data_near_a_pose(body, 30, 200)
+    kin = body.fk(pose)
     p = np.sort(rng.integers(0, body.n_ellipsoids, 500))  # sorted by ellipsoid, as EM keeps them
     i = rng.integers(0, len(y), 500)
     return y, n, i, p, kin, body.ellipsoids(kin), rng

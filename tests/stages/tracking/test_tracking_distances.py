@@ -17,8 +17,8 @@ from stages.tracking.distances import (
 @pytest.fixture(scope="module")
 def data():
     body = load_body("default")
-    y, n, kin, _ = data_near_a_pose(body, 20, 300)
-    return y, n, body.ellipsoids(kin)
+    y, n, pose, _ = data_near_a_pose(body, 20, 300)
+    return y, n, body.ellipsoids(pose)
 
 
 @pytest.mark.parametrize("distance", ["normals", "points"])

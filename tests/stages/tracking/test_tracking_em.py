@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from tracking_testing import VOLUME, random_pose, sample_ellipsoids
+from tracking_testing import VOLUME, data_near_a_pose, random_pose, sample_ellipsoids
 
 from stages.tracking.body import load_body
 from stages.tracking.distances import all_residuals, normal_spread
@@ -172,10 +172,7 @@ def test_pruned_e_step_equals_the_dense_one(body, distance, noise_deg, sigma_m):
 
 @pytest.mark.parametrize("distance", ["normals", "points"])
 def test_log_evidence_adds_up_over_ellipsoids(body, distance):
-    rng = np.random.default_rng(18)
-    truth = random_pose(body, rng)
-    y, n = sample_ellipsoids(body, truth, 300, rng, outlier_fraction=0.2)
-    pose = truth + rng.normal(0.0, 0.03, body.pose_size)
+    y, n, pose, rng = data_near_a_pose(body, 18, 300, spread=0.03)
     mixture = Mixture(Sigma=np.diag([1.0, 1.5, 0.7]) * 0.02**2, pi=rng.dirichlet(np.ones(body.n_ellipsoids + 1)))
     V, sigma_n, ell = volume_size(VOLUME), np.radians(10.0), body.ellipsoids(pose)
     whole = log_evidence(y, n, ell, mixture, V, distance=distance, normal_noise_rad=sigma_n)
@@ -190,12 +187,10 @@ def test_log_evidence_adds_up_over_ellipsoids(body, distance):
 
 @pytest.mark.parametrize("distance", ["normals", "points"])
 def test_hypothesis_scores_sum_log_evidence_per_block(body, distance):
-    rng = np.random.default_rng(19)
-    truth = random_pose(body, rng)
-    y, n = sample_ellipsoids(body, truth, 200, rng, outlier_fraction=0.2)
+    y, n, pose, rng = data_near_a_pose(body, 19, 200)
     mixture = Mixture.initial(body.n_ellipsoids, 0.03)
     V, sigma_n = volume_size(VOLUME), np.radians(10.0)
-    hypotheses = [body.ellipsoids(truth + rng.normal(0.0, 0.05, body.pose_size)) for _ in range(4)]
+    hypotheses = [body.ellipsoids(pose + rng.normal(0.0, 0.05, body.pose_size)) for _ in range(4)]
     blocks = np.array([0, 50, 120, len(y)])
     scores = hypothesis_scores(y, n, hypotheses, mixture, V, blocks=blocks, distance=distance,
                                normal_noise_rad=sigma_n)
@@ -205,10 +200,7 @@ def test_hypothesis_scores_sum_log_evidence_per_block(body, distance):
 
 
 def test_e_step_weights_whiten_each_pair_by_its_posterior_and_covariance(body):
-    rng = np.random.default_rng(20)
-    truth = random_pose(body, rng)
-    y, n = sample_ellipsoids(body, truth, 300, rng, outlier_fraction=0.2)
-    pose = truth + rng.normal(0.0, 0.03, body.pose_size)
+    y, n, pose, rng = data_near_a_pose(body, 20, 300, spread=0.03)
     mixture = Mixture(Sigma=np.diag([1.0, 1.5, 0.7]) * 0.02**2, pi=rng.dirichlet(np.ones(body.n_ellipsoids + 1)))
     sigma_n = np.radians(10.0)
     estep = e_step(y, n, body, pose, mixture, volume_size(VOLUME), normal_noise_rad=sigma_n)

@@ -35,10 +35,10 @@ def random_pose(body, rng, scale=0.3):
     return body.clip(pose)
 
 
-def data_near_a_pose(body, seed, count):
-    """Data (20 % outliers) sampled at a random pose, and the kinematics of a pose 0.05 rad away from it:
-    every pair is then a little off, as between EM iterations. Returns y, n, kin, rng."""
+def data_near_a_pose(body, seed, count, spread=0.05):
+    """Data (20 % outliers) sampled at a random pose, and a pose about `spread` rad away from it: every
+    pair is then a little off, as between EM iterations. Returns y, n, pose, rng."""
     rng = np.random.default_rng(seed)
     truth = random_pose(body, rng)
     y, n = sample_ellipsoids(body, truth, count, rng, outlier_fraction=0.2)
-    return y, n, body.fk(truth + rng.normal(0.0, 0.05, body.pose_size)), rng
+    return y, n, truth + rng.normal(0.0, spread, body.pose_size), rng
