@@ -12,8 +12,10 @@ against which the tests check these functions:
 - Σ_ip = Σ + σ_n² A_ip² and the component density π_p N(y_i | x_ip, Σ_ip) (eqs. 11-13);
 - the rigid derivative de/d(ω, v) = [x]× − A_ip [n_i]×, −I (`distances` module docstring).
 
-Ellipsoid shapes enter as M (P, 3, 3) and M² (P, 3, 3); symmetric 3 × 3 results are returned as their six
-distinct entries in `distances.SYMMETRIC_ENTRIES` order (00, 11, 22, 01, 02, 12).
+Ellipsoid shapes enter as M (P, 3, 3) and M² (P, 3, 3) (`shapes`); a symmetric 3 × 3 sum is returned as its
+six distinct entries in `distances.SYMMETRIC_ENTRIES` order (00, 11, 22, 01, 02, 12). Every loop runs on one
+core: numba's threads were tried, and on a machine shared with other work they made the tracker several
+times slower.
 """
 
 from __future__ import annotations
