@@ -599,26 +599,27 @@ class Runner:
             folder.mkdir(parents=True)
             atomic.write_text(marker, expected.key + "\n")
 
-        context = StageContext(stage.name, self.capture, self.params[stage.name], folder, self.output_root,
-                               self.workers, self.show_progress)
-        started = time.perf_counter()
-        frames = stage.run(context)
-        return self._finish(stage, expected, frames, time.perf_counter() - started)
+        frames, seconds = self._execute(stage)
+        return self._finish(stage, expected, frames, seconds)
 
     def _run_streaming_stage(self, stage: Stage, upstream: cf.Future) -> StageOutcome:
         folder = self.output_root / stage.name
         if folder.exists():
             shutil.rmtree(folder)
         folder.mkdir(parents=True)
-        context = StageContext(stage.name, self.capture, self.params[stage.name], folder, self.output_root,
-                               self.workers, self.show_progress, upstream)
-        started = time.perf_counter()
-        frames = stage.run(context)
-        seconds = time.perf_counter() - started
+        frames, seconds = self._execute(stage, upstream)
         upstream.result()  # its manifest is written: this stage's inputs are known now
         expected = expected_record(stage, self.capture, self.params[stage.name], self.output_root)
         atomic.write_text(folder / MARKER, expected.key + "\n")
         return self._finish(stage, expected, frames, seconds)
+
+    def _execute(self, stage: Stage, upstream: cf.Future | None = None) -> tuple[int | None, float]:
+        """Call the stage's run function in its folder: the frames it computed and the seconds it took."""
+        context = StageContext(stage.name, self.capture, self.params[stage.name], self.output_root / stage.name,
+                               self.output_root, self.workers, self.show_progress, upstream)
+        started = time.perf_counter()
+        frames = stage.run(context)
+        return frames, time.perf_counter() - started
 
     def _finish(self, stage: Stage, expected: Expected, frames: int | None, seconds: float) -> StageOutcome:
         """Write the manifest of a stage that ran: from now on it is up to date."""

@@ -277,7 +277,7 @@ def _e_step(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixtu
     t[i, p] = posterior
     log_likelihood = float(np.sum(peak + np.log(evidence)))  # Σ_i ln P(y_i | n_i), eq. (12)
     used = posterior > PRUNE_POSTERIOR
-    weights = _cholesky(np.broadcast_to(W, (np.count_nonzero(used), k, k))) * np.sqrt(posterior[used])[:, None, None]
+    weights = np.linalg.cholesky(W) * np.sqrt(posterior[used])[:, None, None]  # t_ip Σ⁻¹ = W Wᵀ, Σ shared
     return EStep(t=t, t_outlier=np.exp(log_outlier - peak) / evidence, log_likelihood=log_likelihood,
                  pairs=np.stack([i[used], p[used]]), weights=weights, best=t.argmax(axis=1))
 
@@ -291,10 +291,7 @@ def log_evidence(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: 
     (eq. 12). Evidence is additive over the classes, so hypotheses that move only a few ellipsoids are
     scored by computing the others' evidence once (`which` = the others) and passing it as `base`.
     """
-    P = len(ellipsoids.t)
-    which = np.arange(P) if which is None else np.asarray(which)
-    log_outlier = np.log(mixture.pi[P]) - np.log(V)
-    base = np.full(len(y), log_outlier) if base is None else np.asarray(base, dtype=float)
+    which, base = _evidence_terms(len(y), len(ellipsoids.t), mixture, V, which, base)
     chosen = Ellipsoids(R=ellipsoids.R[which], t=ellipsoids.t[which], semi_axes=ellipsoids.semi_axes[which])
     log_pi = np.log(mixture.pi[which])
     if len(y) == 0:
@@ -318,14 +315,11 @@ def hypothesis_scores(y: np.ndarray, n: np.ndarray, hypotheses: Sequence[Ellipso
     `blocks` (B + 1,) are the rows where each block starts, then the number of data.
     """
     blocks = np.array([0, len(y)]) if blocks is None else np.asarray(blocks)
-    P = len(hypotheses[0].t)
-    which = np.arange(P) if which is None else np.asarray(which)
+    which, base = _evidence_terms(len(y), len(hypotheses[0].t), mixture, V, which, base)
     if distance != "normals" or len(y) == 0:
-        return np.array([np.add.reduceat(np.r_[log_evidence(y, n, ell, mixture, V, which=which, base=base,
-                                                               distance=distance), 0.0], blocks)[:-1]
-                         for ell in hypotheses]).reshape(len(hypotheses), len(blocks) - 1)
-    log_outlier = np.log(mixture.pi[P]) - np.log(V)
-    base = np.full(len(y), log_outlier) if base is None else np.asarray(base, dtype=float)
+        return np.array([[terms[a:b].sum() for a, b in zip(blocks[:-1], blocks[1:], strict=True)]
+                         for terms in (log_evidence(y, n, ell, mixture, V, which=which, base=base, distance=distance)
+                                       for ell in hypotheses)]).reshape(len(hypotheses), len(blocks) - 1)
     chosen = Ellipsoids(R=np.concatenate([ell.R[which] for ell in hypotheses]),
                         t=np.concatenate([ell.t[which] for ell in hypotheses]),
                         semi_axes=np.concatenate([ell.semi_axes[which] for ell in hypotheses]))
@@ -335,6 +329,14 @@ def hypothesis_scores(y: np.ndarray, n: np.ndarray, hypotheses: Sequence[Ellipso
         y, n, blocks, chosen.t.reshape(*stack, 3), M.reshape(*stack, 3, 3), M2.reshape(*stack, 3, 3),
         chosen.semi_axes.reshape(*stack, 3), mixture.Sigma, np.log(mixture.pi[which]), base, normal_noise_rad**2,
         np.log(NEGLIGIBLE_POSTERIOR))
+
+
+def _evidence_terms(I: int, P: int, mixture: Mixture, V: float, which: np.ndarray | None,
+                    base: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The ellipsoids `which` (default all P) and the base terms b_i (default ln π_{P+1} / V) of `log_evidence`."""
+    which = np.arange(P) if which is None else np.asarray(which)
+    base = np.full(I, np.log(mixture.pi[P]) - np.log(V)) if base is None else np.asarray(base, dtype=float)
+    return which, base
 
 
 def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, mixture: Mixture,
@@ -434,24 +436,6 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
     outliers = float(estep.t_outlier.mean()) if len(y) else 1.0
     return FitResult(pose=pose, body=body, mixture=mixture, iterations=iterations, converged=converged,
                      log_likelihood=tuple(history), outlier_fraction=outliers)
-
-
-def _cholesky(W: np.ndarray) -> np.ndarray:
-    """Lower-triangular L (K, k, k) with W = L Lᵀ for symmetric positive definite W (K, k, k), k = 1 or 3.
-
-    Written out for 3 × 3 (the Cholesky–Banachiewicz recurrences): LAPACK's per-matrix overhead would dominate
-    for thousands of pairs.
-    """
-    if W.shape[1] == 1:
-        return np.sqrt(W)
-    L = np.zeros(W.shape)
-    L[:, 0, 0] = l00 = np.sqrt(W[:, 0, 0])
-    L[:, 1, 0] = l10 = W[:, 1, 0] / l00
-    L[:, 2, 0] = l20 = W[:, 2, 0] / l00
-    L[:, 1, 1] = l11 = np.sqrt(W[:, 1, 1] - l10 * l10)
-    L[:, 2, 1] = l21 = (W[:, 2, 1] - l20 * l10) / l11
-    L[:, 2, 2] = np.sqrt(W[:, 2, 2] - l20 * l20 - l21 * l21)
-    return L
 
 
 @dataclass(frozen=True)

@@ -101,7 +101,7 @@ def test_dask_local_cluster_map_frames(tiny_capture, tmp_path):
     assert results(tmp_path / "out") == {0: 0, 1: 1, 2: 4, 3: 9}
 
 
-def test_pool_processes_preload_modules_and_survive_a_bad_one():
+def test_a_failed_preload_does_not_stop_the_pool():
     with make_executor(2, preload=("json", "no_such_module_here")) as workers:
         pids = {workers.executor.submit(os.getpid).result() for _ in range(4)}
-    assert pids and os.getpid() not in pids  # real tasks run in the pool's own processes all the same
+    assert pids and os.getpid() not in pids  # real tasks still run, in the pool's own processes
