@@ -16,6 +16,7 @@ dR/dθ = [w]× R; a translational DOF moves them by dx/dθ = w.
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass, replace
 from importlib import resources
@@ -194,10 +195,19 @@ class BodyModel:
     def ellipsoids(self, pose_or_kin: np.ndarray | Kinematics) -> Ellipsoids:
         """World ellipsoids (R_p, t_p, semi-axes) of a pose (D,) or of its kinematics."""
         kin = self._kinematics(pose_or_kin)
-        R_seg = kin.R[self.ellipsoid_segment]  # (E,3,3)
-        R = R_seg @ self.ellipsoid_rotation
-        t = kin.t[self.ellipsoid_segment] + np.einsum("eab,eb->ea", R_seg, self.ellipsoid_centre)
+        R, t = compiled.place_ellipsoids(kin.R, kin.t, self.ellipsoid_segment, self.ellipsoid_rotation,
+                                         self.ellipsoid_centre)
         return Ellipsoids(R=R, t=t, semi_axes=self.semi_axes)
+
+    def posed_ellipsoids(self, poses: np.ndarray) -> Ellipsoids:
+        """`ellipsoids` of many poses (H, D) at once, as arrays with a leading pose axis (H, E, ...)."""
+        poses = np.asarray(poses, dtype=float)
+        if poses.ndim != 2 or poses.shape[1] != self.pose_size:
+            raise ValueError(f"poses have shape {poses.shape}, expected (H, {self.pose_size})")
+        R, t = compiled.posed_ellipsoids(self.parent, self.offset, self._dof_start, self.dof_axis,
+                                         self.dof_revolute, poses, self.ellipsoid_segment,
+                                         self.ellipsoid_rotation, self.ellipsoid_centre)
+        return Ellipsoids(R=R, t=t, semi_axes=np.broadcast_to(self.semi_axes, (len(poses),) + self.semi_axes.shape))
 
     def joint_positions(self, pose_or_kin: np.ndarray | Kinematics) -> np.ndarray:
         """World joint centres (17, 3) in `JOINT_NAMES` order, metres."""
@@ -300,6 +310,11 @@ class BodyModel:
                        girth_group=new_index[self.girth_group], length_factors=self.length_factors[old].copy(),
                        length_prior_sd=self.length_prior_sd[old].copy())
 
+    @functools.cached_property
+    def _dof_start(self) -> np.ndarray:
+        """(S + 1,) int: the DOFs of segment s are dof_start[s]:dof_start[s + 1] (they are in segment order)."""
+        return np.searchsorted(self.dof_segment, np.arange(len(self.segment_names) + 1))
+
     def _kinematics(self, pose_or_kin: np.ndarray | Kinematics) -> Kinematics:
         return pose_or_kin if isinstance(pose_or_kin, Kinematics) else self.fk(pose_or_kin)
 
@@ -334,8 +349,7 @@ def _principal_axes(A: np.ndarray, like: np.ndarray) -> tuple[np.ndarray, np.nda
 def _forward_kinematics(body: BodyModel, pose: np.ndarray) -> Kinematics:
     if pose.shape != (body.pose_size,):
         raise ValueError(f"pose has shape {pose.shape}, expected ({body.pose_size},)")
-    dof_start = np.searchsorted(body.dof_segment, np.arange(len(body.segment_names) + 1))
-    R, t, axis, origin = compiled.forward_kinematics(body.parent, body.offset, dof_start, body.dof_axis,
+    R, t, axis, origin = compiled.forward_kinematics(body.parent, body.offset, body._dof_start, body.dof_axis,
                                                      body.dof_revolute, pose)
     return Kinematics(R=R, t=t, axis=axis, origin=origin)
 

@@ -467,7 +467,7 @@ def forward_kinematics(parent, offset, dof_start, dof_axis, dof_revolute, pose):
     S, D = parent.shape[0], pose.shape[0]
     R, t = np.empty((S, 3, 3)), np.empty((S, 3))
     axis, origin = np.empty((D, 3)), np.empty((D, 3))
-    frame, position, turned = np.empty((3, 3)), np.empty(3), np.empty((3, 3))
+    frame, position, turned, local = np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty((3, 3))
     for s in range(S):
         q = parent[s]
         for a in range(3):
@@ -486,9 +486,12 @@ def forward_kinematics(parent, offset, dof_start, dof_axis, dof_revolute, pose):
                     origin[d, a] = position[a]
                 sin, cos = math.sin(pose[d]), 1.0 - math.cos(pose[d])
                 # local = I + sin K + (1 − cos) K², K = [w]×, K² = w wᵀ − I
-                local = np.array([[1.0 + cos * (w0 * w0 - 1.0), -sin * w2 + cos * w0 * w1, sin * w1 + cos * w0 * w2],
-                                  [sin * w2 + cos * w0 * w1, 1.0 + cos * (w1 * w1 - 1.0), -sin * w0 + cos * w1 * w2],
-                                  [-sin * w1 + cos * w0 * w2, sin * w0 + cos * w1 * w2, 1.0 + cos * (w2 * w2 - 1.0)]])
+                local[0, 0], local[0, 1], local[0, 2] = 1.0 + cos * (w0 * w0 - 1.0), -sin * w2 + cos * w0 * w1, \
+                    sin * w1 + cos * w0 * w2
+                local[1, 0], local[1, 1], local[1, 2] = sin * w2 + cos * w0 * w1, 1.0 + cos * (w1 * w1 - 1.0), \
+                    -sin * w0 + cos * w1 * w2
+                local[2, 0], local[2, 1], local[2, 2] = -sin * w1 + cos * w0 * w2, sin * w0 + cos * w1 * w2, \
+                    1.0 + cos * (w2 * w2 - 1.0)
                 for a in range(3):
                     for b in range(3):
                         turned[a, b] = frame[a, 0] * local[0, b] + frame[a, 1] * local[1, b] + frame[a, 2] * local[2, b]
@@ -500,3 +503,36 @@ def forward_kinematics(parent, offset, dof_start, dof_axis, dof_revolute, pose):
         R[s] = frame
         t[s] = position
     return R, t, axis, origin
+
+
+@njit(cache=True, error_model="numpy")
+def place_ellipsoids(R_segment, t_segment, segment, rotation, centre):
+    """World axes R (E, 3, 3) and centres t (E, 3) of ellipsoids riding on posed segments (`body.ellipsoids`).
+
+    Ellipsoid e is fixed in its segment's frame (axes `rotation[e]`, centre `centre[e]`): R = R_s rotation,
+    t = t_s + R_s centre with s = segment[e].
+    """
+    E = segment.shape[0]
+    R, t = np.empty((E, 3, 3)), np.empty((E, 3))
+    for e in range(E):
+        s = segment[e]
+        for a in range(3):
+            r0, r1, r2 = R_segment[s, a, 0], R_segment[s, a, 1], R_segment[s, a, 2]
+            t[e, a] = t_segment[s, a] + r0 * centre[e, 0] + r1 * centre[e, 1] + r2 * centre[e, 2]
+            for b in range(3):
+                R[e, a, b] = r0 * rotation[e, 0, b] + r1 * rotation[e, 1, b] + r2 * rotation[e, 2, b]
+    return R, t
+
+
+@njit(cache=True, error_model="numpy")
+def posed_ellipsoids(parent, offset, dof_start, dof_axis, dof_revolute, poses, segment, rotation, centre):
+    """`place_ellipsoids` after `forward_kinematics` for many poses (H, D) of one body: (H, E, 3, 3), (H, E, 3).
+
+    Limb re-initialisation scores hundreds of poses; one call instead of one per pose.
+    """
+    H, E = poses.shape[0], segment.shape[0]
+    R, t = np.empty((H, E, 3, 3)), np.empty((H, E, 3))
+    for h in range(H):
+        R_segment, t_segment, _, _ = forward_kinematics(parent, offset, dof_start, dof_axis, dof_revolute, poses[h])
+        R[h], t[h] = place_ellipsoids(R_segment, t_segment, segment, rotation, centre)
+    return R, t

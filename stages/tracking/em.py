@@ -18,7 +18,6 @@ t_ip (`t`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -305,29 +304,31 @@ def log_evidence(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: 
     return np.logaddexp(base, logsumexp(log_joint, axis=1))
 
 
-def hypothesis_scores(y: np.ndarray, n: np.ndarray, hypotheses: Sequence[Ellipsoids], mixture: Mixture, V: float,
+def hypothesis_scores(y: np.ndarray, n: np.ndarray, hypotheses: Ellipsoids, mixture: Mixture, V: float,
                       *, which: np.ndarray | None = None, base: np.ndarray | None = None,
                       blocks: np.ndarray | None = None, distance: str = "normals",
                       normal_noise_rad: float = 0.0) -> np.ndarray:
     """`log_evidence` summed over blocks of data (default one block: ln P(Y | Λ), eq. 12) for many posed
     bodies at once, (H, B): initialisation and limb re-initialisation score hundreds of hypotheses.
 
-    `blocks` (B + 1,) are the rows where each block starts, then the number of data.
+    `hypotheses` holds the H posed bodies' ellipsoids with a leading hypothesis axis (H, P, ...)
+    (`BodyModel.posed_ellipsoids`); `blocks` (B + 1,) are the rows where each block starts, then the
+    number of data.
     """
     blocks = np.array([0, len(y)]) if blocks is None else np.asarray(blocks)
-    which, base = _evidence_terms(len(y), len(hypotheses[0].t), mixture, V, which, base)
+    H, P = hypotheses.t.shape[:2]
+    which, base = _evidence_terms(len(y), P, mixture, V, which, base)
     if distance != "normals" or len(y) == 0:
-        return np.array([[terms[a:b].sum() for a, b in zip(blocks[:-1], blocks[1:], strict=True)]
-                         for terms in (log_evidence(y, n, ell, mixture, V, which=which, base=base, distance=distance)
-                                       for ell in hypotheses)]).reshape(len(hypotheses), len(blocks) - 1)
-    chosen = Ellipsoids(R=np.concatenate([ell.R[which] for ell in hypotheses]),
-                        t=np.concatenate([ell.t[which] for ell in hypotheses]),
-                        semi_axes=np.concatenate([ell.semi_axes[which] for ell in hypotheses]))
-    stack = (len(hypotheses), len(which))
-    M, M2 = compiled.shapes(chosen.R, chosen.semi_axes)
+        terms = (log_evidence(y, n, Ellipsoids(R=hypotheses.R[h], t=hypotheses.t[h], semi_axes=hypotheses.semi_axes[h]),
+                              mixture, V, which=which, base=base, distance=distance) for h in range(H))
+        return np.array([[column[a:b].sum() for a, b in zip(blocks[:-1], blocks[1:], strict=True)]
+                         for column in terms]).reshape(H, len(blocks) - 1)
+    R, t, semi_axes = hypotheses.R[:, which], hypotheses.t[:, which], hypotheses.semi_axes[:, which]
+    M, M2 = compiled.shapes(R.reshape(-1, 3, 3), np.ascontiguousarray(semi_axes).reshape(-1, 3))
+    stack = (H, len(which))
     return compiled.hypothesis_scores(
-        y, n, blocks, chosen.t.reshape(*stack, 3), M.reshape(*stack, 3, 3), M2.reshape(*stack, 3, 3),
-        chosen.semi_axes.reshape(*stack, 3), mixture.Sigma, np.log(mixture.pi[which]), base, normal_noise_rad**2,
+        y, n, blocks, np.ascontiguousarray(t), M.reshape(*stack, 3, 3), M2.reshape(*stack, 3, 3),
+        np.ascontiguousarray(semi_axes), mixture.Sigma, np.log(mixture.pi[which]), base, normal_noise_rad**2,
         np.log(NEGLIGIBLE_POSTERIOR))
 
 

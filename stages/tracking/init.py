@@ -20,7 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from stages.joints import JOINT_NAMES
-from stages.tracking.body import BodyModel
+from stages.tracking.body import BodyModel, Ellipsoids
 from stages.tracking.distances import residual_size
 from stages.tracking.em import (
     HEIGHT_RANGE_M,
@@ -306,7 +306,9 @@ def _score(y, n, centre, bodies, poses, yaws, mixture, V, distance) -> np.ndarra
     offset = np.array([centre[0], centre[1], 0.0])
     y_turned = np.einsum("hab,ib->hia", Rz, y - offset).reshape(-1, 3)  # (H·I, 3)
     n_turned = np.einsum("hab,ib->hia", Rz, n).reshape(-1, 3)
-    hypotheses = [b.ellipsoids(_placed(b, q, 0.0, np.zeros(2))) for b, q in zip(bodies, poses, strict=True)]
+    posed = [b.ellipsoids(_placed(b, q, 0.0, np.zeros(2))) for b, q in zip(bodies, poses, strict=True)]
+    hypotheses = Ellipsoids(R=np.stack([e.R for e in posed]), t=np.stack([e.t for e in posed]),
+                            semi_axes=np.stack([e.semi_axes for e in posed]))
     return hypothesis_scores(y_turned, n_turned, hypotheses, mixture, V, blocks=np.arange(len(yaws) + 1) * len(y),
                              distance=distance)
 
@@ -469,7 +471,7 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     # The rest of the body does not move: its evidence is computed once, the limb's added per hypothesis.
     rest = log_evidence(ys, ns, body.ellipsoids(pose), mixture, V, which=np.flatnonzero(~mine),
                         distance=em.distance, normal_noise_rad=em.normal_noise_rad)
-    scores = hypothesis_scores(ys, ns, [body.ellipsoids(q) for q in hypotheses], mixture, V,
+    scores = hypothesis_scores(ys, ns, body.posed_ellipsoids(hypotheses), mixture, V,
                                which=np.flatnonzero(mine), base=rest, distance=em.distance,
                                normal_noise_rad=em.normal_noise_rad)[:, 0]
     best = result

@@ -107,6 +107,22 @@ def test_forward_kinematics_matches_a_rotation_vector_reference(name):
     np.testing.assert_allclose(kin.t, t, atol=1e-12)
 
 
+def test_ellipsoids_ride_on_their_segments_and_many_poses_pose_alike():
+    body = load_body("default")
+    poses = np.stack([_random_pose(body, seed) for seed in (2, 3, 4)])
+    for pose in poses:
+        kin, ell = body.fk(pose), body.ellipsoids(pose)
+        R_seg, t_seg = kin.R[body.ellipsoid_segment], kin.t[body.ellipsoid_segment]
+        np.testing.assert_allclose(ell.R, R_seg @ body.ellipsoid_rotation, atol=1e-12)
+        np.testing.assert_allclose(ell.t, t_seg + np.einsum("eab,eb->ea", R_seg, body.ellipsoid_centre), atol=1e-12)
+    many = body.posed_ellipsoids(poses)
+    for h, pose in enumerate(poses):
+        one = body.ellipsoids(pose)
+        np.testing.assert_array_equal(many.R[h], one.R)
+        np.testing.assert_array_equal(many.t[h], one.t)
+        np.testing.assert_array_equal(many.semi_axes[h], one.semi_axes)
+
+
 @pytest.mark.parametrize("name", ["paper", "default"])
 def test_joint_jacobian_matches_finite_differences(name):
     body = load_body(name)

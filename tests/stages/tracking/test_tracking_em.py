@@ -190,12 +190,13 @@ def test_hypothesis_scores_sum_log_evidence_per_block(body, distance):
     y, n, pose, rng = data_near_a_pose(body, 19, 200)
     mixture = Mixture.initial(body.n_ellipsoids, 0.03)
     V, sigma_n = volume_size(VOLUME), np.radians(10.0)
-    hypotheses = [body.ellipsoids(pose + rng.normal(0.0, 0.05, body.pose_size)) for _ in range(4)]
+    poses = pose + rng.normal(0.0, 0.05, (4, body.pose_size))
     blocks = np.array([0, 50, 120, len(y)])
-    scores = hypothesis_scores(y, n, hypotheses, mixture, V, blocks=blocks, distance=distance,
+    scores = hypothesis_scores(y, n, body.posed_ellipsoids(poses), mixture, V, blocks=blocks, distance=distance,
                                normal_noise_rad=sigma_n)
-    expected = [[log_evidence(y, n, ell, mixture, V, distance=distance, normal_noise_rad=sigma_n)[a:b].sum()
-                 for a, b in zip(blocks[:-1], blocks[1:], strict=True)] for ell in hypotheses]
+    expected = [[log_evidence(y, n, body.ellipsoids(q), mixture, V, distance=distance,
+                              normal_noise_rad=sigma_n)[a:b].sum()
+                 for a, b in zip(blocks[:-1], blocks[1:], strict=True)] for q in poses]
     np.testing.assert_allclose(scores, expected, rtol=1e-12)
 
 
