@@ -195,6 +195,8 @@ class FitResult:
         ln P(Y | Λ) before each iteration and after the last one (length iterations + 1).
     outlier_fraction : float
         Mean posterior of the outlier class at the final pose.
+    estep : EStep or None
+        The E-step at the final pose and mixture: a fit continued from this one starts from it.
     """
 
     pose: np.ndarray
@@ -204,6 +206,7 @@ class FitResult:
     converged: bool
     log_likelihood: tuple[float, ...]
     outlier_fraction: float
+    estep: EStep | None = None
 
     @property
     def height_m(self) -> float:
@@ -399,7 +402,7 @@ def _m_step(y, n, body, kin, pose, mixture, estep, distance, prior_pose, gauss_n
 
 def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume: np.ndarray,
         params: EMParams = EMParams(), *, mixture: Mixture | None = None,
-        prior_pose: np.ndarray | None = None, sigma_m: float = 0.03) -> FitResult:
+        prior_pose: np.ndarray | None = None, sigma_m: float = 0.03, start: EStep | None = None) -> FitResult:
     """Fit the body to points y (I, 3) and normals n (I, 3) by EM, starting at `pose` (D,).
 
     Parameters
@@ -410,6 +413,9 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
         Starting Σ and π; default Σ = sigma_m² I and equal priors (the paper's initialisation).
     prior_pose : (D,) float, optional
         Values the weakly observed DOFs are pulled towards (default: the starting pose).
+    start : EStep, optional
+        The E-step of these data at `pose` under `mixture` (`FitResult.estep` of a fit being
+        continued), which is then not computed again.
     """
     if params.distance not in DISTANCES:
         raise ValueError(f"distance={params.distance!r}, expected one of {DISTANCES}")
@@ -419,7 +425,8 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
     if mixture is None:
         mixture = Mixture.initial(body.n_ellipsoids, sigma_m, residual_size(params.distance))
     kin = body.fk(pose)
-    estep = _e_step(y, n, body.ellipsoids(kin), mixture, V, params.distance, params.normal_noise_rad)
+    estep = start if start is not None else _e_step(y, n, body.ellipsoids(kin), mixture, V, params.distance,
+                                                     params.normal_noise_rad)
     history = [estep.log_likelihood]
     converged = len(y) == 0
     iterations = 0
@@ -438,7 +445,7 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
         converged = abs(history[-1] - history[-2]) < params.tolerance * len(y) or displacement < params.displacement_m
     outliers = float(estep.t_outlier.mean()) if len(y) else 1.0
     return FitResult(pose=pose, body=body, mixture=mixture, iterations=iterations, converged=converged,
-                     log_likelihood=tuple(history), outlier_fraction=outliers)
+                     log_likelihood=tuple(history), outlier_fraction=outliers, estep=estep)
 
 
 @dataclass(frozen=True)

@@ -277,7 +277,7 @@ def initialise(y: np.ndarray, n: np.ndarray, body: BodyModel, volume: np.ndarray
     while len(fits) > 1:  # successive halving: the better quarter gets more iterations
         fits = sorted(fits, key=lambda r: -r.log_likelihood[-1])[: max(1, len(fits) // _KEEP_DIVISOR)]
         if len(fits) > 1:
-            fits = [fit(ys, ns, r.body, r.pose, volume, short, mixture=r.mixture) for r in fits]
+            fits = [fit(ys, ns, r.body, r.pose, volume, short, mixture=r.mixture, start=r.estep) for r in fits]
     best = fits[0]
     final = replace(em, max_iterations=params.iterations, estimate_scale=estimate_height)
     result = fit(y, n, best.body, best.pose, volume, final, mixture=replace(best.mixture))

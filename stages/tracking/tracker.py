@@ -267,10 +267,11 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     volume = np.asarray(volume, dtype=float)
     volume_size(volume)
     y, n = _usable(obs)
-    body = body.with_length_groups(params.estimate_lengths)
+    body = _remembered("free", body, params.estimate_lengths, lambda: body.with_length_groups(params.estimate_lengths))
     if state is None:
         state = _first_state(body, params, volume)
-    sized = body.scaled(state.height_m).with_lengths(state.length_factors)
+    sized = _remembered("sized", body, (state.height_m, state.length_factors.tobytes()),
+                        lambda: body.scaled(state.height_m).with_lengths(state.length_factors))
     if len(y) < params.min_observations:
         return _predict(state, sized, params)
     em = EMParams(distance=params.distance, max_iterations=params.max_iterations, tolerance=params.tolerance,
@@ -288,7 +289,8 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
         # Worse than usual: fast motion, which the quick stopping rule can leave half-way. EM goes on.
         more = fit(y, n, tracked.body, tracked.pose, volume,
                    replace(frame_em, max_iterations=params.refit_iterations, tolerance=_REFIT_TOLERANCE,
-                           displacement_m=_REFIT_DISPLACEMENT_M), mixture=tracked.mixture, prior_pose=prediction)
+                           displacement_m=_REFIT_DISPLACEMENT_M), mixture=tracked.mixture, prior_pose=prediction,
+                   start=tracked.estep)
         tracked = replace(more, iterations=tracked.iterations + more.iterations)
         per_obs = tracked.log_likelihood[-1] / len(y)
     tracked = _recover_limbs(y, n, tracked, volume, frame_em, params)
@@ -320,6 +322,22 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
                          outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m,
                          doubtful=doubtful)
     return result, new_state
+
+
+def _remembered(slot: str, body: BodyModel, key, make):
+    """`make()`, a body derived from `body` and `key`, remembered in `slot` for the last (body, key) asked.
+
+    Every frame derives the same bodies (the free length groups, then the current height and length
+    factors, which stop changing after `scale_frames` frames); deriving them again (an eigen-decomposition
+    per ellipsoid) cost a third of a millisecond a frame.
+    """
+    last = _REMEMBERED.get(slot)
+    if last is None or last[0] is not body or last[1] != key:
+        last = _REMEMBERED[slot] = (body, key, make())
+    return last[2]
+
+
+_REMEMBERED: dict[str, tuple] = {}
 
 
 def _failed(result: FitResult, params: TrackerParams) -> bool:

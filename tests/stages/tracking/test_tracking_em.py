@@ -45,6 +45,19 @@ def test_log_likelihood_never_decreases(body):
     assert np.all(np.diff(result.log_likelihood) > -1e-6 * abs(result.log_likelihood[-1]))
 
 
+def test_a_fit_continued_from_its_e_step_is_the_fit_run_on(body):
+    rng = np.random.default_rng(21)
+    truth = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, truth, 400, rng, outlier_fraction=0.1)
+    params = EMParams(normal_noise_rad=np.radians(10.0), max_iterations=3, tolerance=0.0, displacement_m=0.0)
+    first = fit(y, n, body, truth + rng.normal(0.0, 0.05, body.pose_size), VOLUME, params)
+    again = fit(y, n, first.body, first.pose, VOLUME, params, mixture=first.mixture)
+    resumed = fit(y, n, first.body, first.pose, VOLUME, params, mixture=first.mixture, start=first.estep)
+    # equal up to the pruning, which depends on the order the ellipsoids are visited in (`EStep.best`)
+    np.testing.assert_allclose(resumed.pose, again.pose, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(resumed.log_likelihood, again.log_likelihood, rtol=1e-9)
+
+
 def test_e_step_posteriors_sum_to_one(body):
     rng = np.random.default_rng(12)
     pose = random_pose(body, rng)
