@@ -143,3 +143,22 @@ def test_unknown_height_comes_from_the_initialisation_and_tracked_frames_keep_it
     assert statuses[0] == "initialised" and set(statuses[1:]) == {"tracked"}
     assert abs(heights[0] - 1.62) < 0.05
     assert heights[1:] == [heights[0]] * 3
+
+
+@pytest.mark.parametrize("restart_drop", [0.3, np.inf])
+def test_a_stop_after_fast_motion_is_tracked_from_the_last_pose(body, restart_drop):
+    """The subject stops dead: the constant-velocity prediction lands far off (here 0.8 m away, turned by
+    86°, the knee folded back), EM from it settles elsewhere, and EM from the last pose finds the subject."""
+    rng = np.random.default_rng(24)
+    params = TrackerParams(height_m=1.75, init_headings=6, init_refine=2, restart_drop=restart_drop)
+    pose = _walk(body.scaled(1.75), 1)[0]
+    _, state = track_frame(None, _obs(body, pose, rng), body, params, VOLUME)
+    jump = np.zeros(body.pose_size)
+    jump[0], jump[3], jump[body.dof_names.index("r_shank.flex")] = 0.8, 1.5, 1.5
+    state = TrackerState(**{**vars(state), "velocity": jump})
+    result, _ = track_frame(state, _obs(body, pose, rng), body, params, VOLUME)
+    error = np.linalg.norm(result.joints - body.joint_positions(pose), axis=1).mean()
+    if np.isfinite(restart_drop):
+        assert result.status == "tracked" and error < 0.02
+    else:  # without the restart, only a full re-initialisation (or nothing) rescues such a frame
+        assert result.status == "initialised" or error > 0.02
