@@ -278,8 +278,12 @@ class BodyModel:
         offset = self.offset.copy()
         offset[1:] = np.einsum("sab,sb->sa", S[self.parent[1:]], self.offset[1:])
         S_e = S[self.ellipsoid_segment]
-        A = np.einsum("eab,eb,ecb->eac", self.ellipsoid_rotation, self.semi_axes**2, self.ellipsoid_rotation)
-        rotation, semi_axes = _principal_axes(S_e @ A @ S_e.transpose(0, 2, 1), self.ellipsoid_rotation)
+        rotation, semi_axes = self.ellipsoid_rotation.copy(), self.semi_axes.copy()
+        stretched = ratio[self.ellipsoid_segment] != 1.0  # the others keep their shape exactly
+        if np.any(stretched):
+            R, a, S_s = self.ellipsoid_rotation[stretched], self.semi_axes[stretched], S_e[stretched]
+            A = np.einsum("eab,eb,ecb->eac", R, a**2, R)
+            rotation[stretched], semi_axes[stretched] = _principal_axes(S_s @ A @ S_s.transpose(0, 2, 1), R)
         girth = self.girth_group >= 0
         semi_axes[girth, 1:] *= group_ratio[self.girth_group[girth], None]
         return replace(self, offset=offset, ellipsoid_rotation=rotation, semi_axes=semi_axes,
