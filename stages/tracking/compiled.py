@@ -157,19 +157,24 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
     I, P = y.shape[0], t.shape[0]
     evidence_log = np.empty(I)
     posterior = np.zeros((I, P) if posteriors else (0, P))
-    log_joint = np.empty(P)  # one datum's ln π_p N_ip, −∞ for skipped pairs
-    inverse = np.empty((P, 6))  # and its Σ_ip⁻¹
+    log_joint = np.empty(P)  # one datum's ln π_p N_ip, its Σ_ip⁻¹, the p not skipped, π_p N_ip / e^peak
+    inverse = np.empty((P, 6))
+    passed, scaled = np.empty(P, np.int64), np.empty(P)
     # Pairs above `prune` in datum order; only the first K rows of these buffers are ever touched.
     room = I * P if posteriors else 0
     kept_i, kept_p, kept_precision = np.empty(room, np.int64), np.empty(room, np.int64), np.empty((room, 6))
     per_ellipsoid = np.zeros(P + 1, np.int64)
     best = first.copy()
     K = 0
+    inverse_largest = 1.0 / largest
+    inverse_across = np.empty(P)  # 1 / (c + σ_n² r_p²), r_p the largest radius of curvature
+    for p in range(P):
+        inverse_across[p] = 1.0 / reach[p, 2]
     for i in range(I):
         peak = log_base[i]  # the largest term of the evidence met so far
+        m = 0  # pairs of this datum not skipped: passed[:m]
         for step in range(P):
             p = (first[i] + step) % P
-            log_joint[p] = -np.inf
             limit = reach[p, 1] - 2.0 * peak  # squared Mahalanobis distance of a negligible pair
             d0, d1, d2 = y[i, 0] - t[p, 0], y[i, 1] - t[p, 1], y[i, 2] - t[p, 2]
             gap = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - reach[p, 0]
@@ -179,7 +184,7 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
             e0, e1, e2 = y[i, 0] - x0, y[i, 1] - x1, y[i, 2] - x2
             along = n[i, 0] * e0 + n[i, 1] * e1 + n[i, 2] * e2  # n is an eigenvector of Σ_ip ⪯ c I + σ_n² A²
             across = e0 * e0 + e1 * e1 + e2 * e2 - along * along
-            if along * along / largest + across / reach[p, 2] > limit:
+            if along * along * inverse_largest + across * inverse_across[p] > limit:
                 continue
             s00 = s11 = s22 = s01 = s02 = s12 = 0.0  # A² (needed only with normal noise)
             if noise2 > 0.0:
@@ -189,7 +194,7 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
                 lam2 = lam * lam
                 u_u = u0 * u0 + u1 * u1 + u2 * u2
                 trace = lam2 * (reach[p, 3] - 2.0 * lam2 * (u0 * w0 + u1 * w1 + u2 * w2) + lam2 * lam2 * u_u * u_u)
-                if along * along / largest + across / (largest + noise2 * trace) > limit:
+                if along * along * inverse_largest + across / (largest + noise2 * trace) > limit:
                     continue
                 s00, s11, s22, s01, s02, s12 = _spread(M, M2, p, u0, u1, u2, lam)
             a, d, g = Sigma[0, 0] + noise2 * s00, Sigma[1, 1] + noise2 * s11, Sigma[2, 2] + noise2 * s22
@@ -205,22 +210,24 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
                 peak, best[i] = log_joint[p], p
             inverse[p, 0], inverse[p, 1], inverse[p, 2] = c00 * h, c11 * h, c22 * h
             inverse[p, 3], inverse[p, 4], inverse[p, 5] = c01 * h, c02 * h, c12 * h
+            passed[m] = p
+            m += 1
         evidence = math.exp(log_base[i] - peak)  # log-sum-exp over the classes, eqs. (12)-(13)
-        for p in range(P):
-            if log_joint[p] > -np.inf:
-                evidence += math.exp(log_joint[p] - peak)
+        for k in range(m):
+            scaled[k] = math.exp(log_joint[passed[k]] - peak)
+            evidence += scaled[k]
         evidence_log[i] = peak + math.log(evidence)
         if not posteriors:
             continue
-        for p in range(P):
-            if log_joint[p] > -np.inf:
-                posterior[i, p] = math.exp(log_joint[p] - evidence_log[i])
-                if posterior[i, p] > prune:
-                    kept_i[K], kept_p[K] = i, p
-                    for j in range(6):
-                        kept_precision[K, j] = inverse[p, j]
-                    per_ellipsoid[p + 1] += 1
-                    K += 1
+        for k in range(m):
+            p = passed[k]
+            posterior[i, p] = scaled[k] / evidence
+            if posterior[i, p] > prune:
+                kept_i[K], kept_p[K] = i, p
+                for j in range(6):
+                    kept_precision[K, j] = inverse[p, j]
+                per_ellipsoid[p + 1] += 1
+                K += 1
     start = np.cumsum(per_ellipsoid)  # counting sort of the kept pairs by ellipsoid (stable in i)
     pairs = np.empty((2, K), dtype=np.int64)
     weights = np.zeros((K, 3, 3))
