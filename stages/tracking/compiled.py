@@ -445,7 +445,7 @@ def pose_normal_equations(H6, g6, ellipsoid_segment, moves, axis, origin, revolu
 
 @njit(cache=True, error_model="numpy")
 def weighted_spread(n, i, p, weight, M, M2):
-    """Σ_k w_k A_k² (six entries) over the pairs: the normals' share of the residual scatter (M-step)."""
+    """Σ_k w_k A_k² (3, 3) over the pairs: the normals' share of the residual scatter (M-step)."""
     total = np.zeros(6)
     for k in range(i.shape[0]):
         u0, u1, u2, lam = _normal_direction(n, i[k], M, p[k])
@@ -457,7 +457,7 @@ def weighted_spread(n, i, p, weight, M, M2):
         total[3] += w * s01
         total[4] += w * s02
         total[5] += w * s12
-    return total
+    return np.array([[total[0], total[3], total[4]], [total[3], total[1], total[5]], [total[4], total[5], total[2]]])
 
 
 @njit(cache=True, error_model="numpy")

@@ -31,7 +31,6 @@ from stages.tracking.distances import (
     residual_lower_bound,
     residual_size,
     residuals,
-    symmetric_matrices,
 )
 
 # Σ is estimated from the residuals; with nearly exact data it would shrink towards 0 and the
@@ -389,8 +388,8 @@ def _m_step(y, n, body, kin, pose, mixture, estep, distance, prior_pose, gauss_n
     scatter = (e * t[:, None]).T @ e
     if distance == "normals" and normal_noise_rad > 0.0:  # minus the normals' share, at the new pose
         ellipsoids = body.ellipsoids(kin)
-        spread = compiled.weighted_spread(n, i, p, t, *compiled.shapes(ellipsoids.R, ellipsoids.semi_axes))
-        scatter = scatter - normal_noise_rad**2 * symmetric_matrices(tuple(spread[:, None]))[0]
+        scatter = scatter - normal_noise_rad**2 * compiled.weighted_spread(
+            n, i, p, t, *compiled.shapes(ellipsoids.R, ellipsoids.semi_axes))
     Sigma = scatter / max(t.sum(), np.finfo(float).tiny)
     pi = np.empty(P + 1)
     pi[:P] = estep.t.sum(axis=0) / I
@@ -602,6 +601,8 @@ def _bound_priors(pi: np.ndarray, min_outlier_prior: float) -> np.ndarray:
     The ellipsoids' share is rescaled to 1 − π_{P+1}, which maximises Σ_p (Σ_i t_ip) ln π_p under the bound.
     """
     pi = np.maximum(pi, PI_FLOOR)
-    pi = pi / pi.sum()
+    pi /= pi.sum()
     outlier = max(pi[-1], min_outlier_prior)
-    return np.r_[pi[:-1] * (1.0 - outlier) / pi[:-1].sum(), outlier]
+    bounded = pi * (1.0 - outlier) / pi[:-1].sum()
+    bounded[-1] = outlier
+    return bounded
