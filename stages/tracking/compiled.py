@@ -444,20 +444,50 @@ def pose_normal_equations(H6, g6, ellipsoid_segment, moves, axis, origin, revolu
 
 
 @njit(cache=True, error_model="numpy")
-def weighted_spread(n, i, p, weight, M, M2):
-    """Σ_k w_k A_k² (3, 3) over the pairs: the normals' share of the residual scatter (M-step)."""
-    total = np.zeros(6)
-    for k in range(i.shape[0]):
+def noisy_covariance(n, i, p, e, weight, M, M2, noise2, Sigma, iterations):
+    """EM for Σ in e_k = z_k + w_k, z ~ N(0, Σ), w ~ N(0, σ_n² A_k²) (`em._noisy_covariance`): `iterations`
+    updates Σ ← Σ − Σ (S₁/T) Σ + Σ (S₂/T) Σ from `Sigma`, with S₁ = Σ_k t_k Σ_k⁻¹,
+    S₂ = Σ_k t_k Σ_k⁻¹ e_k e_kᵀ Σ_k⁻¹, Σ_k = Σ + σ_n² A_k² and T = Σ_k t_k (t = `weight`)."""
+    K = i.shape[0]
+    spread = np.empty((K, 6))
+    total = 0.0
+    for k in range(K):
         u0, u1, u2, lam = _normal_direction(n, i[k], M, p[k])
-        s00, s11, s22, s01, s02, s12 = _spread(M, M2, p[k], u0, u1, u2, lam)
-        w = weight[k]
-        total[0] += w * s00
-        total[1] += w * s11
-        total[2] += w * s22
-        total[3] += w * s01
-        total[4] += w * s02
-        total[5] += w * s12
-    return np.array([[total[0], total[3], total[4]], [total[3], total[1], total[5]], [total[4], total[5], total[2]]])
+        s = _spread(M, M2, p[k], u0, u1, u2, lam)
+        for j in range(6):
+            spread[k, j] = noise2 * s[j]
+        total += weight[k]
+    S = Sigma.copy()
+    for _ in range(iterations):
+        S1, S2 = np.zeros((3, 3)), np.zeros((3, 3))
+        for k in range(K):
+            a, d, g = S[0, 0] + spread[k, 0], S[1, 1] + spread[k, 1], S[2, 2] + spread[k, 2]
+            b, c, f = S[0, 1] + spread[k, 3], S[0, 2] + spread[k, 4], S[1, 2] + spread[k, 5]
+            c00, c01, c02 = d * g - f * f, c * f - b * g, b * f - c * d
+            c11, c12, c22 = a * g - c * c, b * c - a * f, a * d - b * b
+            h = weight[k] / (a * c00 + b * c01 + c * c02)  # t_k / det Σ_k: t_k Σ_k⁻¹ = h adj Σ_k
+            v0 = h * (c00 * e[k, 0] + c01 * e[k, 1] + c02 * e[k, 2])
+            v1 = h * (c01 * e[k, 0] + c11 * e[k, 1] + c12 * e[k, 2])
+            v2 = h * (c02 * e[k, 0] + c12 * e[k, 1] + c22 * e[k, 2])
+            S1[0, 0] += h * c00
+            S1[1, 1] += h * c11
+            S1[2, 2] += h * c22
+            S1[0, 1] += h * c01
+            S1[0, 2] += h * c02
+            S1[1, 2] += h * c12
+            r = 1.0 / weight[k] if weight[k] > 0.0 else 0.0
+            S2[0, 0] += r * v0 * v0
+            S2[1, 1] += r * v1 * v1
+            S2[2, 2] += r * v2 * v2
+            S2[0, 1] += r * v0 * v1
+            S2[0, 2] += r * v0 * v2
+            S2[1, 2] += r * v1 * v2
+        for a_ in range(3):
+            for b_ in range(a_):
+                S1[a_, b_], S2[a_, b_] = S1[b_, a_], S2[b_, a_]
+        S = S + S @ ((S2 - S1) / max(total, 1e-300)) @ S
+        S = 0.5 * (S + S.T)
+    return S
 
 
 @njit(cache=True, error_model="numpy")

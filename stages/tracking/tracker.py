@@ -16,7 +16,8 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
 - failure detection, by absolute checks that a bad start cannot make the norm: an outlier fraction
   above `max_outlier_fraction` or a Σ wider than `failure_sigma_m` triggers a re-initialisation,
   and the better of the two fits (by likelihood) is kept; a frame that was fitted is never dropped:
-  when both fail the checks, the better one is the estimate, flagged `doubtful`;
+  when both fail the checks, the better one is the estimate, flagged `doubtful`, and a doubtful
+  initialisation makes the next frame initialise too (there is no track to go on from);
 - a limb that explains far fewer data than its mirror limb (an arm put on the wrong side of the
   body) is re-initialised locally after every fit (`init.reinitialise_limb`);
 - frames with no or too few observations: the pose is predicted (velocity decaying) and flagged
@@ -426,16 +427,17 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
                       params=InitParams(headings=params.init_headings, refine=params.init_refine))
     fitted = _recover_limbs(y, n, init.fit, volume, replace(em, estimate_scale=estimate), params)
     joints = fitted.body.joint_positions(fitted.pose)
-    # A doubtful initialisation is still this frame's best estimate; the next frame's checks decide again.
     doubtful = _failed(fitted, params)
     height, weight = state.height_m, state.height_weight
     if estimate:
         weight += 1
         height = init.height_m if weight == 1 else height + (init.height_m - height) / weight
+    # A doubtful initialisation is no track to go on from (the data may be all clutter): the next frame
+    # initialises afresh, and the likelihood level stays that of the last good fits.
     new_state = replace(state, pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
                         height_weight=weight, Sigma=fitted.mixture.Sigma, pi=fitted.mixture.pi,
-                        likelihood_level=fitted.log_likelihood[-1] / len(y),
-                        frames_without_fit=0, lost=False, since_initialisation=0)
+                        likelihood_level=state.likelihood_level if doubtful else fitted.log_likelihood[-1] / len(y),
+                        frames_without_fit=0, lost=doubtful, since_initialisation=0)
     result = FrameResult(pose=fitted.pose, joints=joints, log_likelihood=fitted.log_likelihood[-1],
                          iterations=fitted.iterations, outlier_fraction=fitted.outlier_fraction,
                          status="initialised", height_m=init.height_m, doubtful=doubtful)

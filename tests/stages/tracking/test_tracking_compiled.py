@@ -41,12 +41,50 @@ def test_normal_equations_match_the_reference(pairs):
         np.testing.assert_allclose(g[q], block.T @ r[p == q].reshape(-1), atol=1e-10)
 
 
-def test_weighted_spread_matches_the_reference(pairs):
+def _noisy_covariance_terms(pairs):
     _, n, i, p, _, ell, rng = pairs
-    w = rng.uniform(0.0, 1.0, len(i))
-    total = compiled.weighted_spread(n, i, p, w, shape_matrices(ell, 2.0), shape_matrices(ell, 4.0))
-    expected = np.einsum("k,kab->ab", w, normal_spread(n[i], ell, p))
-    np.testing.assert_allclose(total, expected, atol=1e-12)
+    sigma_n = np.radians(10.0)
+    e = rng.normal(0.0, 0.015, (len(i), 3))  # residuals of a few centimetres
+    w = rng.uniform(0.05, 1.0, len(i))
+    spread = sigma_n**2 * normal_spread(n[i], ell, p)  # σ_n² A_k² (K, 3, 3)
+    return n, i, p, ell, e, w, sigma_n**2, spread
+
+
+def _Q(Sigma, e, w, spread):
+    """Σ_k w_k ln N(e_k | 0, Σ + σ_n² A_k²), the objective the noisy covariance maximises."""
+    C = Sigma + spread
+    quadratic = np.einsum("ka,ka->k", e, np.linalg.solve(C, e[:, :, None])[:, :, 0])
+    return float(np.sum(-0.5 * w * (quadratic + np.linalg.slogdet(C)[1] + 3.0 * np.log(2.0 * np.pi))))
+
+
+def test_noisy_covariance_is_the_em_update_of_the_reference(pairs):
+    n, i, p, ell, e, w, noise2, spread = _noisy_covariance_terms(pairs)
+    Sigma = np.diag([0.02, 0.03, 0.025]) ** 2
+    inverse = np.linalg.inv(Sigma + spread)  # Σ_k⁻¹
+    S1 = np.einsum("k,kab->ab", w, inverse)
+    v = np.einsum("kab,kb->ka", inverse, e)
+    S2 = np.einsum("k,ka,kb->ab", w, v, v)
+    expected = Sigma + Sigma @ ((S2 - S1) / w.sum()) @ Sigma
+    once = compiled.noisy_covariance(n, i, p, e, w, shape_matrices(ell, 2.0), shape_matrices(ell, 4.0), noise2,
+                                     Sigma, 1)
+    np.testing.assert_allclose(once, expected, rtol=1e-10, atol=1e-16)
+
+
+def test_noisy_covariance_never_lowers_its_objective(pairs):
+    n, i, p, ell, e, w, noise2, spread = _noisy_covariance_terms(pairs)
+    M, M2 = shape_matrices(ell, 2.0), shape_matrices(ell, 4.0)
+    Sigma = np.diag([0.06, 0.05, 0.04]) ** 2  # far too wide, as at an initialisation
+    scores = [_Q(Sigma, e, w, spread)]
+    for _ in range(6):
+        Sigma = compiled.noisy_covariance(n, i, p, e, w, M, M2, noise2, Sigma, 1)
+        scores.append(_Q(Sigma, e, w, spread))
+    assert np.all(np.diff(scores) >= -1e-9 * abs(scores[0]))
+    assert np.all(np.linalg.eigvalsh(Sigma) > 0.0)
+    # the moment estimate, which EM replaced, does worse by this objective on such data
+    moment = (np.einsum("k,ka,kb->ab", w, e, e) - np.einsum("k,kab->ab", w, spread)) / w.sum()
+    values, vectors = np.linalg.eigh(moment)
+    moment = (vectors * np.maximum(values, 0.004**2)) @ vectors.T  # floored, as the M-step bounds Σ
+    assert _Q(Sigma, e, w, spread) > _Q(moment, e, w, spread)
 
 
 def test_pose_normal_equations_match_the_segment_twists():
