@@ -6,7 +6,8 @@ way whatever runs them (see :func:`pipeline.runner.StageContext.map_frames`):
 - ``workers=1`` (default): :class:`InProcessExecutor`, calls run immediately in this process. No
   pickling, easiest to debug, and exceptions carry their full traceback.
 - ``workers=N > 1``: ``ProcessPoolExecutor`` with the ``spawn`` start method (safe with the threads
-  that progress bars and OpenCV start; fork is not).
+  that progress bars and OpenCV start; fork is not), its processes at a lower scheduling priority than
+  this one, which runs the sequential tracker.
 - ``scheduler="local:N"``: a Dask ``LocalCluster(n_workers=N, threads_per_worker=1, processes=True)``
   started for this run; ``scheduler="tcp://host:port"``: an existing Dask scheduler. Both go through
   ``Client.get_executor(pure=False)`` (``pure=False``: a chunk re-submitted after a failure must run
@@ -20,6 +21,7 @@ import concurrent.futures as cf
 import contextlib
 import importlib
 import multiprocessing
+import os
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -76,13 +78,29 @@ def make_executor(workers: int = 1, scheduler: str | None = None, *,
     if workers == 1:
         yield Workers(InProcessExecutor(), 1, "in-process")
         return
-    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                                  initializer=_yield_to_parent)
     for _ in range(workers):  # starts the processes now; a failed import shows again in the first real task
         pool.submit(_import, tuple(preload))
     try:
         yield Workers(pool, workers, f"{workers} local processes")
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+#: Niceness a local pool's processes add to their own (see :func:`_yield_to_parent`).
+WORKER_NICENESS = 10
+
+
+def _yield_to_parent() -> None:
+    """Lower this worker process's scheduling priority below the parent's.
+
+    The parent runs the sequential stage (the tracker) alongside the per-frame stage whose frames it
+    reads, so N workers and the parent compete for the cores. The tracker is what the run waits for;
+    at equal priority it gets 2/3 of a core on two cores, and it finishes alone after the workers are
+    done. Behind it, the workers take whatever CPU it leaves and all of it when the parent is idle.
+    """
+    os.nice(WORKER_NICENESS)
 
 
 def _import(modules: tuple[str, ...]) -> None:

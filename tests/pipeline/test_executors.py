@@ -12,7 +12,7 @@ import pytest
 from calib.errors import InputError
 from pipeline import frames_io
 from pipeline.capture import Capture
-from pipeline.executors import InProcessExecutor, make_executor
+from pipeline.executors import WORKER_NICENESS, InProcessExecutor, make_executor
 from pipeline.runner import StageContext
 
 
@@ -105,3 +105,9 @@ def test_a_failed_preload_does_not_stop_the_pool():
     with make_executor(2, preload=("json", "no_such_module_here")) as workers:
         pids = {workers.executor.submit(os.getpid).result() for _ in range(4)}
     assert pids and os.getpid() not in pids  # real tasks still run, in the pool's own processes
+
+
+def test_pool_processes_yield_to_the_parent():
+    with make_executor(2) as workers:
+        niceness = {workers.executor.submit(os.nice, 0).result() for _ in range(4)}
+    assert niceness == {min(os.nice(0) + WORKER_NICENESS, 19)}
