@@ -140,6 +140,12 @@ class BodyModel:
     girth_group : (E,) int
         Girth factor (a group of `length_groups` whose axis is "girth") scaling each ellipsoid's two
         short semi-axes, −1 for ellipsoids of fixed girth.
+    joint_group : (S,) int
+        Factor (a group of `length_groups` with `scales: joint`) scaling where each segment's joint sits
+        in its parent (its `offset`) along `joint_axis`, −1 for segments whose joint stays: the shoulder
+        width, which moves the arms without widening the chest's ellipsoids.
+    joint_axis : (S, 3) float
+        Unit direction, in the parent's frame, along which that factor moves the segment's joint.
     """
 
     name: str
@@ -168,6 +174,8 @@ class BodyModel:
     length_factors: np.ndarray
     length_prior_sd: np.ndarray
     girth_group: np.ndarray
+    joint_group: np.ndarray
+    joint_axis: np.ndarray
 
     @property
     def pose_size(self) -> int:
@@ -260,8 +268,10 @@ class BodyModel:
         and the shapes of its ellipsoids (an ellipsoid (x − t)ᵀ A⁻¹ (x − t) = 1 with A = R diag(a²) Rᵀ
         maps to A' = S A Sᵀ). A girth group instead scales the two short semi-axes of its ellipsoids,
         joints untouched: bodies differ in build as well as in height, and without it the overall size
-        (`scaled`) is the only way to fit a stouter body, which makes it too tall. Stretches along one
-        axis compose, so the change from the current factors is the stretch by their ratio.
+        (`scaled`) is the only way to fit a stouter body, which makes it too tall. A joint group moves
+        its segments' joints in their parents (the offsets, along `joint_axis`), carrying the segments
+        along unchanged: the shoulder width, without widening the chest. Stretches along one axis
+        compose, so the change from the current factors is the stretch by their ratio.
         """
         factors = np.asarray(factors, dtype=float)
         if factors.shape != self.length_factors.shape or not np.all(factors > 0):
@@ -277,6 +287,9 @@ class BodyModel:
         S = np.eye(3) + (ratio - 1.0)[:, None, None] * u[:, :, None] * u[:, None, :]  # (S,3,3)
         offset = self.offset.copy()
         offset[1:] = np.einsum("sab,sb->sa", S[self.parent[1:]], self.offset[1:])
+        moved = self.joint_group >= 0
+        along = np.einsum("sa,sa->s", offset[moved], self.joint_axis[moved])
+        offset[moved] += (group_ratio[self.joint_group[moved]] - 1.0)[:, None] * along[:, None] * self.joint_axis[moved]
         S_e = S[self.ellipsoid_segment]
         rotation, semi_axes = self.ellipsoid_rotation.copy(), self.semi_axes.copy()
         stretched = ratio[self.ellipsoid_segment] != 1.0  # the others keep their shape exactly
@@ -311,7 +324,8 @@ class BodyModel:
         new_index = np.full(len(self.length_groups) + 1, -1)  # last entry: segments of no group stay -1
         new_index[old] = np.arange(len(old))
         return replace(self, length_groups=tuple(names), length_group=new_index[self.length_group],
-                       girth_group=new_index[self.girth_group], length_factors=self.length_factors[old].copy(),
+                       girth_group=new_index[self.girth_group], joint_group=new_index[self.joint_group],
+                       length_factors=self.length_factors[old].copy(),
                        length_prior_sd=self.length_prior_sd[old].copy())
 
     @functools.cached_property
@@ -439,10 +453,15 @@ def _body_from_dict(spec: dict) -> BodyModel:
     groups = spec.get("lengths", {})
     length_group, length_axis = np.full(len(names), -1), np.zeros((len(names), 3))
     girth_group = np.full(len(e_seg), -1)
+    joint_group, joint_axis = np.full(len(names), -1), np.zeros((len(names), 3))
     for g, entry in enumerate(groups.values()):
         for seg in entry["segments"]:
             if entry["axis"] == "girth":
                 girth_group[np.array(e_seg) == index[seg]] = g
+                continue
+            if entry.get("scales", "segment") == "joint":
+                joint_group[index[seg]] = g
+                joint_axis[index[seg]] = _AXIS_WORDS[entry["axis"]]
                 continue
             length_group[index[seg]] = g
             length_axis[index[seg]] = _AXIS_WORDS[entry["axis"]]
@@ -463,6 +482,7 @@ def _body_from_dict(spec: dict) -> BodyModel:
         semi_axes=np.array(e_axes), standing_root=joint[0], joint_segment=np.array(j_seg),
         joint_offset=np.array(j_off), length_groups=tuple(groups), length_group=length_group,
         length_axis=length_axis, length_factors=np.ones(len(groups)), girth_group=girth_group,
+        joint_group=joint_group, joint_axis=joint_axis,
         length_prior_sd=np.array([float(entry.get("prior_sd", LENGTH_PRIOR_SD)) for entry in groups.values()]))
 
 

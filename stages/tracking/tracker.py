@@ -71,7 +71,14 @@ class TrackerParams:
         ellipsoids: on the unseen suite (tracking rerun on its reconstructions), estimating all four
         made the thigh 0.15-0.26 too long on capsule bodies and left the mean MPJPE unchanged (36.8 ->
         37.1 mm), these two took it to 29.8 mm, and the girth (the build: stouter bodies otherwise
-        come out taller) to 28.5 mm, mean worst frame 60.3 -> 41.5 mm.
+        come out taller) to 28.5 mm, mean worst frame 60.3 -> 41.5 mm. The forearm (with the hand it
+        carries) and the shoulder width then took the unseen suite from 28.7 to 26.0 mm: with the
+        forearm fixed, a subject's shorter or longer forearm and hand were absorbed by the upper arm
+        (factor 0.91 for a subject whose upper arm is 1.01 of the table's), which put the elbows 5 cm
+        high (walk_capsules 28.0 -> 25.9 mm, elbow flexion error 7.3 -> 5.1° over the suite); the
+        shoulder width follows a narrow-shouldered skeleton (0.75-0.77 for 09_01: run 40.0 -> 29.1 mm)
+        and stays within 0.94-1.02 elsewhere. The hip width, estimated the same way, was pushed out by
+        stout thighs (1.10-1.26 on capsule bodies; suite 26.0 -> 29.1 mm).
     sigma_m : float
         Prediction error (metres): every frame's EM starts from the previous frame's Σ + σ² I.
     min_observations : int
@@ -126,7 +133,7 @@ class TrackerParams:
     max_iterations: int = 10
     tolerance: float = 0.01
     displacement_m: float = 0.002
-    estimate_lengths: tuple[str, ...] = ("upperarm", "shank", "girth")
+    estimate_lengths: tuple[str, ...] = ("upperarm", "shank", "girth", "forearm", "shoulders")
     sigma_m: float = 0.02
     min_observations: int = 30
     max_outlier_fraction: float = 0.6

@@ -222,8 +222,25 @@ def test_length_groups_subset_freezes_the_others_at_their_stretch():
     np.testing.assert_allclose(back.joint_positions(back.zero_pose()), expected.joint_positions(expected.zero_pose()),
                                atol=1e-12)
     assert body.with_length_groups(()).length_factors.shape == (0,)
-    with pytest.raises(InputError, match="forearm"):
-        body.with_length_groups(("forearm",))
+    with pytest.raises(InputError, match="neck"):
+        body.with_length_groups(("neck",))
+
+
+def test_shoulder_factor_moves_the_shoulders_apart_without_widening_the_chest():
+    body = load_body("default")
+    factors = np.ones(len(body.length_groups))
+    factors[body.length_groups.index("shoulders")] = 0.8
+    narrow = body.with_lengths(factors)
+    j = {name: k for k, name in enumerate(JOINT_NAMES)}
+    before, after = body.joint_positions(body.zero_pose()), narrow.joint_positions(narrow.zero_pose())
+    for side in ("l_", "r_"):
+        shift = np.array([before[j[side + "shoulder"], 0] * -0.2, 0.0, 0.0])  # the chest's joint is at x = 0
+        for joint in ("shoulder", "elbow", "wrist"):  # the arm moves rigidly with its shoulder
+            np.testing.assert_allclose(after[j[side + joint]], before[j[side + joint]] + shift, atol=1e-12)
+    np.testing.assert_allclose(after[j["neck"]], before[j["neck"]], atol=1e-12)
+    np.testing.assert_allclose(narrow.semi_axes, body.semi_axes, atol=1e-12)  # no ellipsoid changes shape
+    back = narrow.with_length_groups(("shoulders",)).with_lengths(np.ones(1))
+    np.testing.assert_allclose(back.joint_positions(back.zero_pose()), before, atol=1e-12)
 
 
 def test_girth_factor_scales_only_the_short_semi_axes():
