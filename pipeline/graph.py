@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import importlib
 import logging
 import math
 from collections.abc import Sequence
@@ -50,7 +51,6 @@ from pipeline.frame_tasks import (
     silhouette_path,
     silhouettes_task,
 )
-from pipeline.report import write_report
 from pipeline.runner import Stage, StageContext
 from stages.export import ExportParams
 from stages.joints import JOINT_NAMES
@@ -170,6 +170,36 @@ def read_tracking(folder: Path, frame: int) -> tuple[FrameResult, TrackerState]:
             TrackerState.from_dict(record["state"]))
 
 
+def tracker_params(params: TrackerParams, capture: Capture) -> TrackerParams:
+    """The tracking stage's parameters, with the capture's subject height when none is set."""
+    if params.height_m is None and capture.height_m is not None:
+        return dataclasses.replace(params, height_m=capture.height_m)
+    return params
+
+
+#: Observations of the synthetic frame that :func:`warm_up_tracking` tracks (at least; see there).
+WARM_UP_OBSERVATIONS = 100
+
+
+def warm_up_tracking(capture: Capture, params: TrackerParams) -> None:
+    """Track one synthetic frame, so that the process has loaded the tracker's compiled code.
+
+    The first ``track_frame`` call of a process loads numba's runtime and the compiled inner loops
+    from its on-disk cache: about 0.3 s, which the tracking stage's first frame would otherwise wait
+    for. The frame is random points in the working volume with random normals (as many as tracking
+    needs at least), which makes the tracker initialise and so call its inner loops; its result is
+    dropped.
+    """
+    params = tracker_params(params, capture)
+    count = max(WARM_UP_OBSERVATIONS, params.min_observations)
+    rng = np.random.default_rng(0)
+    low, high = np.asarray(capture.volume, dtype=float)
+    normals = rng.normal(size=(count, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    observations = Observations(rng.uniform(low, high, (count, 3)), normals)
+    track_frame(None, observations, load_body(), params, capture.volume)
+
+
 def run_tracking(ctx: StageContext) -> int:
     """Fit the articulated body to each frame's observations, in order (frame t starts from t-1).
 
@@ -178,9 +208,7 @@ def run_tracking(ctx: StageContext) -> int:
     record (estimate + tracker state) is written atomically, and a resumed run restarts from the
     state after the last complete frame.
     """
-    params: TrackerParams = ctx.params
-    if params.height_m is None and ctx.capture.height_m is not None:
-        params = dataclasses.replace(params, height_m=ctx.capture.height_m)
+    params = tracker_params(ctx.params, ctx.capture)
     body = load_body()
     frames = ctx.capture.frame_numbers
     pending = ctx.pending_frames(lambda frame: [tracking_path(ctx.out_dir, frame)])
@@ -201,6 +229,16 @@ def run_tracking(ctx: StageContext) -> int:
 
 #: Statuses of tracked frames that are exported (the others were only predicted).
 EXPORTED_STATUSES = ("tracked", "initialised")
+
+
+#: The report's module: it imports matplotlib (a quarter of a second), so it is imported only for a report.
+REPORT_MODULE = "pipeline.report"
+
+
+def warm_up_export(capture: Capture, params: ExportParams) -> None:
+    """Import the report's module (matplotlib) ahead of the export stage when it will write a report."""
+    if params.report:
+        importlib.import_module(REPORT_MODULE)
 
 
 def run_export(ctx: StageContext) -> None:
@@ -227,6 +265,8 @@ def run_export(ctx: StageContext) -> None:
         if capture.has_images and len(frames):
             middle = int(frames[len(frames) // 2])
             images = {camera: next(capture.iter_images(camera, [middle])) for camera in capture.rig.names[:2]}
+        from pipeline.report import write_report  # here: see REPORT_MODULE
+
         write_report(ctx.output_root, rig=capture.rig, images=images)
     if params.overlay_videos and capture.has_images:
         for camera in capture.rig:
@@ -248,8 +288,8 @@ STAGES: tuple[Stage, ...] = (
           params_type=ReconstructionParams, capture_parts=("config", "frames"),
           code=("stages.reconstruction",)),
     Stage("tracking", run_tracking, inputs=("calibration", "reconstruction"), params_type=TrackerParams,
-          capture_parts=("config", "frames"), code=("stages.tracking",), streams=True),
+          capture_parts=("config", "frames"), code=("stages.tracking",), streams=True, warm_up=warm_up_tracking),
     Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
-          code=("stages.export", "pipeline.export_io", "pipeline.report")),
+          code=("stages.export", "pipeline.export_io", REPORT_MODULE), warm_up=warm_up_export),
 )
