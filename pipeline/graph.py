@@ -170,36 +170,6 @@ def read_tracking(folder: Path, frame: int) -> tuple[FrameResult, TrackerState]:
             TrackerState.from_dict(record["state"]))
 
 
-def tracker_params(params: TrackerParams, capture: Capture) -> TrackerParams:
-    """The tracking stage's parameters, with the capture's subject height when none is set."""
-    if params.height_m is None and capture.height_m is not None:
-        return dataclasses.replace(params, height_m=capture.height_m)
-    return params
-
-
-#: Observations of the synthetic frame that :func:`warm_up_tracking` tracks (at least; see there).
-WARM_UP_OBSERVATIONS = 100
-
-
-def warm_up_tracking(capture: Capture, params: TrackerParams) -> None:
-    """Track one synthetic frame, so that the process has loaded the tracker's compiled code.
-
-    The first ``track_frame`` call of a process loads numba's runtime and the compiled inner loops
-    from its on-disk cache: about 0.3 s, which the tracking stage's first frame would otherwise wait
-    for. The frame is random points in the working volume with random normals (as many as tracking
-    needs at least), which makes the tracker initialise and so call its inner loops; its result is
-    dropped.
-    """
-    params = tracker_params(params, capture)
-    count = max(WARM_UP_OBSERVATIONS, params.min_observations)
-    rng = np.random.default_rng(0)
-    low, high = np.asarray(capture.volume, dtype=float)
-    normals = rng.normal(size=(count, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    observations = Observations(rng.uniform(low, high, (count, 3)), normals)
-    track_frame(None, observations, load_body(), params, capture.volume)
-
-
 def run_tracking(ctx: StageContext) -> int:
     """Fit the articulated body to each frame's observations, in order (frame t starts from t-1).
 
@@ -208,7 +178,9 @@ def run_tracking(ctx: StageContext) -> int:
     record (estimate + tracker state) is written atomically, and a resumed run restarts from the
     state after the last complete frame.
     """
-    params = tracker_params(ctx.params, ctx.capture)
+    params: TrackerParams = ctx.params
+    if params.height_m is None and ctx.capture.height_m is not None:
+        params = dataclasses.replace(params, height_m=ctx.capture.height_m)
     body = load_body()
     frames = ctx.capture.frame_numbers
     pending = ctx.pending_frames(lambda frame: [tracking_path(ctx.out_dir, frame)])
@@ -288,7 +260,7 @@ STAGES: tuple[Stage, ...] = (
           params_type=ReconstructionParams, capture_parts=("config", "frames"),
           code=("stages.reconstruction",)),
     Stage("tracking", run_tracking, inputs=("calibration", "reconstruction"), params_type=TrackerParams,
-          capture_parts=("config", "frames"), code=("stages.tracking",), streams=True, warm_up=warm_up_tracking),
+          capture_parts=("config", "frames"), code=("stages.tracking",), streams=True),
     Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
           code=("stages.export", "pipeline.export_io", REPORT_MODULE), warm_up=warm_up_export),

@@ -1,26 +1,18 @@
-"""The stage graph's start-up: what the run command imports, and the warm-ups of the tracking and export stages."""
+"""The stage graph's start-up: what the run command imports, and the export stage's warm-up."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
 
-from pipeline.capture import Capture
-from pipeline.graph import REPORT_MODULE, warm_up_export, warm_up_tracking
+from pipeline.graph import REPORT_MODULE, warm_up_export
 from stages.export import ExportParams
-from stages.tracking.tracker import TrackerParams
 
 
 def test_the_run_command_does_not_import_the_report_at_start_up():
     code = "import sys, pipeline.commands.run; print(sorted({'matplotlib', 'pipeline.report'} & set(sys.modules)))"
     imported = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert imported.strip() == "[]"  # matplotlib costs a quarter of a second: imported only for a report
-
-
-def test_warm_up_tracking_tracks_a_synthetic_frame_and_writes_nothing(tiny_capture):
-    before = sorted(tiny_capture.rglob("*"))
-    warm_up_tracking(Capture.open(tiny_capture), TrackerParams(min_observations=150))
-    assert sorted(tiny_capture.rglob("*")) == before
 
 
 def test_warm_up_export_imports_the_report_only_for_a_report():
