@@ -2,7 +2,7 @@
 
 A worker of ``--workers N`` is a spawned process that imports the module of the task it unpickles
 before its first chunk, and a stage's wall time includes the imports its chunks need. These tasks live
-apart from :mod:`pipeline.graph`, which imports the tracker (numba) and the report (matplotlib), and the
+apart from :mod:`pipeline.graph`, which imports the tracker (numba and scipy), and the
 reconstruction (scipy, a quarter of a second) is imported by its own task: a worker is ready for the
 silhouette stage after about 0.3 s rather than 0.8 s, 4 ms per frame of a 112-frame capture.
 
