@@ -514,7 +514,7 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, kin: Kinematics, pose
     g = np.zeros(D + X)
     H[:D, :D], g[:D] = compiled.pose_normal_equations(H6, g6, body.ellipsoid_segment, body.moves, kin.axis,
                                                       kin.origin, body.dof_revolute)
-    if X:  # the size and length columns are summed per pair's ellipsoid like the pose's
+    if X and len(problem.p):  # the size and length columns are summed per pair's ellipsoid like the pose's
         starts = np.flatnonzero(np.r_[True, problem.p[1:] != problem.p[:-1]])  # each present ellipsoid's pairs
         T = body.segment_twists(kin)[body.ellipsoid_segment[problem.p[starts]]]  # (P',6,D)
         Xw = _whitened(W, extra)

@@ -432,7 +432,12 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
     estimate = params.height_m is None and state.height_weight < params.scale_frames
     init = initialise(y, n, body, volume, load_pose_library(body), estimate_height=estimate, em=em,
                       params=InitParams(headings=params.init_headings, refine=params.init_refine))
-    fitted = _recover_limbs(y, n, init.fit, volume, replace(em, estimate_scale=estimate), params)
+    fitted = init.fit
+    for _ in range(2):  # a limb moved by the first pass can leave its mirror (or itself) still misplaced
+        recovered = _recover_limbs(y, n, fitted, volume, replace(em, estimate_scale=estimate), params)
+        if recovered is fitted:
+            break
+        fitted = recovered
     joints = fitted.body.joint_positions(fitted.pose)
     doubtful = _failed(fitted, params)
     height, weight = state.height_m, state.height_weight
@@ -440,10 +445,12 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
         weight += 1
         height = init.height_m if weight == 1 else height + (init.height_m - height) / weight
     # A doubtful initialisation is no track to go on from (the data may be all clutter): the next frame
-    # initialises afresh, and the likelihood level stays that of the last good fits.
+    # initialises afresh. The likelihood level is left to the tracked frames: an initialisation's fit
+    # (a coarse search, sometimes with a limb still wrong) set it so low that the next frames' slips
+    # went unnoticed (bundled leaning: a wrist 450 mm off on frames 2-3).
     new_state = replace(state, pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
                         height_weight=weight, Sigma=fitted.mixture.Sigma, pi=fitted.mixture.pi,
-                        likelihood_level=state.likelihood_level if doubtful else fitted.log_likelihood[-1] / len(y),
+                        likelihood_level=state.likelihood_level if doubtful else np.nan,
                         frames_without_fit=0, lost=doubtful, since_initialisation=0)
     result = FrameResult(pose=fitted.pose, joints=joints, log_likelihood=fitted.log_likelihood[-1],
                          iterations=fitted.iterations, outlier_fraction=fitted.outlier_fraction,

@@ -153,6 +153,7 @@ def test_a_stop_after_fast_motion_is_tracked_from_the_last_pose(body, restart_dr
     params = TrackerParams(height_m=1.75, init_headings=6, init_refine=2, restart_drop=restart_drop)
     pose = _walk(body.scaled(1.75), 1)[0]
     _, state = track_frame(None, _obs(body, pose, rng), body, params, VOLUME)
+    _, state = track_frame(state, _obs(body, pose, rng), body, params, VOLUME)  # a tracked frame sets the level
     jump = np.zeros(body.pose_size)
     jump[0], jump[3], jump[body.dof_names.index("r_shank.flex")] = 0.8, 1.5, 1.5
     state = TrackerState(**{**vars(state), "velocity": jump})

@@ -225,3 +225,18 @@ def test_e_step_weights_whiten_each_pair_by_its_posterior_and_covariance(body):
     covariance = mixture.Sigma + sigma_n**2 * normal_spread(n[i], body.ellipsoids(pose), p)
     expected = estep.t[i, p][:, None, None] * np.linalg.inv(covariance)
     np.testing.assert_allclose(estep.weights @ estep.weights.transpose(0, 2, 1), expected, rtol=1e-9, atol=1e-9)
+
+
+def test_a_fit_with_no_datum_near_the_body_keeps_going_while_estimating_lengths(body):
+    """Every datum an outlier (the prediction far from the subject): no pair enters the M-step, and the
+    size and length columns, which are summed over the pairs, must not fail on none."""
+    rng = np.random.default_rng(25)
+    pose = random_pose(body, rng)
+    y, n = sample_ellipsoids(body, pose, 300, rng)
+    free = body.with_length_groups(("upperarm", "shank"))
+    far = pose.copy()
+    far[0] += 1.5  # metres
+    result = fit(y, n, free, far, VOLUME, EMParams(normal_noise_rad=np.radians(10.0), estimate_scale=True,
+                                                   estimate_lengths=True, max_iterations=3))
+    assert np.all(np.isfinite(result.pose)) and np.all(np.isfinite(result.mixture.Sigma))
+    assert result.outlier_fraction > 0.9
