@@ -483,6 +483,11 @@ class _Problem:
     estimate_scale: bool
     estimate_lengths: bool
 
+    @property
+    def starts(self) -> np.ndarray:
+        """Index of each present ellipsoid's first pair (the pairs are sorted by ellipsoid); empty without pairs."""
+        return np.flatnonzero(np.diff(self.p, prepend=-1))
+
     def residuals(self, body: BodyModel, kin: Kinematics) -> np.ndarray:
         """The pairs' residuals e (K, k) on `body` posed by the kinematics `kin`."""
         ellipsoids = body.ellipsoids(kin)
@@ -514,8 +519,8 @@ def _gauss_newton_step(problem: _Problem, body: BodyModel, kin: Kinematics, pose
     g = np.zeros(D + X)
     H[:D, :D], g[:D] = compiled.pose_normal_equations(H6, g6, body.ellipsoid_segment, body.moves, kin.axis,
                                                       kin.origin, body.dof_revolute)
-    if X and len(problem.p):  # the size and length columns are summed per pair's ellipsoid like the pose's
-        starts = np.flatnonzero(np.r_[True, problem.p[1:] != problem.p[:-1]])  # each present ellipsoid's pairs
+    if X:  # the size and length columns are summed per pair's ellipsoid like the pose's
+        starts = problem.starts
         T = body.segment_twists(kin)[body.ellipsoid_segment[problem.p[starts]]]  # (P',6,D)
         Xw = _whitened(W, extra)
         H[:D, D:] = np.einsum("pid,pix->dx", T, np.add.reduceat(np.einsum("kai,kax->kix", Bw, Xw), starts))
@@ -564,8 +569,8 @@ def _linearised(problem: _Problem, body: BodyModel, kin: Kinematics):
     r = _whitened(problem.W, res.e)  # (K,k) Wᵀ e
     Bw = _whitened(problem.W, res.B)  # (K,k,6) Wᵀ B
     H6, g6 = np.zeros((P, 6, 6)), np.zeros((P, 6))
-    starts = np.flatnonzero(np.r_[True, problem.p[1:] != problem.p[:-1]])
-    for a, b in zip(starts, np.r_[starts[1:], len(r)], strict=True):
+    starts = problem.starts
+    for a, b in zip(starts, np.append(starts, len(r))[1:], strict=True):
         block = Bw[a:b].reshape(-1, 6)
         H6[problem.p[a]] = block.T @ block
     g6[problem.p[starts]] = np.add.reduceat(np.einsum("kai,ka->ki", Bw, r), starts)

@@ -227,16 +227,18 @@ def test_e_step_weights_whiten_each_pair_by_its_posterior_and_covariance(body):
     np.testing.assert_allclose(estep.weights @ estep.weights.transpose(0, 2, 1), expected, rtol=1e-9, atol=1e-9)
 
 
-def test_a_fit_with_no_datum_near_the_body_keeps_going_while_estimating_lengths(body):
+@pytest.mark.parametrize("distance", ["normals", "points", "algebraic"])
+def test_a_fit_with_no_datum_near_the_body_keeps_going_while_estimating_lengths(body, distance):
     """Every datum an outlier (the prediction far from the subject): no pair enters the M-step, and the
-    size and length columns, which are summed over the pairs, must not fail on none."""
+    normal equations and the size and length columns, summed per ellipsoid over the pairs, must not
+    fail on none."""
     rng = np.random.default_rng(25)
     pose = random_pose(body, rng)
     y, n = sample_ellipsoids(body, pose, 300, rng)
     free = body.with_length_groups(("upperarm", "shank"))
     far = pose.copy()
     far[0] += 1.5  # metres
-    result = fit(y, n, free, far, VOLUME, EMParams(normal_noise_rad=np.radians(10.0), estimate_scale=True,
-                                                   estimate_lengths=True, max_iterations=3))
+    result = fit(y, n, free, far, VOLUME, EMParams(distance=distance, normal_noise_rad=np.radians(10.0),
+                                                   estimate_scale=True, estimate_lengths=True, max_iterations=3))
     assert np.all(np.isfinite(result.pose)) and np.all(np.isfinite(result.mixture.Sigma))
     assert result.outlier_fraction > 0.9
