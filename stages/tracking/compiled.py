@@ -66,6 +66,15 @@ def _spread(M, M2, p, u0, u1, u2, lam):
 
 
 @njit(cache=True, error_model="numpy")
+def _adjugate(a, d, g, b, c, f):
+    """Cofactors (c00, c01, c02, c11, c12, c22) and determinant of the symmetric 3 × 3 matrix
+    [[a, b, c], [b, d, f], [c, f, g]]: its inverse is the cofactor matrix over the determinant."""
+    c00, c01, c02 = d * g - f * f, c * f - b * g, b * f - c * d
+    c11, c12, c22 = a * g - c * c, b * c - a * f, a * d - b * b
+    return c00, c01, c02, c11, c12, c22, a * c00 + b * c01 + c * c02
+
+
+@njit(cache=True, error_model="numpy")
 def e_step(y, n, t, M, M2, semi_axes, Sigma, log_pi, log_outlier, noise2, log_negligible, prune, first):
     """Posteriors t_ip (eq. 13), ln P(Y | Λ) (eq. 12) and the M-step's pairs, for Σ_ip = Σ + σ_n² A_ip².
 
@@ -157,8 +166,9 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
     I, P = y.shape[0], t.shape[0]
     evidence_log = np.empty(I)
     posterior = np.zeros((I, P) if posteriors else (0, P))
-    log_joint = np.empty(P)  # one datum's ln π_p N_ip, its Σ_ip⁻¹, the p not skipped, π_p N_ip / e^peak
-    inverse = np.empty((P, 6))
+    # One datum's pairs: ln π_p N_ip and Σ_ip⁻¹ by ellipsoid; the ellipsoids not skipped, in visiting order,
+    # and their π_p N_ip / e^peak.
+    log_joint, inverse = np.empty(P), np.empty((P, 6))
     passed, scaled = np.empty(P, np.int64), np.empty(P)
     # Pairs above `prune` in datum order; only the first K rows of these buffers are ever touched.
     room = I * P if posteriors else 0
@@ -199,9 +209,7 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
                 s00, s11, s22, s01, s02, s12 = _spread(M, M2, p, u0, u1, u2, lam)
             a, d, g = Sigma[0, 0] + noise2 * s00, Sigma[1, 1] + noise2 * s11, Sigma[2, 2] + noise2 * s22
             b, c, f = Sigma[0, 1] + noise2 * s01, Sigma[0, 2] + noise2 * s02, Sigma[1, 2] + noise2 * s12
-            c00, c01, c02 = d * g - f * f, c * f - b * g, b * f - c * d  # cofactors: C⁻¹ = adj C / det C
-            c11, c12, c22 = a * g - c * c, b * c - a * f, a * d - b * b
-            det = a * c00 + b * c01 + c * c02
+            c00, c01, c02, c11, c12, c22, det = _adjugate(a, d, g, b, c, f)
             h = 1.0 / det
             quadratic = (c00 * e0 * e0 + c11 * e1 * e1 + c22 * e2 * e2
                          + 2.0 * (c01 * e0 * e1 + c02 * e0 * e2 + c12 * e1 * e2)) * h
@@ -463,25 +471,24 @@ def noisy_covariance(n, i, p, e, weight, M, M2, noise2, Sigma, iterations):
         for k in range(K):
             a, d, g = S[0, 0] + spread[k, 0], S[1, 1] + spread[k, 1], S[2, 2] + spread[k, 2]
             b, c, f = S[0, 1] + spread[k, 3], S[0, 2] + spread[k, 4], S[1, 2] + spread[k, 5]
-            c00, c01, c02 = d * g - f * f, c * f - b * g, b * f - c * d
-            c11, c12, c22 = a * g - c * c, b * c - a * f, a * d - b * b
-            h = weight[k] / (a * c00 + b * c01 + c * c02)  # t_k / det Σ_k: t_k Σ_k⁻¹ = h adj Σ_k
-            v0 = h * (c00 * e[k, 0] + c01 * e[k, 1] + c02 * e[k, 2])
+            c00, c01, c02, c11, c12, c22, det = _adjugate(a, d, g, b, c, f)
+            h = 1.0 / det  # Σ_k⁻¹ = h adj Σ_k
+            v0 = h * (c00 * e[k, 0] + c01 * e[k, 1] + c02 * e[k, 2])  # Σ_k⁻¹ e_k
             v1 = h * (c01 * e[k, 0] + c11 * e[k, 1] + c12 * e[k, 2])
             v2 = h * (c02 * e[k, 0] + c12 * e[k, 1] + c22 * e[k, 2])
-            S1[0, 0] += h * c00
-            S1[1, 1] += h * c11
-            S1[2, 2] += h * c22
-            S1[0, 1] += h * c01
-            S1[0, 2] += h * c02
-            S1[1, 2] += h * c12
-            r = 1.0 / weight[k] if weight[k] > 0.0 else 0.0
-            S2[0, 0] += r * v0 * v0
-            S2[1, 1] += r * v1 * v1
-            S2[2, 2] += r * v2 * v2
-            S2[0, 1] += r * v0 * v1
-            S2[0, 2] += r * v0 * v2
-            S2[1, 2] += r * v1 * v2
+            w, wh = weight[k], weight[k] * h
+            S1[0, 0] += wh * c00
+            S1[1, 1] += wh * c11
+            S1[2, 2] += wh * c22
+            S1[0, 1] += wh * c01
+            S1[0, 2] += wh * c02
+            S1[1, 2] += wh * c12
+            S2[0, 0] += w * v0 * v0
+            S2[1, 1] += w * v1 * v1
+            S2[2, 2] += w * v2 * v2
+            S2[0, 1] += w * v0 * v1
+            S2[0, 2] += w * v0 * v2
+            S2[1, 2] += w * v1 * v2
         for a_ in range(3):
             for b_ in range(a_):
                 S1[a_, b_], S2[a_, b_] = S1[b_, a_], S2[b_, a_]
