@@ -472,8 +472,12 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     own values and its mirror's, mirrored), from a grid over its first two joints (`_limb_grid`),
     from the mirror limb's current angles (people often hold both arms alike) and from the current
     angles. Each is scored by the likelihood (eq. 12) with the rest of the body fixed, on a
-    subsample, under the fit's Σ and with the limb's priors π set to its mirror's (a limb that
-    explained nothing would otherwise be handicapped by its small prior). The best `_LIMB_REFINE`
+    subsample, with the limb's priors π set to its mirror's (a limb that explained nothing would
+    otherwise be handicapped by its small prior) and under the initialisation's coarse Σ
+    (`_SCORE_SIGMA_M`), not the fit's: grid and library angles are tens of millimetres off at best,
+    and under a Σ of 2-3 cm they lost to the misplaced limb itself (bundled leaning, frame 0: the
+    hypothesis nearest the true arm ranked 40th of 343, first under the coarse Σ; refined, it gained
+    0.9 nats per observation). The best `_LIMB_REFINE`
     are refined by EM on all the data (the whole body free); the best of them replaces the fit when
     it is better by `LIMB_MARGIN` nats per observation.
     """
@@ -490,13 +494,14 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     theirs = np.isin(body.ellipsoid_segment, limb.mirror_segments)
     pi[np.flatnonzero(mine)] = np.maximum(pi[np.flatnonzero(mine)], pi[np.flatnonzero(theirs)])
     mixture = replace(result.mixture, pi=pi / pi.sum())
+    coarse = replace(mixture, Sigma=np.eye(len(mixture.Sigma)) * _SCORE_SIGMA_M**2)
     V = volume_size(volume)
     subset = rng.permutation(len(y))[:_LIMB_SCORE_POINTS]
     ys, ns = y[subset], n[subset]
     # The rest of the body does not move: its evidence is computed once, the limb's added per hypothesis.
-    rest = log_evidence(ys, ns, body.ellipsoids(pose), mixture, V, which=np.flatnonzero(~mine),
+    rest = log_evidence(ys, ns, body.ellipsoids(pose), coarse, V, which=np.flatnonzero(~mine),
                         distance=em.distance, normal_noise_rad=em.normal_noise_rad)
-    scores = hypothesis_scores(ys, ns, body.posed_ellipsoids(hypotheses), mixture, V,
+    scores = hypothesis_scores(ys, ns, body.posed_ellipsoids(hypotheses), coarse, V,
                                which=np.flatnonzero(mine), base=rest, distance=em.distance,
                                normal_noise_rad=em.normal_noise_rad)[:, 0]
     best = result
