@@ -137,9 +137,24 @@ def test_score_counts_only_exported_frames():
     estimate = truth.copy()
     estimate[3] += 1.0  # a lost frame's prediction, far off
     result = paper.score(estimate, ["initialised", "tracked", "tracked", "lost"], truth)
-    assert result == {"angle_error_deg": 0.0, "angle_error_median_deg": 0.0, "mpjpe_mm": 0.0, "off_track": 0.0,
-                      "fraction_estimated": 0.75}
+    assert result == {"angle_error_deg": 0.0, "angle_error_median_deg": 0.0, "angle_error_offset_free_deg": 0.0,
+                      "mpjpe_mm": 0.0, "off_track": 0.0, "fraction_estimated": 0.75}
     assert math.isnan(paper.score(estimate, ["lost"] * 4, truth)["mpjpe_mm"])
+
+
+def test_offset_free_angles_ignore_a_joint_placed_elsewhere_in_the_body():
+    """A skeleton that puts the knees 3 cm further forward (in the body's frame, whatever the pose) has
+    other knee and hip angles, but the same motion."""
+    truth = np.random.default_rng(2).normal(size=(20, len(JOINT_NAMES), 3))
+    frames = paper.body_frames(truth)
+    np.testing.assert_allclose(np.einsum("fab,fcb->fac", frames, frames), np.broadcast_to(np.eye(3), (20, 3, 3)),
+                               atol=1e-12)
+    offset = np.zeros((len(JOINT_NAMES), 3))
+    offset[[JOINT_NAMES.index("l_knee"), JOINT_NAMES.index("r_knee")], 1] = 0.03
+    estimate = truth + np.einsum("fab,ja->fjb", frames, offset)
+    result = paper.score(estimate, ["tracked"] * 20, truth)
+    assert result["angle_error_deg"] > 0.1  # degrees: the random joints are about a metre apart
+    assert result["angle_error_offset_free_deg"] < 1e-6
 
 
 # ---------------------------------------------------------------------------------------------
