@@ -199,7 +199,14 @@ class Camera:
 
     def pixel_rays(self, uv) -> np.ndarray:
         """(N, 3) unit world directions of the rays from ``centre`` through pixels ``uv (N, 2)``."""
-        xy = self.undistort_pixels(uv)
+        return self.normalised_rays(self.undistort_pixels(uv))
+
+    def normalised_rays(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 3) unit world directions of the rays through normalised image points ``xy (N, 2)``.
+
+        ``pixel_rays`` without the undistortion, for callers that already hold ``undistort_pixels`` of
+        their pixels (the undistortion is the expensive part, and it is the same for a pixel every time).
+        """
         d_cam = np.hstack([xy, np.ones((len(xy), 1))])
         d_world = d_cam @ self.R  # rows of R^T d
         return d_world / np.linalg.norm(d_world, axis=1, keepdims=True)

@@ -150,17 +150,22 @@ def _mostly_inside(mask: np.ndarray, probes: np.ndarray) -> bool:
     return np.count_nonzero(mask[v, u]) * 2 > len(probes)
 
 
-def cone_normals(camera: Camera, pixels: np.ndarray, tangents: np.ndarray, outward: np.ndarray) -> np.ndarray:
+def cone_normals(
+    camera: Camera, pixels: np.ndarray, normalised: np.ndarray, tangents: np.ndarray, outward: np.ndarray
+) -> np.ndarray:
     """(L, 3) unit normals of the viewing-cone tangent planes at outline points, oriented outwards.
 
     The plane through the camera centre containing the rays of ``pixels`` (L, 2) and of a point a
     little along ``tangents`` (L, 2); its normal is the cross product of the two ray directions, turned
     to the side of ``outward`` (L, 2) (distortion makes a pixel's tangent line a curve in the normalised
     image, so the second ray is taken one pixel away, where that curvature is negligible).
+    ``normalised`` (L, 2) is ``camera.undistort_pixels(pixels)``, which the caller already holds: only the
+    two offset points are undistorted here.
     """
     if len(pixels) == 0:
         return np.zeros((0, 3))
-    ray, along, beside = np.split(camera.pixel_rays(np.concatenate([pixels, pixels + tangents, pixels + outward])), 3)
+    offset = camera.undistort_pixels(np.concatenate([pixels + tangents, pixels + outward]))
+    ray, along, beside = np.split(camera.normalised_rays(np.concatenate([normalised, offset])), 3)
     normals = np.cross(ray, along)
     flip = np.einsum("ij,ij->i", normals, beside - ray) < 0
     normals[flip] *= -1.0

@@ -97,6 +97,9 @@ def rim_points(
     """Rim points (N, 3) and their unit outward normals (N, 3), at most ``n_observations`` of them."""
     cameras = list(rig)
     outlines = [outline(mask, smoothing_px=contour_smoothing_px) for mask in masks]
+    # Every outline point undistorted once: the convex hulls need them all, and the rays, their cone faces
+    # and the snapped edge ends look theirs up instead of undistorting them again.
+    normalised = [camera.undistort_pixels(ours.pixels) for camera, ours in zip(cameras, outlines, strict=True)]
     rays = _sample_rays(outlines, round(n_observations * RAY_OVERSAMPLING))
     camera_of, pixels = rays
     if len(camera_of) == 0:
@@ -107,18 +110,18 @@ def rim_points(
     for index, camera in enumerate(cameras):
         chosen = camera_of == index
         if chosen.any():
-            directions[chosen] = camera.pixel_rays(outlines[index].pixels[pixels[chosen]])
-            normals[chosen] = _faces(camera, outlines[index], pixels[chosen])
+            directions[chosen] = camera.normalised_rays(normalised[index][pixels[chosen]])
+            normals[chosen] = _faces(camera, outlines[index], normalised[index], pixels[chosen])
 
     # Inside tests accept points up to a pixel outside a silhouette: a grazing ray that runs along another
     # view's outline would otherwise flicker in and out with the pixel grid and break into pieces.
     tolerant = [_dilated(mask, ours.bounds) for mask, ours in zip(masks, outlines, strict=True)]
-    edges = _viewing_edges(cameras, tolerant, outlines, volume, origins, directions, camera_of,
+    edges = _viewing_edges(cameras, tolerant, normalised, volume, origins, directions, camera_of,
                            tolerated_views=tolerated_views, samples_per_ray=samples_per_ray)
     d = directions[edges.ray]
     count = len(edges.ray)
     t_ends, m_ends = _snap_to_cones(  # both ends at once: (2E,)
-        cameras, outlines, np.concatenate([origins[edges.ray]] * 2), np.concatenate([d, d]),
+        cameras, outlines, normalised, np.concatenate([origins[edges.ray]] * 2), np.concatenate([d, d]),
         np.concatenate([edges.t_near, edges.t_far]), np.concatenate([edges.camera_near, edges.camera_far]),
     )
     t_near, t_far, m_near, m_far = t_ends[:count], t_ends[count:], m_ends[:count], m_ends[count:]
@@ -199,7 +202,7 @@ def _sample_rays(outlines: list[Outline], n_rays: int) -> tuple[np.ndarray, np.n
 def _viewing_edges(
     cameras: list[Camera],
     masks: Sequence[np.ndarray],
-    outlines: list[Outline],
+    normalised: list[np.ndarray],
     volume: np.ndarray,
     origins: np.ndarray,
     directions: np.ndarray,
@@ -208,9 +211,10 @@ def _viewing_edges(
     tolerated_views: int,
     samples_per_ray: int,
 ) -> ViewingEdges:
-    """The viewing edges of rays ``origins + t directions`` (M, 3) cast from cameras ``camera_of`` (M,)."""
+    """The viewing edges of rays ``origins + t directions`` (M, 3) cast from cameras ``camera_of`` (M,), given
+    each view's outline in normalised image coordinates ``normalised``."""
     t_low, t_high = box_interval(origins, directions, volume)
-    hull_low, hull_high = _hull_bounds(cameras, outlines, origins, directions, camera_of, tolerated_views)
+    hull_low, hull_high = _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_views)
     t_low = np.maximum(t_low, hull_low - RANGE_MARGIN_M)
     t_high = np.minimum(t_high, hull_high + RANGE_MARGIN_M)
     alive = np.flatnonzero(t_high > t_low)
@@ -311,9 +315,9 @@ def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, i
     return t_end, camera
 
 
-def _hull_bounds(cameras, outlines, origins, directions, camera_of, tolerated_views):
+def _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_views):
     """Ray parameters ``(low (M,), high (M,))`` outside which a ray leaves more than ``tolerated_views``
-    silhouettes' convex hulls.
+    silhouettes' convex hulls, given each view's outline in normalised image coordinates ``normalised``.
 
     For camera j the hull is a convex polygon ``e_k · x <= c_k`` in normalised image coordinates x, and
     the ray projects to ``x(t) = (A_xy + t B_xy) / (A_z + t B_z)`` with ``A = R_j o + t_j``, ``B = R_j d``;
@@ -322,12 +326,12 @@ def _hull_bounds(cameras, outlines, origins, directions, camera_of, tolerated_vi
     n_rays = len(origins)
     lows = np.full((len(cameras), n_rays), -np.inf)
     highs = np.full((len(cameras), n_rays), np.inf)
-    for index, (camera, ours) in enumerate(zip(cameras, outlines, strict=True)):
+    for index, (camera, ours) in enumerate(zip(cameras, normalised, strict=True)):
         others = camera_of != index
         if len(ours) == 0:
             lows[index, others], highs[index, others] = np.inf, -np.inf
             continue
-        e, c = _hull_halfplanes(camera, ours.pixels)
+        e, c = _hull_halfplanes(camera, ours)
         A = origins[others] @ camera.R.T + camera.t  # (M', 3)
         B = directions[others] @ camera.R.T
         p = B[:, :2] @ e.T - np.outer(B[:, 2], c)  # (M', K)
@@ -348,10 +352,10 @@ def _hull_bounds(cameras, outlines, origins, directions, camera_of, tolerated_vi
     return low, high
 
 
-def _hull_halfplanes(camera: Camera, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(e (K, 2), c (K,))``: the convex hull of ``pixels`` in normalised coordinates as ``e · x <= c``."""
-    normalised = camera.undistort_pixels(pixels).astype(np.float32)
-    hull = cv2.convexHull(normalised)
+def _hull_halfplanes(camera: Camera, normalised: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(e (K, 2), c (K,))``: the convex hull of outline points ``normalised`` (L, 2) (normalised image
+    coordinates) as ``e · x <= c``."""
+    hull = cv2.convexHull(normalised.astype(np.float32))
     # Fewer hull edges make clipping cheaper; the simplified polygon cuts at most this far inside the
     # hull, so the margin below grows by as much.
     simplify = HULL_SIMPLIFY_PX / min(camera.K[0, 0], camera.K[1, 1])
@@ -371,21 +375,23 @@ def _hull_halfplanes(camera: Camera, pixels: np.ndarray) -> tuple[np.ndarray, np
     return e, np.einsum("ij,ij->i", e, hull) + margin
 
 
-def _faces(camera: Camera, ours: Outline, index: np.ndarray) -> np.ndarray:
-    """(n, 3) outward unit normals of the viewing-cone faces at outline points ``index`` (n,) of ``ours``.
+def _faces(camera: Camera, ours: Outline, normalised: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """(n, 3) outward unit normals of the viewing-cone faces at outline points ``index`` (n,) of ``ours``,
+    whose undistorted positions are ``normalised`` (L, 2).
 
     Computed for the points asked for only: the rays and the edge ends use about a third of the outline,
-    and the normals cost three undistortions per point.
+    and the normals cost two undistortions per point.
     """
-    return cone_normals(camera, ours.pixels[index], ours.tangents[index], ours.outward[index])
+    return cone_normals(camera, ours.pixels[index], normalised[index], ours.tangents[index], ours.outward[index])
 
 
-def _snap_to_cones(cameras, outlines, o, d, t_end, camera_end) -> tuple[np.ndarray, np.ndarray]:
+def _snap_to_cones(cameras, outlines, normalised, o, d, t_end, camera_end) -> tuple[np.ndarray, np.ndarray]:
     """Edge ends moved onto the exact cone faces, and those faces' outward unit normals (E, 3).
 
     The end ``o + t d`` (E, 3) found on the pixel grid is projected into the camera whose cone it lies
-    on; the nearest point of that camera's smoothed outline gives the face (the plane through the camera
-    centre and the outline's tangent line, with the normal of :func:`_faces`), and
+    on; the nearest point of that camera's smoothed outline (``normalised``: its points undistorted) gives
+    the face (the plane through the camera centre and the outline's tangent line, with the normal of
+    :func:`_faces`), and
     the end moves to where the ray meets that plane. A ray nearly parallel to the face (or a move longer
     than ``MAX_SNAP_M``) keeps the grid position. Ends on
     the working volume keep their position and get a zero normal.
@@ -400,7 +406,7 @@ def _snap_to_cones(cameras, outlines, o, d, t_end, camera_end) -> tuple[np.ndarr
             continue
         tree = cKDTree(ours.pixels, balanced_tree=False, compact_nodes=False)  # built once, queried once
         pixel_distance, nearest = tree.query(camera.project(X[chosen]))
-        m[chosen] = _faces(camera, ours, nearest)
+        m[chosen] = _faces(camera, ours, normalised[index], nearest)
         facing = np.einsum("ij,ij->i", m[chosen], d[chosen])
         with np.errstate(divide="ignore", invalid="ignore"):
             t_plane = np.einsum("ij,ij->i", m[chosen], camera.centre - o[chosen]) / facing
