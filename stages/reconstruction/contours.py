@@ -88,7 +88,7 @@ def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
     for index, raw in enumerate(pieces):
         pixels = _along_contour(raw, smoothing_px, 0) if smoothing_px > 0 else raw
         derivative = _along_contour(raw, max(smoothing_px, 1.0), 1)
-        tangents = derivative / np.maximum(np.linalg.norm(derivative, axis=1, keepdims=True), 1e-12)
+        tangents = derivative / np.maximum(_lengths(derivative), 1e-12)
         outward = np.column_stack([tangents[:, 1], -tangents[:, 0]])
         if _mostly_inside(mask, pixels + SIDE_PROBE_PX * outward):
             outward = -outward
@@ -96,7 +96,7 @@ def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
         all_tangents.append(tangents)
         all_outward.append(outward)
         all_ids.append(np.full(len(raw), index))
-        all_steps.append(np.linalg.norm(raw - np.roll(raw, 1, axis=0), axis=1))
+        all_steps.append(_lengths(np.diff(raw, axis=0, prepend=raw[-1:]))[:, 0])  # from the previous point
         all_concave.append(_bending(raw, outward) > 1.0 / CONCAVE_RADIUS_PX)
     pixels = np.concatenate(all_pixels)
     u, v = pixels[:, 0], pixels[:, 1]
@@ -166,7 +166,14 @@ def cone_normals(
         return np.zeros((0, 3))
     offset = camera.undistort_pixels(np.concatenate([pixels + tangents, pixels + outward]))
     ray, along, beside = np.split(camera.normalised_rays(np.concatenate([normalised, offset])), 3)
-    normals = np.cross(ray, along)
+    # ray × along, as np.cross computes it (without its generic axis handling, which cost more than this).
+    normals = ray[:, (1, 2, 0)] * along[:, (2, 0, 1)] - ray[:, (2, 0, 1)] * along[:, (1, 2, 0)]
     flip = np.einsum("ij,ij->i", normals, beside - ray) < 0
     normals[flip] *= -1.0
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-15)
+    return normals / np.maximum(_lengths(normals), 1e-15)
+
+
+def _lengths(vectors: np.ndarray) -> np.ndarray:
+    """(L, 1) Euclidean lengths of ``vectors`` (L, k): the arithmetic of ``np.linalg.norm(vectors, axis=1,
+    keepdims=True)`` (same bits) without its argument handling, which cost more than the sum on outlines."""
+    return np.sqrt(np.add.reduce(vectors * vectors, axis=1, keepdims=True))
