@@ -30,12 +30,13 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[i
     counts: the camera's float32 constants are converted once (``_float32_camera``), x and y are scaled
     together as the rows of one (2, N) array, and the arithmetic happens in place.
     """
-    R, t, dist, focal, centre, size = _float32_camera(camera)
+    R, t, dist, focal, centre = _float32_camera(camera)
     xyz = R @ X
     xyz += t[:, None]
     z, xy = xyz[2], xyz[:2]
     seen = z > MIN_DEPTH_M
-    xy *= np.divide(1.0, z, out=np.ones_like(z), where=seen)
+    inverse_z = np.where(seen, z, np.float32(1.0))
+    xy *= np.divide(np.float32(1.0), inverse_z, out=inverse_z)
     if dist is not None:
         k1, k2, p1, p2, k3 = dist
         x, y = xy
@@ -55,25 +56,26 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[i
     # pixel centre: pixel (0, 0) covers [-0.5, 0.5).
     xy *= focal
     xy += centre
-    # In the image and in the box: for u >= 0, u >= left exactly when the pixel column int(u) >= left.
+    # In the box, which lies in the image: for u >= 0, u >= left exactly when the pixel column int(u) >= left.
     height, width = mask.shape
     left, top = corner
     box = np.array([[left, left + width], [top, top + height]], np.float32)
-    in_box = (xy >= box[:, :1]) & (xy < np.minimum(box[:, 1:], size))
+    in_box = (xy >= box[:, :1]) & (xy < box[:, 1:])
     seen &= in_box[0] & in_box[1]
     column, row = xy.astype(np.intp)
     row -= top
     row *= width
     row += column
     row -= left
-    return seen & (mask.ravel()[np.where(seen, row, 0)] > 0)
+    # Unseen points' indices are meaningless: clipped into the mask, their pixels are read and ignored.
+    return seen & (mask.ravel().take(row, mode="clip") > 0)
 
 
 @functools.lru_cache(maxsize=64)
 def _float32_camera(camera: Camera) -> tuple:
-    """``(R (3, 3), t (3,), dist (5,) or None without distortion, (fx, fy) (2, 1), (cx + ½, cy + ½) (2, 1),
-    (width, height) (2, 1))`` of ``camera`` in float32, as :func:`inside_view` uses them: converted once per
-    camera rather than on every call (cameras are immutable and hash by identity)."""
+    """``(R (3, 3), t (3,), dist (5,) or None without distortion, (fx, fy) (2, 1), (cx + ½, cy + ½) (2, 1))``
+    of ``camera`` in float32, as :func:`inside_view` uses them: converted once per camera rather than on
+    every call (cameras are immutable and hash by identity)."""
     K = camera.K
     fx, fy, cx, cy = (np.float32(value) for value in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     dist = camera.dist.astype(np.float32) if np.any(camera.dist) else None
@@ -83,7 +85,6 @@ def _float32_camera(camera: Camera) -> tuple:
         dist,
         np.array([[fx], [fy]], np.float32),
         np.array([[cx + np.float32(0.5)], [cy + np.float32(0.5)]], np.float32),
-        np.array([[camera.size[0]], [camera.size[1]]], np.float32),
     )
 
 
