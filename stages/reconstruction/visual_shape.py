@@ -106,12 +106,10 @@ def rim_points(
         return np.zeros((0, 3)), np.zeros((0, 3))
     origins = np.stack([camera.centre for camera in cameras])[camera_of]  # (M, 3)
     directions = np.zeros((len(camera_of), 3))
-    normals = np.zeros((len(camera_of), 3))
     for index, camera in enumerate(cameras):
         chosen = camera_of == index
         if chosen.any():
             directions[chosen] = camera.normalised_rays(normalised[index][pixels[chosen]])
-            normals[chosen] = _faces(camera, outlines[index], normalised[index], pixels[chosen])
 
     # Inside tests accept points up to a pixel outside a silhouette: a grazing ray that runs along another
     # view's outline would otherwise flicker in and out with the pixel grid and break into pieces.
@@ -120,10 +118,16 @@ def rim_points(
                            tolerated_views=tolerated_views, samples_per_ray=samples_per_ray)
     d = directions[edges.ray]
     count = len(edges.ray)
-    t_ends, m_ends = _snap_to_cones(  # both ends at once: (2E,)
-        cameras, outlines, normalised, np.concatenate([origins[edges.ray]] * 2), np.concatenate([d, d]),
-        np.concatenate([edges.t_near, edges.t_far]), np.concatenate([edges.camera_near, edges.camera_far]),
+    # Both ends of every edge at once: (2E,).
+    o_ends, d_ends = np.concatenate([origins[edges.ray]] * 2), np.concatenate([d, d])
+    t_ends = np.concatenate([edges.t_near, edges.t_far])
+    nearest, pixel_distance, on = _nearest_outline_points(
+        cameras, outlines, o_ends + t_ends[:, None] * d_ends, np.concatenate([edges.camera_near, edges.camera_far])
     )
+    # The cone faces of the rays' own outline points and of the ends' nearest ones, in one pass per view.
+    faces = _faces(cameras, outlines, normalised, np.concatenate([camera_of, on]), np.concatenate([pixels, nearest]))
+    normals, m_ends = faces[:len(camera_of)], faces[len(camera_of):]
+    t_ends = _snap_to_cones(cameras, o_ends, d_ends, t_ends, on, m_ends, pixel_distance)
     t_near, t_far, m_near, m_far = t_ends[:count], t_ends[count:], m_ends[:count], m_ends[count:]
     t_far = np.maximum(t_far, t_near)
     if rim_placement == "osculating":
@@ -385,50 +389,64 @@ def _hull_halfplanes(camera: Camera, normalised: np.ndarray) -> tuple[np.ndarray
     return e, np.einsum("ij,ij->i", e, hull) + margin
 
 
-def _faces(camera: Camera, ours: Outline, normalised: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """(n, 3) outward unit normals of the viewing-cone faces at outline points ``index`` (n,) of ``ours``,
-    whose undistorted positions are ``normalised`` (L, 2).
+def _faces(cameras, outlines, normalised, view: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """(n, 3) outward unit normals of the viewing-cone faces at outline points ``index`` (n,) of the views
+    ``view`` (n,), whose outlines undistorted are ``normalised``; zero where ``view`` is -1.
 
-    Computed for the points asked for only: the rays and the edge ends use about a third of the outline,
-    and the normals cost two undistortions per point.
+    Computed for the points asked for only (the rays and the edge ends use about half of the outline, and
+    a normal costs two undistortions), each distinct point once: a fifth of the edge ends share their
+    nearest outline point with another end, and some with a ray.
     """
-    return cone_normals(camera, ours.pixels[index], normalised[index], ours.tangents[index], ours.outward[index])
+    normals = np.zeros((len(index), 3))
+    for camera_index, (camera, ours) in enumerate(zip(cameras, outlines, strict=True)):
+        chosen = np.flatnonzero(view == camera_index)
+        if len(chosen):
+            points, which = np.unique(index[chosen], return_inverse=True)
+            normals[chosen] = cone_normals(camera, ours.pixels[points], normalised[camera_index][points],
+                                           ours.tangents[points], ours.outward[points])[which]
+    return normals
 
 
-def _snap_to_cones(cameras, outlines, normalised, o, d, t_end, camera_end) -> tuple[np.ndarray, np.ndarray]:
-    """Edge ends moved onto the exact cone faces, and those faces' outward unit normals (E, 3).
-
-    The end ``o + t d`` (E, 3) found on the pixel grid is projected into the camera whose cone it lies
-    on; the nearest point of that camera's smoothed outline (``normalised``: its points undistorted) gives
-    the face (the plane through the camera centre and the outline's tangent line, with the normal of
-    :func:`_faces`), and
-    the end moves to where the ray meets that plane. A ray nearly parallel to the face (or a move longer
-    than ``MAX_SNAP_M``) keeps the grid position. Ends on
-    the working volume keep their position and get a zero normal.
-    """
-    t_snapped = t_end.copy()
-    m = np.zeros((len(t_end), 3))
-    X = o + t_end[:, None] * d
-    for index, camera in enumerate(cameras):
-        chosen = np.flatnonzero(camera_end == index)
-        ours = outlines[index]
-        if len(chosen) == 0 or len(ours) == 0:
+def _nearest_outline_points(cameras, outlines, X: np.ndarray, view: np.ndarray):
+    """``(nearest (E,), pixel_distance (E,), view (E,))`` for edge ends ``X`` (E, 3) found on the cones of the
+    views ``view`` (E,) (-1: on the working volume): the index of the outline point of that view nearest
+    to the end's image, and its distance in pixels; ``view`` becomes -1 where the view has no outline."""
+    nearest = np.zeros(len(X), int)
+    pixel_distance = np.full(len(X), np.inf)
+    view = view.copy()
+    for index, (camera, ours) in enumerate(zip(cameras, outlines, strict=True)):
+        chosen = np.flatnonzero(view == index)
+        if len(chosen) == 0:
+            continue
+        if len(ours) == 0:
+            view[chosen] = -1
             continue
         tree = cKDTree(ours.pixels, balanced_tree=False, compact_nodes=False)  # built once, queried once
-        pixel_distance, nearest = tree.query(camera.project(X[chosen]))
-        # A fifth of the ends share their nearest outline point with another: each face is computed once.
-        points, which = np.unique(nearest, return_inverse=True)
-        m[chosen] = _faces(camera, ours, normalised[index], points)[which]
-        facing = np.einsum("ij,ij->i", m[chosen], d[chosen])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t_plane = np.einsum("ij,ij->i", m[chosen], camera.centre - o[chosen]) / facing
-        good = (
-            (np.abs(facing) > MIN_FACE_ANGLE_SIN)
-            & (pixel_distance < MAX_SNAP_PX)
-            & (np.abs(t_plane - t_end[chosen]) < MAX_SNAP_M)
-        )
-        t_snapped[chosen[good]] = t_plane[good]
-    return t_snapped, m
+        pixel_distance[chosen], nearest[chosen] = tree.query(camera.project(X[chosen]))
+    return nearest, pixel_distance, view
+
+
+def _snap_to_cones(cameras, o, d, t_end, view, m, pixel_distance) -> np.ndarray:
+    """(E,) edge ends ``o + t_end d`` (E, 3) moved onto the exact cone faces.
+
+    An end found on the pixel grid lies on the cone of ``view`` (E,); the outline point of that view
+    nearest to its image, ``pixel_distance`` (E,) away, gives the face (the plane through the camera centre
+    and the outline's tangent line, with outward normal ``m`` (E, 3) from :func:`_faces`), and the end
+    moves to where the ray meets that plane. A ray nearly parallel to the face (or a move longer than
+    ``MAX_SNAP_M``, or a nearest point further than ``MAX_SNAP_PX``) keeps the grid position, and so do
+    ends on the working volume (``view`` -1, zero normal).
+    """
+    centres = np.stack([camera.centre for camera in cameras])
+    facing = np.einsum("ij,ij->i", m, d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_plane = np.einsum("ij,ij->i", m, centres[view] - o) / facing
+    good = (
+        (view >= 0)
+        & (np.abs(facing) > MIN_FACE_ANGLE_SIN)
+        & (pixel_distance < MAX_SNAP_PX)
+        & (np.abs(t_plane - t_end) < MAX_SNAP_M)
+    )
+    return np.where(good, t_plane, t_end)
 
 
 def _osculating_rim(t_near, t_far, m_near, m_far, d, n) -> np.ndarray:
