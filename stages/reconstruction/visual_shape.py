@@ -196,7 +196,7 @@ def _sample_rays(outlines: list[Outline], n_rays: int) -> tuple[np.ndarray, np.n
         arc = ours.arc_length[candidates]
         targets = np.linspace(arc[0], arc[-1], min(share, len(candidates)), endpoint=False)
         # Increasing targets pick non-decreasing candidates: repeats are neighbours (np.unique without a sort).
-        chosen = candidates[np.clip(np.searchsorted(arc, targets), 0, len(candidates) - 1)]
+        chosen = candidates[np.minimum(np.searchsorted(arc, targets), len(candidates) - 1)]
         chosen = chosen[np.diff(chosen, prepend=-1) != 0]
         camera_of.append(np.full(len(chosen), index))
         picked.append(chosen)
@@ -311,7 +311,7 @@ def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, i
     crossing = 0.5 * (lo + hi)
     # The end is the k-th crossing from the inner side, k = the views still allowed to disagree there.
     needed = tolerated_views + 1 - (~inside_in).sum(axis=0)  # (E',)
-    order = np.lexsort((np.abs(crossing - t_in[end]), end))
+    order = _by_end_then_distance(end, np.abs(crossing - t_in[end]))
     sorted_end = end[order]
     rank = np.arange(len(order)) - np.searchsorted(sorted_end, sorted_end)
     available = np.bincount(end, minlength=len(idx))
@@ -320,6 +320,22 @@ def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, i
     t_end[idx[end[picked]]] = crossing[picked]
     camera[idx[end[picked]]] = view[picked]
     return t_end, camera
+
+
+def _by_end_then_distance(end: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    """``np.lexsort((distance, end))`` for crossings of edge ends ``end`` (n,) at ``distance`` (n,) from the
+    inner sample: a stable sort by end, then by distance only among the few ends crossed more than once
+    (sorting every crossing by distance was most of the cost)."""
+    order = np.argsort(end, kind="stable")
+    sorted_end = end[order]
+    repeated = sorted_end[1:] == sorted_end[:-1]
+    if repeated.any():
+        shared = np.zeros(len(order), bool)
+        shared[1:] |= repeated
+        shared[:-1] |= repeated
+        some = np.flatnonzero(shared)
+        order[some] = order[some][np.lexsort((distance[order[some]], sorted_end[some]))]
+    return order
 
 
 def _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_views):
@@ -378,7 +394,7 @@ def _hull_halfplanes(camera: Camera, normalised: np.ndarray) -> tuple[np.ndarray
         # A degenerate outline (a line of pixels): bound it by its box.
         low, high = hull.min(axis=0), hull.max(axis=0)
         hull = np.array([[low[0], low[1]], [high[0], low[1]], [high[0], high[1]], [low[0], high[1]]])
-    following = np.roll(hull, -1, axis=0)
+    following = np.concatenate([hull[1:], hull[:1]])
     edge = following - hull
     e = np.column_stack([edge[:, 1], -edge[:, 0]])
     e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-15)
