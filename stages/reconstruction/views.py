@@ -30,6 +30,10 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[i
     counts: the camera's float32 constants are converted once (``_float32_camera``), x and y are scaled
     together as the rows of one (2, N) array, and the arithmetic happens in place.
     """
+    if X.shape[1] == 1:
+        # BLAS multiplies a single column differently (gemv, not gemm), last bits included: tested as a pair,
+        # a point gets the same answer whichever points it is tested with.
+        return inside_view(camera, mask, np.repeat(X, 2, axis=1), corner)[:1]
     R, t, dist, focal, centre = _float32_camera(camera)
     xyz = R @ X
     xyz += t[:, None]

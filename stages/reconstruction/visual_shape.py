@@ -231,7 +231,8 @@ def _viewing_edges(
     t = t_low[alive, None] + (t_high - t_low)[alive, None] * fractions  # (A, S)
     ray_of_sample = np.repeat(alive, samples_per_ray)
     X = ray_points(origins[alive], directions[alive], t)
-    ok = _inside_enough(cameras, masks, camera_of[ray_of_sample], X, tolerated_views).reshape(t.shape)
+    ok, known = _inside_enough(cameras, masks, camera_of[ray_of_sample], X, tolerated_views)
+    ok = ok.reshape(t.shape)
     # A single outside sample between inside ones is a grazing ray flickering along another view's
     # outline, not a gap in the body: close it.
     ok[:, 1:-1] |= ok[:, :-2] & ok[:, 2:]
@@ -245,38 +246,50 @@ def _viewing_edges(
     inner = np.concatenate([starts, ends])
     outer = np.concatenate([starts - 1, ends + 1])
     t_end, camera_end = _refine_ends(cameras, masks, origins, directions, camera_of, alive[rows2], t, rows2,
-                                     inner, outer, tolerated_views)
+                                     inner, outer, known, tolerated_views)
     count = len(rows)
     return ViewingEdges(alive[rows], t_end[:count], t_end[count:], camera_end[:count], camera_end[count:])
 
 
-def _inside_enough(cameras, masks, camera_of: np.ndarray, X: np.ndarray, tolerated_views: int) -> np.ndarray:
-    """(N,) bool: whether points ``X`` (3, N), each on a ray cast from ``camera_of`` (N,), are outside at
-    most ``tolerated_views`` views (a ray's own view counts it as inside).
+def _inside_enough(
+    cameras, masks, camera_of: np.ndarray, X: np.ndarray, tolerated_views: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(ok (N,) bool, known (C, N) int8)``: whether points ``X`` (3, N), each on a ray cast from
+    ``camera_of`` (N,), are outside at most ``tolerated_views`` views (a ray's own view counts it as
+    inside), and the answers of the views that were asked (1 inside, 0 outside, -1 not asked).
 
     Views are tested one after the other on the points still in the running: with the exact hull a
     point leaves at its first outside view, so later views test only a fraction of the points.
     """
     misses = np.zeros(X.shape[1], np.int16)
+    known = np.full((len(cameras), X.shape[1]), -1, np.int8)
     running = np.arange(X.shape[1])
     for index, (camera, (mask, corner)) in enumerate(zip(cameras, masks, strict=True)):
         tested = running[camera_of[running] != index]
-        misses[tested[~inside_view(camera, mask, X[:, tested], corner)]] += 1
+        inside = inside_view(camera, mask, X[:, tested], corner)
+        known[index, tested] = inside
+        misses[tested[~inside]] += 1
         running = running[misses[running] <= tolerated_views]
-    return misses <= tolerated_views
+    return misses <= tolerated_views, known
 
 
-def _inside_each(cameras, masks, camera_of: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """(C, N) bool: whether points ``X`` (3, N) are inside view c; the view a point's ray came from says yes."""
-    result = np.ones((len(cameras), X.shape[1]), bool)
+def _inside_each(cameras, masks, camera_of: np.ndarray, X: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """(C, N) bool: whether points ``X`` (3, N) are inside view c; the view a point's ray came from says yes.
+
+    Only the views whose answer ``known`` (C, N) (from :func:`_inside_enough`: 1, 0, or -1 not asked) lacks
+    are asked: the edge ends' samples were all tested there, most of them by every view.
+    """
+    result = known == 1
+    result[camera_of, np.arange(X.shape[1])] = True
     for index, (camera, (mask, corner)) in enumerate(zip(cameras, masks, strict=True)):
-        others = np.flatnonzero(camera_of != index)
-        result[index, others] = inside_view(camera, mask, X[:, others], corner)
+        asked = np.flatnonzero((known[index] < 0) & (camera_of != index))
+        result[index, asked] = inside_view(camera, mask, X[:, asked], corner)
     return result
 
 
-def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, inner, outer, tolerated_views):
-    """Each edge end between the inside sample ``inner`` (E,) and its outside neighbour ``outer`` (E,).
+def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, inner, outer, known, tolerated_views):
+    """Each edge end between the inside sample ``inner`` (E,) and its outside neighbour ``outer`` (E,) of
+    rows ``rows`` (E,) of the samples ``t``, whose views' answers so far are ``known`` (C, samples).
 
     The views that are inside at ``inner`` but outside at ``outer`` are the cones the ray leaves in
     between; each such crossing is bisected against that one view alone (a fifth of the work of testing
@@ -293,8 +306,14 @@ def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, i
         return t_end, camera
     ray, own = ray[idx], camera_of[ray[idx]]
     t_in, t_out = t_end[idx], t[rows[idx], outer[idx]]
-    inside_in = _inside_each(cameras, masks, own, ray_points(origins[ray], directions[ray], t_in))  # (C, E')
-    flips = inside_in & ~_inside_each(cameras, masks, own, ray_points(origins[ray], directions[ray], t_out))
+    # Both samples of every end at once, (C, 2E'): inner ones first.
+    sample = rows[idx] * samples
+    X = ray_points(np.concatenate([origins[ray]] * 2), np.concatenate([directions[ray]] * 2),
+                   np.concatenate([t_in, t_out]))
+    inside = _inside_each(cameras, masks, np.concatenate([own, own]), X,
+                          known[:, np.concatenate([sample + inner[idx], sample + outer[idx]])])
+    inside_in = inside[:, :len(idx)]  # (C, E')
+    flips = inside_in & ~inside[:, len(idx):]
     view, end = np.nonzero(flips)  # one crossing per (view, end), grouped by view
     lo, hi = t_in[end], t_out[end]  # lo inside, hi outside that view
     o, d = origins[ray[end]], directions[ray[end]]
