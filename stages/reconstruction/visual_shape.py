@@ -173,11 +173,13 @@ def _one_edge_per_ray(ray: np.ndarray, points: np.ndarray, length: np.ndarray) -
     score = np.zeros(len(ray))
     if single.any() and not single.all():
         neighbours = min(SUPPORT_NEIGHBOURS, int(single.sum()))
-        distance, _ = cKDTree(points[single]).query(points[~single], k=neighbours)
+        # Unbalanced, uncompacted: quicker to build for one query, with the same distances.
+        tree = cKDTree(points[single], balanced_tree=False, compact_nodes=False)
+        distance, _ = tree.query(points[~single], k=neighbours)
         score[~single] = distance.reshape(len(distance), -1).mean(axis=1)
     elif not single.any():
         score = -length
-    ranked = np.lexsort((score, ray))  # by ray, best score first
+    ranked = _lexsort_mostly_distinct(ray, score)  # by ray, best score first
     ray_sorted = ray[ranked]
     return ranked[np.diff(ray_sorted, prepend=-1) != 0]
 
@@ -330,7 +332,7 @@ def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, i
     crossing = 0.5 * (lo + hi)
     # The end is the k-th crossing from the inner side, k = the views still allowed to disagree there.
     needed = tolerated_views + 1 - (~inside_in).sum(axis=0)  # (E',)
-    order = _by_end_then_distance(end, np.abs(crossing - t_in[end]))
+    order = _lexsort_mostly_distinct(end, np.abs(crossing - t_in[end]))
     sorted_end = end[order]
     rank = np.arange(len(order)) - np.searchsorted(sorted_end, sorted_end)
     available = np.bincount(end, minlength=len(idx))
@@ -341,19 +343,19 @@ def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, i
     return t_end, camera
 
 
-def _by_end_then_distance(end: np.ndarray, distance: np.ndarray) -> np.ndarray:
-    """``np.lexsort((distance, end))`` for crossings of edge ends ``end`` (n,) at ``distance`` (n,) from the
-    inner sample: a stable sort by end, then by distance only among the few ends crossed more than once
-    (sorting every crossing by distance was most of the cost)."""
-    order = np.argsort(end, kind="stable")
-    sorted_end = end[order]
-    repeated = sorted_end[1:] == sorted_end[:-1]
+def _lexsort_mostly_distinct(key: np.ndarray, then: np.ndarray) -> np.ndarray:
+    """``np.lexsort((then, key))``, faster when most ``key`` (n,) values occur once: a stable sort by ``key``,
+    then by ``then`` (n,) only among the repeated keys (sorting every element by ``then`` was most of the
+    cost: edge ends crossed by several views, rays with several edges)."""
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    repeated = sorted_key[1:] == sorted_key[:-1]
     if repeated.any():
         shared = np.zeros(len(order), bool)
         shared[1:] |= repeated
         shared[:-1] |= repeated
         some = np.flatnonzero(shared)
-        order[some] = order[some][np.lexsort((distance[order[some]], sorted_end[some]))]
+        order[some] = order[some][np.lexsort((then[order[some]], sorted_key[some]))]
     return order
 
 
@@ -388,6 +390,8 @@ def _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_
         low[never], high[never] = np.inf, -np.inf
         lows[index, others], highs[index, others] = low, high
     order = tolerated_views  # the (k+1)-th most restrictive bound may be violated by k views
+    if order == 0:  # the exact hull: the tightest bound, without sorting
+        return lows.max(axis=0), highs.min(axis=0)
     low = -np.sort(-lows, axis=0)[min(order, len(cameras) - 1)]
     high = np.sort(highs, axis=0)[min(order, len(cameras) - 1)]
     return low, high
@@ -436,10 +440,18 @@ def _faces(cameras, outlines, normalised, view: np.ndarray, index: np.ndarray) -
     for camera_index, (camera, ours) in enumerate(zip(cameras, outlines, strict=True)):
         chosen = np.flatnonzero(view == camera_index)
         if len(chosen):
-            points, which = np.unique(index[chosen], return_inverse=True)
+            points, which = _distinct(index[chosen], len(ours))
             normals[chosen] = cone_normals(camera, ours.pixels[points], normalised[camera_index][points],
                                            ours.tangents[points], ours.outward[points])[which]
     return normals
+
+
+def _distinct(index: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(index, return_inverse=True)`` for indices ``index`` (n,) into ``size`` elements, by marking
+    them rather than sorting."""
+    present = np.zeros(size, bool)
+    present[index] = True
+    return np.flatnonzero(present), np.cumsum(present)[index] - 1
 
 
 def _nearest_outline_points(cameras, outlines, X: np.ndarray, view: np.ndarray):
