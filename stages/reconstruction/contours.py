@@ -88,15 +88,15 @@ def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
     for index, raw in enumerate(pieces):
         pixels = _along_contour(raw, smoothing_px, 0) if smoothing_px > 0 else raw
         derivative = _along_contour(raw, max(smoothing_px, 1.0), 1)
-        tangents = derivative / np.maximum(_lengths(derivative), 1e-12)
-        outward = np.column_stack([tangents[:, 1], -tangents[:, 0]])
+        tangents = derivative / np.maximum(row_norms(derivative), 1e-12)
+        outward = tangents[:, ::-1] * (1.0, -1.0)  # (ty, -tx)
         if _mostly_inside(mask, pixels + SIDE_PROBE_PX * outward):
             outward = -outward
         all_pixels.append(pixels + OUTLINE_OFFSET_PX * outward)
         all_tangents.append(tangents)
         all_outward.append(outward)
         all_ids.append(np.full(len(raw), index))
-        all_steps.append(_lengths(np.diff(raw, axis=0, prepend=raw[-1:]))[:, 0])  # from the previous point
+        all_steps.append(row_norms(raw - np.concatenate([raw[-1:], raw[:-1]]))[:, 0])  # from the previous point
         all_concave.append(_bending(raw, outward) > 1.0 / CONCAVE_RADIUS_PX)
     pixels = np.concatenate(all_pixels)
     u, v = pixels[:, 0], pixels[:, 1]
@@ -169,10 +169,10 @@ def cone_normals(
     normals = ray[:, (1, 2, 0)] * along[:, (2, 0, 1)] - ray[:, (2, 0, 1)] * along[:, (1, 2, 0)]
     flip = np.einsum("ij,ij->i", normals, beside - ray) < 0
     normals[flip] *= -1.0
-    return normals / np.maximum(_lengths(normals), 1e-15)
+    return normals / np.maximum(row_norms(normals), 1e-15)
 
 
-def _lengths(vectors: np.ndarray) -> np.ndarray:
+def row_norms(vectors: np.ndarray) -> np.ndarray:
     """(L, 1) Euclidean lengths of ``vectors`` (L, k): the arithmetic of ``np.linalg.norm(vectors, axis=1,
     keepdims=True)`` (same bits) without its argument handling, which cost more than the sum on outlines."""
     return np.sqrt(np.add.reduce(vectors * vectors, axis=1, keepdims=True))

@@ -44,7 +44,7 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[i
     if dist is not None:
         k1, k2, p1, p2, k3 = dist
         x, y = xy
-        r2 = x * x + y * y
+        r2 = np.add(*(xy * xy))  # x x + y y
         radial = r2 * k3  # 1 + r2 (k1 + r2 (k2 + r2 k3)), evaluated in place
         radial += k2
         radial *= r2

@@ -29,7 +29,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from calib.camera import Camera, Rig
-from stages.reconstruction.contours import Outline, cone_normals, outline
+from stages.reconstruction.contours import Outline, cone_normals, outline, row_norms
 from stages.reconstruction.views import box_interval, in_volume, inside_view, ray_points
 
 # The convex hull of a silhouette is widened by this many pixels before clipping rays, so that lens
@@ -270,7 +270,7 @@ def _inside_enough(
         tested = running[camera_of[running] != index]
         inside = inside_view(camera, mask, X[:, tested], corner)
         known[index, tested] = inside
-        misses[tested[~inside]] += 1
+        misses[tested] += ~inside  # tested holds each point once
         running = running[misses[running] <= tolerated_views]
     return misses <= tolerated_views, known
 
@@ -417,11 +417,10 @@ def _hull_halfplanes(camera: Camera, normalised: np.ndarray) -> tuple[np.ndarray
         # A degenerate outline (a line of pixels): bound it by its box.
         low, high = hull.min(axis=0), hull.max(axis=0)
         hull = np.array([[low[0], low[1]], [high[0], low[1]], [high[0], high[1]], [low[0], high[1]]])
-    following = np.concatenate([hull[1:], hull[:1]])
-    edge = following - hull
-    e = np.column_stack([edge[:, 1], -edge[:, 0]])
-    e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-15)
-    centroid = hull.mean(axis=0)
+    edge = np.concatenate([hull[1:], hull[:1]]) - hull
+    e = edge[:, ::-1] * (1.0, -1.0)  # (dy, -dx)
+    e /= np.maximum(row_norms(e), 1e-15)
+    centroid = np.add.reduce(hull, axis=0) / len(hull)  # hull.mean(axis=0)
     flip = np.einsum("ij,ij->i", e, centroid - hull) > 0
     e[flip] *= -1.0
     margin = (HULL_MARGIN_PX + HULL_SIMPLIFY_PX) / min(camera.K[0, 0], camera.K[1, 1])
