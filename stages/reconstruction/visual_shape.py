@@ -240,7 +240,8 @@ def _viewing_edges(
     ok[:, 1:-1] |= ok[:, :-2] & ok[:, 2:]
 
     # Runs of consecutive inside samples; a run touching the stretch's end is bounded by the volume.
-    padded = np.pad(ok, ((0, 0), (1, 1)))
+    padded = np.zeros((len(ok), ok.shape[1] + 2), bool)
+    padded[:, 1:-1] = ok
     rows, starts = np.nonzero(padded[:, 1:-1] & ~padded[:, :-2])
     _, ends = np.nonzero(padded[:, 1:-1] & ~padded[:, 2:])  # same row order as starts (row-major)
     # Both ends of every edge are refined together: (2E,) inside sample and its outside neighbour.
@@ -371,7 +372,7 @@ def _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_
     lows = np.full((len(cameras), n_rays), -np.inf)
     highs = np.full((len(cameras), n_rays), np.inf)
     for index, (camera, ours) in enumerate(zip(cameras, normalised, strict=True)):
-        others = camera_of != index
+        others = np.flatnonzero(camera_of != index)  # indices: used four times
         if len(ours) == 0:
             lows[index, others], highs[index, others] = np.inf, -np.inf
             continue
@@ -386,8 +387,10 @@ def _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_
             bound = q / p
         low = np.where(p < 0, bound, -np.inf).max(axis=0)
         high = np.where(p > 0, bound, np.inf).min(axis=0)
-        never = np.any((p == 0) & (q < 0), axis=0)
-        low[never], high[never] = np.inf, -np.inf
+        parallel = p == 0  # a ray parallel to an edge: outside for good if it starts outside
+        if parallel.any():
+            never = np.any(parallel & (q < 0), axis=0)
+            low[never], high[never] = np.inf, -np.inf
         lows[index, others], highs[index, others] = low, high
     order = tolerated_views  # the (k+1)-th most restrictive bound may be violated by k views
     if order == 0:  # the exact hull: the tightest bound, without sorting
