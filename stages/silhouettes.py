@@ -349,10 +349,10 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     I = _channels_first(I)
     B = model.sample_B
     alpha = _dot(I, B) / model.sample_divisor
-    g = float(np.clip(_quantile(alpha, 0.5), *EXPOSURE_RATIO_RANGE))
+    g = min(max(_quantile(alpha, 0.5), EXPOSURE_RATIO_RANGE[0]), EXPOSURE_RATIO_RANGE[1])
     D = I - np.float32(g) * B
     quartile = _quantile(_dot(D, D), 0.25)
-    return _Noise(g, float(np.clip(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2, NOISE_SIGMA_MAX**2)))
+    return _Noise(g, min(max(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2), NOISE_SIGMA_MAX**2))
 
 
 def _person_region(
@@ -367,7 +367,8 @@ def _person_region(
     """
     D = _channels_first(_block_mean(I, COARSE_FACTOR)) - np.float32(noise.g) * model.coarse_B
     difference2 = _dot(D, D)
-    passing = (difference2 > params.weak_threshold**2 * (model.coarse_texture_variance + noise.sigma2)).astype(np.uint8)
+    passing = cv2.compare(difference2, params.weak_threshold**2 * (model.coarse_texture_variance + noise.sigma2),
+                          cv2.CMP_GT)
     x, y, w, h = cv2.boundingRect(passing)
     if w == 0:
         return None
@@ -466,12 +467,13 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, g:
     # The core's colour sum and both pixel counts in one pass: sums of 8-bit integers, exact in float32.
     sums = cv2.boxFilter(cv2.merge([cv2.bitwise_and(I, I, mask=core), core, outside]), cv2.CV_32F, size,
                          normalize=False)  # (h, w, 5)
-    sums = _gather(sums, index)  # (5, n)
+    sums = sums.ravel().take(_channel_index(index, 5))  # (5, n)
     n_core, n_outside = sums[3:] / 255.0  # (n,) pixels nearby
     alpha_sum = cv2.boxFilter(cv2.bitwise_and(alpha, alpha, mask=outside), -1, size, normalize=False)
     lam = np.where(n_outside > 0, alpha_sum.ravel().take(index) / np.maximum(n_outside, 1.0), np.float32(g))  # λ
     F = sums[:3] / np.maximum(n_core, 1.0)  # (3, n)
-    phi, EE = _share(_gather(I, index), F, lam * _gather(B, index))
+    at = _channel_index(index, 3)
+    phi, EE = _share(I.ravel().take(at), F, lam * B.ravel().take(at))
     measured = np.flatnonzero((n_core > 0) & (EE > MIN_MATTE_CONTRAST**2))
     phi, index = phi.take(measured), index.take(measured)
     score.ravel()[index] = phi - 0.5
@@ -479,14 +481,14 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, g:
     return _Matte(score, rows, cols, phi, F.take(measured, axis=1), lam.take(measured))
 
 
-def _gather(image: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """(C, ...) the pixels at flat indices ``index`` (...) of a contiguous (h, w, C) ``image``, channels first.
+def _channel_index(index: np.ndarray, channels: int) -> np.ndarray:
+    """(channels, ...) flat positions of the values of the pixels at flat indices ``index`` (...) of a
+    contiguous (h, w, channels) image.
 
-    A gather of single values by their flat positions is several times faster than ``take`` of
-    C-value rows, and gives the channels-first layout of :func:`_dot` without a copy.
+    Gathering single values by them (``image.ravel().take``) is several times faster than taking rows of
+    ``channels`` values, and gives the channels-first layout of :func:`_dot` without a copy.
     """
-    channels = image.shape[2]
-    return image.ravel().take(channels * index + np.arange(channels).reshape(-1, *[1] * index.ndim))
+    return channels * index + np.arange(channels).reshape(-1, *[1] * index.ndim)
 
 
 def _flat_nonzero(mask: np.ndarray) -> np.ndarray:
@@ -547,8 +549,9 @@ def _full_resolution_score(
     # A box passing the image's far edges reads the edge pixels there; those scores are cut off with the box.
     index = (np.minimum(rows + origin[0], image.shape[0] - 1) * image.shape[1]
              + np.minimum(cols + origin[1], image.shape[1] - 1))  # (m, ds²) flat indices in the image
-    lam_B = _gather(background, index) * matte.lam[mixed, None]  # (3, m, ds²) λB
-    phi, _ = _share(_gather(image, index), matte.F[:, mixed, None], lam_B)
+    at = _channel_index(index, 3)
+    lam_B = background.ravel().take(at) * matte.lam[mixed, None]  # (3, m, ds²) λB
+    phi, _ = _share(image.ravel().take(at), matte.F[:, mixed, None], lam_B)
     score.ravel()[rows * (width * ds) + cols] = phi - 0.5
     return score
 
