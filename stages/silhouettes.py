@@ -429,11 +429,11 @@ def _hysteresis(evidence2: np.ndarray, params: SilhouetteParams) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class _Matte:
     score: np.ndarray  # (h, w) float32 > 0 for the person: φ − 1/2 where measured, else the mask's ±SCORE_FLOOR
-    rows: np.ndarray  # (n,) int working-resolution pixels where φ is measured
-    cols: np.ndarray  # (n,) int
-    phi: np.ndarray  # (n,) float32 φ there
-    F: np.ndarray  # (3, n) float32 the person's colour next to each
-    lam: np.ndarray  # (n,) float32 the background's brightness factor λ next to each
+    # The pixels that full resolution measures again: φ measured and mixed (0 < φ < 1).
+    rows: np.ndarray  # (m,) int working-resolution pixels
+    cols: np.ndarray  # (m,) int
+    F: np.ndarray  # (3, m) float32 the person's colour next to each
+    lam: np.ndarray  # (m,) float32 the background's brightness factor λ next to each
 
 
 # The matte's score where the mask decides, by mask value: a table lookup costs a third of np.where.
@@ -475,10 +475,12 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, g:
     at = _channel_index(index, 3)
     phi, EE = _share(I.ravel().take(at), F, lam * B.ravel().take(at))
     measured = np.flatnonzero((n_core > 0) & (EE > MIN_MATTE_CONTRAST**2))
-    phi, index = phi.take(measured), index.take(measured)
-    score.ravel()[index] = phi - 0.5
-    rows, cols = np.divmod(index, width)
-    return _Matte(score, rows, cols, phi, F.take(measured, axis=1), lam.take(measured))
+    share = phi.take(measured) - 0.5
+    score.ravel()[index.take(measured)] = share
+    # A block all person, or all background, needs no new measurement at full resolution.
+    mixed = measured.take(np.flatnonzero(np.abs(share) < 0.5))  # (m,)
+    rows, cols = np.divmod(index.take(mixed), width)
+    return _Matte(score, rows, cols, F.take(mixed, axis=1), lam.take(mixed))
 
 
 def _channel_index(index: np.ndarray, channels: int) -> np.ndarray:
@@ -534,24 +536,23 @@ def _full_resolution_score(
     """(h ds, w ds) float32 outline score of the box at full resolution, from its working-resolution matte.
 
     The score is interpolated, then φ is measured again on the full-resolution pixels of every mixed
-    working pixel (0 < φ < 1: a block all person, or all background, needs no new measurement), against
-    that pixel's F and λ: the outline then follows the full-resolution edge rather than its average over
-    ``downsample`` x ``downsample`` blocks. ``image`` and ``background`` (H, W, 3) uint8 are whole (flat
+    working pixel (0 < φ < 1; ``matte.rows`` and ``matte.cols``), against that pixel's F and λ: the
+    outline then follows the full-resolution edge rather than its average over ``downsample`` x
+    ``downsample`` blocks. ``image`` and ``background`` (H, W, 3) uint8 are whole (flat
     gathers from them are the fastest), the box starting at full-resolution pixel ``origin`` (row, column).
     """
     height, width = matte.score.shape
     ds = downsample
     score = cv2.resize(matte.score, (width * ds, height * ds), interpolation=cv2.INTER_LINEAR)
-    mixed = np.flatnonzero(np.abs(matte.phi - 0.5) < 0.5)  # (m,)
     dy, dx = np.divmod(np.arange(ds * ds), ds)  # (ds²,) offsets in a block
-    rows = matte.rows.take(mixed)[:, None] * ds + dy  # (m, ds²) box rows and columns of their pixels
-    cols = matte.cols.take(mixed)[:, None] * ds + dx
+    rows = matte.rows[:, None] * ds + dy  # (m, ds²) box rows and columns of their pixels
+    cols = matte.cols[:, None] * ds + dx
     # A box passing the image's far edges reads the edge pixels there; those scores are cut off with the box.
     index = (np.minimum(rows + origin[0], image.shape[0] - 1) * image.shape[1]
              + np.minimum(cols + origin[1], image.shape[1] - 1))  # (m, ds²) flat indices in the image
     at = _channel_index(index, 3)
-    lam_B = background.ravel().take(at) * matte.lam[mixed, None]  # (3, m, ds²) λB
-    phi, _ = _share(image.ravel().take(at), matte.F[:, mixed, None], lam_B)
+    lam_B = background.ravel().take(at) * matte.lam[:, None]  # (3, m, ds²) λB
+    phi, _ = _share(image.ravel().take(at), matte.F[:, :, None], lam_B)
     score.ravel()[rows * (width * ds) + cols] = phi - 0.5
     return score
 
