@@ -33,6 +33,7 @@ with :func:`background_model`.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -73,6 +74,8 @@ MATTE_RADIUS_PX = 4
 MIN_MATTE_CONTRAST = 8.0
 # Magnitude (a share of the pixel) given to the outline score where the mask decides.
 SCORE_FLOOR = 0.1
+# cv2.transform's matrix summing the three channels of each pixel.
+_CHANNEL_SUM = np.ones((1, 3), np.float32)
 
 
 @dataclass(frozen=True)
@@ -168,9 +171,10 @@ class BackgroundModel:
     BB: np.ndarray  # (h, w) float32 B·B
     inverse_BB: np.ndarray  # (h, w) float32 1 / (B·B + BACKGROUND_ENERGY_FLOOR)
     texture_variance: np.ndarray  # (h, w) float32 (κ ‖∇B‖)² / 3, per-channel noise variance from texture
-    sample_B: np.ndarray  # (h / SAMPLE_STRIDE, w / SAMPLE_STRIDE, 3) float32 every SAMPLE_STRIDE-th of B_sharp
-    sample_BB: np.ndarray  # (h / SAMPLE_STRIDE, w / SAMPLE_STRIDE) float32 B·B there
-    coarse_B: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR, 3) float32 B_sharp averaged over blocks
+    # Colours below are stored channels first, as :func:`_dot` wants them (a copy saved per frame).
+    sample_B: np.ndarray  # (3, h / SAMPLE_STRIDE, w / SAMPLE_STRIDE) float32 every SAMPLE_STRIDE-th of B_sharp
+    sample_divisor: np.ndarray  # (h / SAMPLE_STRIDE, w / SAMPLE_STRIDE) float32 B·B + BACKGROUND_ENERGY_FLOOR there
+    coarse_B: np.ndarray  # (3, h / COARSE_FACTOR, w / COARSE_FACTOR) float32 B_sharp averaged over blocks
     coarse_texture_variance: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR) float32 the same for the texture
 
 
@@ -181,15 +185,14 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
         raise InputError(f"background: expected an (H, W, 3) uint8 array, got {background.dtype} {background.shape}")
     B_sharp = _downsample(background, params.downsample)
     B = _blur(B_sharp, params.blur_kernel_px)  # (h, w, 3) uint8
-    channel_sum = np.ones((1, 3), np.float32)
-    BB = cv2.transform(cv2.multiply(B, B, dtype=cv2.CV_32F), channel_sum)  # (h, w) B·B
+    BB = cv2.transform(cv2.multiply(B, B, dtype=cv2.CV_32F), _CHANNEL_SUM)  # (h, w) B·B
     # A shift of the background by κ pixels changes a pixel by about κ times the gradient, which the
     # range of each channel over the 3x3 neighbourhood (two pixels across) measures twice over.
     spread = cv2.morphologyEx(B, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8))  # (h, w, 3) uint8
-    squared_gradient = cv2.transform(cv2.multiply(spread, spread, dtype=cv2.CV_32F), channel_sum) / 4.0
+    squared_gradient = cv2.transform(cv2.multiply(spread, spread, dtype=cv2.CV_32F), _CHANNEL_SUM) / 4.0
     jitter = params.background_jitter_px
     texture_variance = squared_gradient * np.float32(jitter * jitter / 3.0)
-    sample_B = B_sharp[::SAMPLE_STRIDE, ::SAMPLE_STRIDE].astype(np.float32)  # the frame's sample is unblurred
+    sample_B = _channels_first(B_sharp[::SAMPLE_STRIDE, ::SAMPLE_STRIDE])  # the frame's sample is unblurred
     return BackgroundModel(
         shape=background.shape,
         downsample=params.downsample,
@@ -201,8 +204,8 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
         inverse_BB=1.0 / (BB + np.float32(BACKGROUND_ENERGY_FLOOR)),
         texture_variance=texture_variance,
         sample_B=sample_B,
-        sample_BB=np.einsum("ijc,ijc->ij", sample_B, sample_B),
-        coarse_B=_block_mean(B_sharp, COARSE_FACTOR).astype(np.float32),
+        sample_divisor=_dot(sample_B, sample_B) + np.float32(BACKGROUND_ENERGY_FLOOR),
+        coarse_B=_channels_first(_block_mean(B_sharp, COARSE_FACTOR)),
         coarse_texture_variance=_block_mean(texture_variance, COARSE_FACTOR),
     )
 
@@ -343,13 +346,13 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     g is the median of α = I·B / B·B (the person covers less than half of the image); σ² the lower
     quartile of ‖I − gB‖² over χ²₃'s, both clipped to plausible ranges (see the constants).
     """
-    I = I.astype(np.float32)
-    B, BB = model.sample_B, model.sample_BB
-    alpha = np.einsum("ijc,ijc->ij", I, B) / (BB + np.float32(BACKGROUND_ENERGY_FLOOR))
-    g = float(np.clip(_quantile(alpha, 0.5), *EXPOSURE_RATIO_RANGE))
+    I = _channels_first(I)
+    B = model.sample_B
+    alpha = _dot(I, B) / model.sample_divisor
+    g = min(max(_quantile(alpha, 0.5), EXPOSURE_RATIO_RANGE[0]), EXPOSURE_RATIO_RANGE[1])
     D = I - np.float32(g) * B
-    quartile = _quantile(np.einsum("ijc,ijc->ij", D, D), 0.25)
-    return _Noise(g, float(np.clip(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2, NOISE_SIGMA_MAX**2)))
+    quartile = _quantile(_dot(D, D), 0.25)
+    return _Noise(g, min(max(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2), NOISE_SIGMA_MAX**2))
 
 
 def _person_region(
@@ -362,9 +365,10 @@ def _person_region(
     looking); the answer is the box around every block that passes, with a margin of COARSE_MARGIN
     blocks for the parts of the person too faint to show on blocks.
     """
-    D = _block_mean(I, COARSE_FACTOR).astype(np.float32) - np.float32(noise.g) * model.coarse_B
-    difference2 = np.einsum("ijc,ijc->ij", D, D)
-    passing = (difference2 > params.weak_threshold**2 * (model.coarse_texture_variance + noise.sigma2)).astype(np.uint8)
+    D = _channels_first(_block_mean(I, COARSE_FACTOR)) - np.float32(noise.g) * model.coarse_B
+    difference2 = _dot(D, D)
+    passing = cv2.compare(difference2, params.weak_threshold**2 * (model.coarse_texture_variance + noise.sigma2),
+                          cv2.CMP_GT)
     x, y, w, h = cv2.boundingRect(passing)
     if w == 0:
         return None
@@ -388,9 +392,8 @@ def _evidence(
     shadow-band pixels keep only the first. The products are taken straight from uint8 into float32.
     """
     g = noise.g
-    channel_sum = np.ones((1, 3), np.float32)
-    II = cv2.transform(cv2.multiply(I, I, dtype=cv2.CV_32F), channel_sum)  # (h', w') I·I
-    IB = cv2.transform(cv2.multiply(I, model.B[region], dtype=cv2.CV_32F), channel_sum)  # (h', w') I·B
+    II = cv2.transform(cv2.multiply(I, I, dtype=cv2.CV_32F), _CHANNEL_SUM)  # (h', w') I·I
+    IB = cv2.transform(cv2.multiply(I, model.B[region], dtype=cv2.CV_32F), _CHANNEL_SUM)  # (h', w') I·B
     alpha = cv2.multiply(IB, model.inverse_BB[region])  # (h', w') α
     chroma2 = cv2.subtract(II, cv2.multiply(IB, alpha))  # (h', w') ‖I − αB‖² (≥ 0 up to rounding)
     difference2 = cv2.scaleAdd(model.BB[region], g * g, cv2.addWeighted(II, 1.0, IB, -2.0 * g, 0.0))  # ‖I − gB‖²
@@ -415,7 +418,7 @@ def _hysteresis(evidence2: np.ndarray, params: SilhouetteParams) -> np.ndarray:
     """
     strong = cv2.compare(evidence2, float(params.strong_threshold**2), cv2.CMP_GT)
     weak = cv2.compare(evidence2, float(params.weak_threshold**2), cv2.CMP_GT)
-    weak = cv2.morphologyEx(weak, cv2.MORPH_OPEN, _disk(1)) | strong
+    weak = cv2.bitwise_or(cv2.morphologyEx(weak, cv2.MORPH_OPEN, _disk(1)), strong)
     count, labels = cv2.connectedComponents(weak, connectivity=8)
     seeded = np.zeros(count, np.uint8)  # (count,) 255 for the regions holding a strong pixel
     seeded[labels[strong > 0]] = 255
@@ -426,11 +429,15 @@ def _hysteresis(evidence2: np.ndarray, params: SilhouetteParams) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class _Matte:
     score: np.ndarray  # (h, w) float32 > 0 for the person: φ − 1/2 where measured, else the mask's ±SCORE_FLOOR
-    rows: np.ndarray  # (n,) int working-resolution pixels where φ is measured
-    cols: np.ndarray  # (n,) int
-    phi: np.ndarray  # (n,) float32 φ there
-    F: np.ndarray  # (n, 3) float32 the person's colour next to each
-    lam: np.ndarray  # (n,) float32 the background's brightness factor λ next to each
+    # The pixels that full resolution measures again: φ measured and mixed (0 < φ < 1).
+    rows: np.ndarray  # (m,) int working-resolution pixels
+    cols: np.ndarray  # (m,) int
+    F: np.ndarray  # (3, m) float32 the person's colour next to each
+    lam: np.ndarray  # (m,) float32 the background's brightness factor λ next to each
+
+
+# The matte's score where the mask decides, by mask value: a table lookup costs a third of np.where.
+_MASK_SCORE = np.where(np.arange(256) > 0, np.float32(SCORE_FLOOR), np.float32(-SCORE_FLOOR))
 
 
 def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, g: float, downsample: int) -> _Matte:
@@ -450,34 +457,77 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, g:
     radius = max(1, round(MATTE_RADIUS_PX / downsample))
     size = (2 * radius + 1, 2 * radius + 1)
     width = mask.shape[1]
-    score = np.where(mask > 0, np.float32(SCORE_FLOOR), np.float32(-SCORE_FLOOR))
+    score = cv2.LUT(mask, _MASK_SCORE)
     core = cv2.erode(mask, depth, borderType=cv2.BORDER_REPLICATE)
     outside = cv2.compare(cv2.dilate(mask, depth), 0, cv2.CMP_EQ)
     band = cv2.compare(cv2.dilate(mask, _disk(radius)), cv2.erode(mask, _disk(radius), borderType=cv2.BORDER_REPLICATE),
                        cv2.CMP_GT)
-    index = np.flatnonzero(band)  # (n,) flat indices of the pixels near the outline: np.take is the fastest gather
+    index = _flat_nonzero(band)  # (n,) flat indices of the pixels near the outline: np.take is the fastest gather
     I, B = np.ascontiguousarray(I), np.ascontiguousarray(B)
-    counts = cv2.boxFilter(cv2.merge([core, outside]), cv2.CV_32F, size, normalize=False)
-    n_core, n_outside = (counts.reshape(-1, 2).take(index, axis=0) / 255.0).T  # (n,) pixels nearby
-    F_sum = cv2.boxFilter(cv2.bitwise_and(I, I, mask=core), cv2.CV_32F, size, normalize=False)
+    # The core's colour sum and both pixel counts in one pass: sums of 8-bit integers, exact in float32.
+    sums = cv2.boxFilter(cv2.merge([cv2.bitwise_and(I, I, mask=core), core, outside]), cv2.CV_32F, size,
+                         normalize=False)  # (h, w, 5)
+    sums = sums.ravel().take(_channel_index(index, 5))  # (5, n)
+    n_core, n_outside = sums[3:] / 255.0  # (n,) pixels nearby
     alpha_sum = cv2.boxFilter(cv2.bitwise_and(alpha, alpha, mask=outside), -1, size, normalize=False)
     lam = np.where(n_outside > 0, alpha_sum.ravel().take(index) / np.maximum(n_outside, 1.0), np.float32(g))  # λ
-    F = F_sum.reshape(-1, 3).take(index, axis=0) / np.maximum(n_core, 1.0)[:, None]  # (n, 3)
-    phi, EE = _share(I.reshape(-1, 3).take(index, axis=0), F, lam[:, None] * B.reshape(-1, 3).take(index, axis=0))
+    F = sums[:3] / np.maximum(n_core, 1.0)  # (3, n)
+    at = _channel_index(index, 3)
+    phi, EE = _share(I.ravel().take(at), F, lam * B.ravel().take(at))
     measured = np.flatnonzero((n_core > 0) & (EE > MIN_MATTE_CONTRAST**2))
-    phi, index = phi.take(measured), index.take(measured)
-    score.ravel()[index] = phi - 0.5
-    rows, cols = np.divmod(index, width)
-    return _Matte(score, rows, cols, phi, F.take(measured, axis=0), lam.take(measured))
+    share = phi.take(measured) - 0.5
+    score.ravel()[index.take(measured)] = share
+    # A block all person, or all background, needs no new measurement at full resolution.
+    mixed = measured.take(np.flatnonzero(np.abs(share) < 0.5))  # (m,)
+    rows, cols = np.divmod(index.take(mixed), width)
+    return _Matte(score, rows, cols, F.take(mixed, axis=1), lam.take(mixed))
+
+
+def _channel_index(index: np.ndarray, channels: int) -> np.ndarray:
+    """(channels, ...) flat positions of the values of the pixels at flat indices ``index`` (...) of a
+    contiguous (h, w, channels) image.
+
+    Gathering single values by them (``image.ravel().take``) is several times faster than taking rows of
+    ``channels`` values, and gives the channels-first layout of :func:`_dot` without a copy.
+    """
+    return channels * index + np.arange(channels).reshape(-1, *[1] * index.ndim)
+
+
+def _flat_nonzero(mask: np.ndarray) -> np.ndarray:
+    """(n,) int32 flat indices of the nonzero pixels of the (h, w) uint8 ``mask``, in order: as
+    ``np.flatnonzero`` at half the cost (OpenCV's scan, then the indices from its (x, y) points)."""
+    points = cv2.findNonZero(mask)  # (n, 2) or (n, 1, 2) x, y by OpenCV version; None when there are none
+    if points is None:
+        return np.zeros(0, np.int32)
+    x, y = points.reshape(-1, 2).T
+    return y * np.int32(mask.shape[1]) + x
 
 
 def _share(I: np.ndarray, F: np.ndarray, background: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """φ (...) of colours I (..., 3) between the person's F and the background's (both broadcast to I's
-    shape), and ‖F − bg‖²."""
-    E = F - background  # (..., 3)
+    """φ (...) of colours I (3, ...) between the person's F and the background's (both broadcast to I's
+    shape), and ‖F − bg‖²; channels come first (see :func:`_dot`)."""
+    E = F - background  # (3, ...)
     D = I - background
-    EE = np.einsum("...c,...c->...", E, E)
-    return np.einsum("...c,...c->...", D, E) / np.maximum(EE, 1e-6), EE
+    EE = _dot(E, E)
+    return _dot(D, E) / np.maximum(EE, 1e-6), EE
+
+
+def _channels_first(image: np.ndarray) -> np.ndarray:
+    """(3, h, w) float32 copy of an (h, w, 3) image, in one pass (the layout :func:`_dot` is fastest on)."""
+    return np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32)
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a · b (...) over the first axis of a and b (3, ...), summed channel by channel.
+
+    On a few thousand pixels this is a few times faster than ``np.einsum`` over a last axis of 3, which
+    calls its inner loop once per pixel; it adds the products in the same order, so the result is the same
+    to the bit.
+    """
+    dot = a[0] * b[0]
+    dot += a[1] * b[1]
+    dot += a[2] * b[2]
+    return dot
 
 
 def _full_resolution_score(
@@ -486,29 +536,33 @@ def _full_resolution_score(
     """(h ds, w ds) float32 outline score of the box at full resolution, from its working-resolution matte.
 
     The score is interpolated, then φ is measured again on the full-resolution pixels of every mixed
-    working pixel (0 < φ < 1: a block all person, or all background, needs no new measurement), against
-    that pixel's F and λ: the outline then follows the full-resolution edge rather than its average over
-    ``downsample`` x ``downsample`` blocks. ``image`` and ``background`` (H, W, 3) uint8 are whole (flat
+    working pixel (0 < φ < 1; ``matte.rows`` and ``matte.cols``), against that pixel's F and λ: the
+    outline then follows the full-resolution edge rather than its average over ``downsample`` x
+    ``downsample`` blocks. ``image`` and ``background`` (H, W, 3) uint8 are whole (flat
     gathers from them are the fastest), the box starting at full-resolution pixel ``origin`` (row, column).
     """
     height, width = matte.score.shape
     ds = downsample
     score = cv2.resize(matte.score, (width * ds, height * ds), interpolation=cv2.INTER_LINEAR)
-    mixed = np.flatnonzero(np.abs(matte.phi - 0.5) < 0.5)  # (m,)
     dy, dx = np.divmod(np.arange(ds * ds), ds)  # (ds²,) offsets in a block
-    rows = matte.rows[mixed, None] * ds + dy  # (m, ds²) box rows and columns of their pixels
-    cols = matte.cols[mixed, None] * ds + dx
+    rows = matte.rows[:, None] * ds + dy  # (m, ds²) box rows and columns of their pixels
+    cols = matte.cols[:, None] * ds + dx
     # A box passing the image's far edges reads the edge pixels there; those scores are cut off with the box.
     index = (np.minimum(rows + origin[0], image.shape[0] - 1) * image.shape[1]
              + np.minimum(cols + origin[1], image.shape[1] - 1))  # (m, ds²) flat indices in the image
-    lam_B = background.reshape(-1, 3).take(index, axis=0) * matte.lam[mixed, None, None]  # (m, ds², 3) λB
-    phi, _ = _share(image.reshape(-1, 3).take(index, axis=0), matte.F[mixed, None], lam_B)
+    at = _channel_index(index, 3)
+    lam_B = background.ravel().take(at) * matte.lam[:, None]  # (3, m, ds²) λB
+    phi, _ = _share(image.ravel().take(at), matte.F[:, :, None], lam_B)
     score.ravel()[rows * (width * ds) + cols] = phi - 0.5
     return score
 
 
+@functools.cache
 def _disk(radius: int) -> np.ndarray:
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    """Read-only disk-shaped structuring element, built once per radius (several are used per frame)."""
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    disk.flags.writeable = False
+    return disk
 
 
 def _clean_mask(mask: np.ndarray, params: SilhouetteParams, scale: int, frame_area: float) -> np.ndarray:
