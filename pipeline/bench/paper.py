@@ -38,6 +38,7 @@ from pipeline.capture import Capture
 from pipeline.export_io import read_joints_csv
 from pipeline.graph import EXPORTED_STATUSES
 from stages.export.angles import joint_angles
+from stages.export.bvh import pelvis_frame
 from stages.export.metrics import mask_iou
 from stages.joints import JOINT_NAMES, SCORED_JOINTS
 from stages.reconstruction import Observations, ReconstructionParams, reconstruct
@@ -179,7 +180,8 @@ def score(joints: np.ndarray, statuses: Sequence[str], truth: np.ndarray) -> dic
     them (in the base condition points alone place the knees 1 cm behind, which undoes the 9 mm that
     both distances put the hips behind: their hip angles come out better than the better fit's).
     ``angle_error_offset_free_deg`` removes it: each joint's mean error in the true body's frame
-    (`body_frames`), taken over the sequence, is subtracted before the angles are measured.
+    (`stages.export.bvh.pelvis_frame`), taken over the sequence, is subtracted before the angles are
+    measured.
 
     Returns
     -------
@@ -198,27 +200,15 @@ def score(joints: np.ndarray, statuses: Sequence[str], truth: np.ndarray) -> dic
     _, true = joint_angles(truth)
     limbs = [names.index(name) for name in LIMB_ANGLES]
     angle_error = np.abs(estimated[:, limbs] - true[:, limbs]).mean(axis=1)  # (F,) per frame
-    frames = body_frames(truth)
-    offset = np.einsum("fab,fjb->fja", frames, joints - truth).mean(axis=0)  # (17, 3) in the body's frame
-    _, offset_free = joint_angles(joints - np.einsum("fab,ja->fjb", frames, offset))
+    frames = pelvis_frame({name: truth[:, JOINT_NAMES.index(name)] for name in ("l_hip", "r_hip", "pelvis", "neck")})
+    offset = np.einsum("fba,fjb->fja", frames, joints - truth).mean(axis=0)  # (17, 3) in the body's frame
+    _, offset_free = joint_angles(joints - np.einsum("fab,jb->fja", frames, offset))
     scored = [JOINT_NAMES.index(name) for name in SCORED_JOINTS]
     frame_mpjpe = 1000.0 * np.linalg.norm(joints[:, scored] - truth[:, scored], axis=2).mean(axis=1)
     return {"angle_error_deg": float(angle_error.mean()), "angle_error_median_deg": float(np.median(angle_error)),
             "angle_error_offset_free_deg": float(np.abs(offset_free[:, limbs] - true[:, limbs]).mean()),
             "mpjpe_mm": float(frame_mpjpe.mean()), "off_track": float(np.mean(frame_mpjpe > OFF_TRACK_MM)),
             "fraction_estimated": float(exported.mean())}
-
-
-def body_frames(joints: np.ndarray) -> np.ndarray:
-    """Rotations (F, 3, 3) whose rows are the body's axes in each frame of ``joints`` (F, 17, 3): x from
-    the right hip to the left, z along the trunk (pelvis to neck) made perpendicular to x, y = z × x."""
-    index = JOINT_NAMES.index
-    x = joints[:, index("l_hip")] - joints[:, index("r_hip")]
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    up = joints[:, index("neck")] - joints[:, index("pelvis")]
-    z = up - x * np.einsum("fa,fa->f", up, x)[:, None]
-    z /= np.linalg.norm(z, axis=1, keepdims=True)
-    return np.stack([x, np.cross(z, x), z], axis=1)
 
 
 def trajectories(joints: np.ndarray, truth: np.ndarray, frames: Sequence[int]) -> dict:

@@ -128,8 +128,12 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def _pelvis_frame(P: dict[str, np.ndarray]) -> np.ndarray:
-    """(F, 3, 3) pelvis world rotation: columns = left (r_hip -> l_hip), trunk up, forward."""
+def pelvis_frame(P: dict[str, np.ndarray]) -> np.ndarray:
+    """(F, 3, 3) pelvis world rotation: columns = left (r_hip -> l_hip), trunk up, forward.
+
+    ``P`` maps at least l_hip, r_hip, pelvis and neck to their (F, 3) positions. Besides the BVH's root,
+    this is the body frame in which the paper benchmark measures each joint's constant offset.
+    """
     left = _unit(P["l_hip"] - P["r_hip"])
     up = P["neck"] - P["pelvis"]
     up = _unit(up - np.einsum("fi,fi->f", up, left)[:, None] * left)
@@ -147,7 +151,7 @@ def _children(joints: list[_BvhJoint], name: str) -> list[_BvhJoint]:
 
 def _world_rotations(joints: list[_BvhJoint], P: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """(F, 3, 3) world rotation of every BVH joint (see the module docstring, "Rotations")."""
-    G = {"pelvis": _pelvis_frame(P)}
+    G = {"pelvis": pelvis_frame(P)}
     for joint in joints[1:]:
         parent_G = G[joint.parent]
         aimed = [c for c in _children(joints, joint.name) if np.any(c.rest_from_parent)]
