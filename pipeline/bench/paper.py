@@ -177,8 +177,9 @@ def score(joints: np.ndarray, statuses: Sequence[str], truth: np.ndarray) -> dic
     ground-truth kinematic parameters and the estimated parameters": the animation's skeleton and the
     tracker's body put the joints at different places in the same flesh. Such an offset turns into an
     angle error that changes with the pose, and it can add to a tracker's own errors or happen to cancel
-    them (in the base condition points alone place the knees 1 cm behind, which undoes the 9 mm that
-    both distances put the hips behind: their hip angles come out better than the better fit's).
+    them: hips placed forward (or behind) of the animation skeleton's tilt the thighs, and so change the
+    hip angles, unless the knees are placed alike (``hips_forward_mm``, ``knees_forward_mm`` and
+    ``hip_angle_error_deg`` show it).
     ``angle_error_offset_free_deg`` removes it: each joint's mean error in the true body's frame
     (`stages.export.bvh.pelvis_frame`), taken over the sequence, is subtracted before the angles are
     measured.
@@ -188,13 +189,17 @@ def score(joints: np.ndarray, statuses: Sequence[str], truth: np.ndarray) -> dic
     dict
         ``angle_error_deg`` (the paper's average: mean over frames and limb angles), ``angle_error_median_deg``
         (median over frames of each frame's mean limb-angle error), ``angle_error_offset_free_deg``,
-        ``mpjpe_mm``, ``off_track`` and ``fraction_estimated`` (exported frames / frames).
+        ``hip_angle_error_deg`` (the two hip angles' mean error), ``hips_forward_mm`` and
+        ``knees_forward_mm`` (the mean constant offset of each pair of joints along the body's forward
+        axis, millimetres), ``mpjpe_mm``, ``off_track`` and ``fraction_estimated`` (exported frames /
+        frames).
     """
     exported = np.isin(statuses, EXPORTED_STATUSES)
     if not exported.any():
         return {"angle_error_deg": float("nan"), "angle_error_median_deg": float("nan"),
-                "angle_error_offset_free_deg": float("nan"), "mpjpe_mm": float("nan"), "off_track": float("nan"),
-                "fraction_estimated": 0.0}
+                "angle_error_offset_free_deg": float("nan"), "hip_angle_error_deg": float("nan"),
+                "hips_forward_mm": float("nan"), "knees_forward_mm": float("nan"), "mpjpe_mm": float("nan"),
+                "off_track": float("nan"), "fraction_estimated": 0.0}
     joints, truth = joints[exported], truth[exported]
     names, estimated = joint_angles(joints)
     _, true = joint_angles(truth)
@@ -203,10 +208,15 @@ def score(joints: np.ndarray, statuses: Sequence[str], truth: np.ndarray) -> dic
     frames = pelvis_frame({name: truth[:, JOINT_NAMES.index(name)] for name in ("l_hip", "r_hip", "pelvis", "neck")})
     offset = np.einsum("fba,fjb->fja", frames, joints - truth).mean(axis=0)  # (17, 3) in the body's frame
     _, offset_free = joint_angles(joints - np.einsum("fab,jb->fja", frames, offset))
+    hips = [names.index(name) for name in ("l_hip_angle", "r_hip_angle")]
+    forward = 1000.0 * offset[:, 2]  # the pelvis frame's third axis, millimetres
     scored = [JOINT_NAMES.index(name) for name in SCORED_JOINTS]
     frame_mpjpe = 1000.0 * np.linalg.norm(joints[:, scored] - truth[:, scored], axis=2).mean(axis=1)
     return {"angle_error_deg": float(angle_error.mean()), "angle_error_median_deg": float(np.median(angle_error)),
             "angle_error_offset_free_deg": float(np.abs(offset_free[:, limbs] - true[:, limbs]).mean()),
+            "hip_angle_error_deg": float(np.abs(estimated[:, hips] - true[:, hips]).mean()),
+            "hips_forward_mm": float(forward[[JOINT_NAMES.index("l_hip"), JOINT_NAMES.index("r_hip")]].mean()),
+            "knees_forward_mm": float(forward[[JOINT_NAMES.index("l_knee"), JOINT_NAMES.index("r_knee")]].mean()),
             "mpjpe_mm": float(frame_mpjpe.mean()), "off_track": float(np.mean(frame_mpjpe > OFF_TRACK_MM)),
             "fraction_estimated": float(exported.mean())}
 

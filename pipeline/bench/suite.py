@@ -263,10 +263,13 @@ def format_paper(paper: dict, figure: str | None) -> str:
     base = paper["base"]
     lines += ["", "(a) 28 fps, 1000 observations, no silhouette noise:", "",
               format_table(("distance", "frames", "angle mean °", "angle median °", "angle offset-free °",
-                            "MPJPE mm", "off track", "estimated", "tracking s"),
+                            "hip angles °", "hips forward mm", "knees forward mm", "MPJPE mm", "off track",
+                            "estimated", "tracking s"),
                            [(r["distance"], r["frames"], r["angle_error_deg"], r.get("angle_error_median_deg"),
-                             r.get("angle_error_offset_free_deg"), r["mpjpe_mm"], _percent(r.get("off_track")),
-                             _percent(r["fraction_estimated"]), r["seconds"]) for r in base])]
+                             r.get("angle_error_offset_free_deg"), r.get("hip_angle_error_deg"),
+                             r.get("hips_forward_mm"), r.get("knees_forward_mm"), r["mpjpe_mm"],
+                             _percent(r.get("off_track")), _percent(r["fraction_estimated"]), r["seconds"])
+                            for r in base])]
     for key, title in (("noise", "(b) silhouette noise strength (boundary ± up to 4 px, up to 6 holes)"),
                        ("fps", "(c) frame rate (same 3.6 s of motion)"),
                        ("observations", "(d) observations per frame")):
@@ -299,10 +302,10 @@ PAPER_NOTES = (
     "the data alone (automatic initialisation); the subject's height is given. The paper plots radians; this "
     "page degrees. Each point is one sequence (as in the paper), so one loss of track can decide its mean: read "
     "the off-track share and the median beside it. Raw and offset-free angles differ where the two skeletons "
-    "put a joint at different places in the same flesh: in the base condition both distances place the hips "
-    "9 mm behind the animation skeleton's, and points alone also place the knees 1 cm behind, which undoes "
-    "the hips' offset in the hip angles; points and normals place the knees right, so their raw hip angles "
-    "are worse (2.5-2.8° against 1.2-1.3°) while their joint positions and offset-free angles are better.")
+    "put a joint at different places in the same flesh: table (a) gives each distance's constant offset of "
+    "the hips and the knees along the body's forward axis (negative: behind the animation skeleton's) and "
+    "its hip-angle error. Hips placed forward tilt the thighs and so change the hip angles, unless the knees "
+    "are placed forward alike: a fit that places the knees right can have the larger raw hip-angle error.")
 
 
 def format_results(results: dict, figure_links: dict[str, str] | None = None, *, source: Path | None = None) -> str:

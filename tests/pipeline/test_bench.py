@@ -139,6 +139,7 @@ def test_score_counts_only_exported_frames():
     estimate[3] += 1.0  # a lost frame's prediction, far off
     result = paper.score(estimate, ["initialised", "tracked", "tracked", "lost"], truth)
     assert result == {"angle_error_deg": 0.0, "angle_error_median_deg": 0.0, "angle_error_offset_free_deg": 0.0,
+                      "hip_angle_error_deg": 0.0, "hips_forward_mm": 0.0, "knees_forward_mm": 0.0,
                       "mpjpe_mm": 0.0, "off_track": 0.0, "fraction_estimated": 0.75}
     assert math.isnan(paper.score(estimate, ["lost"] * 4, truth)["mpjpe_mm"])
 
@@ -154,6 +155,7 @@ def test_offset_free_angles_ignore_a_joint_placed_elsewhere_in_the_body():
     result = paper.score(estimate, ["tracked"] * 20, truth)
     assert result["angle_error_deg"] > 0.1  # degrees: the random joints are about a metre apart
     assert result["angle_error_offset_free_deg"] < 1e-6
+    assert result["knees_forward_mm"] == pytest.approx(30.0) and result["hips_forward_mm"] == pytest.approx(0.0)
 
 
 # ---------------------------------------------------------------------------------------------
