@@ -475,9 +475,9 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     subsample, with the limb's priors π set to its mirror's (a limb that explained nothing would
     otherwise be handicapped by its small prior) and under the initialisation's coarse Σ
     (`_SCORE_SIGMA_M`), not the fit's: grid and library angles are tens of millimetres off at best,
-    and under a Σ of 2-3 cm they lost to the misplaced limb itself (bundled leaning, frame 0: the
-    hypothesis nearest the true arm ranked 40th of 343, first under the coarse Σ; refined, it gained
-    0.9 nats per observation). The best `_LIMB_REFINE`
+    and under a Σ of 2-3 cm they lost to the misplaced limb itself (the test with arms off the grid
+    shows it; on `make run SEQ=leaning` the first frame's left arm stayed misplaced: worst frame
+    84 -> 31 mm). The best `_LIMB_REFINE`
     are refined by EM on all the data (the whole body free); the best of them replaces the fit when
     it is better by `LIMB_MARGIN` nats per observation.
     """
