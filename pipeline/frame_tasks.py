@@ -25,7 +25,7 @@ import cv2
 
 from pipeline import frames_io
 from pipeline.capture import Capture
-from stages.silhouettes import BackgroundModel, SilhouetteParams, background_model, extract_silhouette
+from stages.silhouettes import BackgroundModel, SilhouetteParams, background_model, extract_silhouettes
 
 if TYPE_CHECKING:
     from stages.reconstruction import ReconstructionParams
@@ -78,16 +78,25 @@ def _background_model(path: str, mtime_ns: int, size: int, params: SilhouettePar
 
 
 def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: SilhouetteParams, out_dir: Path) -> None:
-    """Worker: masks of every camera for a chunk of consecutive frames (one decoder per camera)."""
+    """Worker: masks of every camera for a chunk of consecutive frames (one decoder per camera).
+
+    The cameras of a frame are segmented together: whether a darker patch is the person's shadow on the
+    floor is settled across the views (:func:`stages.silhouettes.extract_silhouettes`).
+    """
+    names = capture.rig.names
     with single_threaded_opencv():
-        for camera in capture.rig.names:
-            if capture.silhouettes_given:
-                masks = ((frame, capture.read_silhouette(camera, frame)) for frame in chunk)
-            else:
-                background = cached_background_model(background_path(out_dir, camera), params)
-                masks = ((frame, extract_silhouette(image, background, params))
-                         for frame, image in capture.iter_images(camera, chunk))
-            for frame, mask in masks:
+        if capture.silhouettes_given:
+            for camera in names:
+                for frame in chunk:
+                    mask = capture.read_silhouette(camera, frame)
+                    frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
+            return
+        backgrounds = [cached_background_model(background_path(out_dir, camera), params) for camera in names]
+        cameras = list(capture.rig)
+        streams = [capture.iter_images(camera, chunk) for camera in names]
+        for frame, views in zip(chunk, zip(*streams, strict=True), strict=True):
+            masks = extract_silhouettes([image for _, image in views], backgrounds, cameras, capture.volume, params)
+            for camera, mask in zip(names, masks, strict=True):
                 frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
 
 

@@ -17,9 +17,15 @@ clean plate instead of a training sequence, the noise is estimated from each fra
   background is textured, because a sub-pixel shift or compression changes a textured pixel by about its
   gradient times the shift: σ_p² = σ² + (κ ‖∇B‖)² / 3.
 
-The evidence is ‖I − gB‖ / σ_p, except in the shadow band (α / g between ``shadow_min`` and
-``shadow_max``: darker than the background by as much as a shadow darkens it), where only the
-chromaticity distortion counts. Pixels above ``strong_threshold`` seed the person; connected regions above
+The evidence is ‖I − gB‖ / σ_p, except on shadows, where only the chromaticity distortion counts. A
+pixel looks like a shadow when it is darker than the background by as much as a shadow darkens
+(α / g between ``shadow_min`` and ``shadow_max``) with its colour direction unchanged. Colour alone cannot
+tell a shadow from dark clothing in front of a background of the same hue (navy trousers on a blue mat, a
+grey shirt on a lighter grey wall), and taking every such pixel for a shadow cut a tenth of the person
+away. Geometry can: a person's shadow lies on the floor and darkens it alike from every side, so a
+shadow-like pixel is a shadow only when the other cameras see the floor point behind it darkened too
+(:func:`floor_shadows`; all the views of a frame are segmented together, :func:`extract_silhouettes`).
+Pixels above ``strong_threshold`` seed the person; connected regions above
 ``weak_threshold`` join them (hysteresis, as in Canny's edge detector), so clothing close to the
 background is kept without letting isolated noise in; a weak region must be more than a line, so that
 the rim of a shadow does not grow out of the feet. Morphology, connected components and hole filling
@@ -34,12 +40,13 @@ with :func:`background_model`.
 from __future__ import annotations
 
 import functools
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from calib.camera import Camera
 from calib.errors import InputError
 
 # Added to B·B before dividing, so a pure black background pixel gives α = 0 rather than a division
@@ -74,6 +81,17 @@ MATTE_RADIUS_PX = 4
 MIN_MATTE_CONTRAST = 8.0
 # Magnitude (a share of the pixel) given to the outline score where the mask decides.
 SCORE_FLOOR = 0.1
+# The floor test looks at the floor behind blocks of FLOOR_BLOCK x FLOOR_BLOCK working pixels at once
+# (a shadow's darkening changes over many pixels; a quarter of the rays and projections).
+FLOOR_BLOCK = 2
+#: Choices of ``SilhouetteParams.shadows``.
+SHADOW_TESTS = ("floor", "colour", "none")
+# The floor test compares a shadow-like pixel's darkening 1 − α/g with that of its floor point in another
+# view: a shadow darkens a matt floor alike from every side, so the other view must see at least this share
+# of it. The fifth left over allows for noise and for a soft rim, where the darkening fades out over a few
+# pixels that a calibration error can shift; the lower legs, whose floor points lie in the lighter outer
+# part of the shadow, see less than that.
+SHADOW_AGREEMENT = 0.8
 # cv2.transform's matrix summing the three channels of each pixel.
 _CHANNEL_SUM = np.ones((1, 3), np.float32)
 
@@ -99,9 +117,18 @@ class SilhouetteParams:
         Evidence above which a pixel is person when its region holds a seed: low enough to keep clothing
         close to the background colour, high enough that the noise does not grow a halo.
     shadow_min, shadow_max : float
-        Pixels whose brightness relative to the background, α / g, lies in [min, max] could be the
-        person's shadow (at darkest ``shadow_min``, at faintest ``shadow_max``): only their colour
-        direction counts as evidence. Darker, fainter or brighter changes count in full.
+        Pixels whose brightness relative to the background, α / g, lies in [min, max] and whose colour
+        direction has not changed (chromaticity distortion below ``weak_threshold``) look like a shadow
+        (at darkest ``shadow_min``, at faintest ``shadow_max``). Darker or brighter changes are never
+        shadows.
+    shadows : {"floor", "colour", "none"}
+        Which shadow-like pixels are shadows. "floor": those whose floor point (z = 0, behind the pixel)
+        looks darkened alike from the other cameras that see it (:func:`floor_shadows`): a shadow lies on
+        the floor and darkens it the same from every side, while darker clothing in front of a
+        background of the same hue hides a floor point that the other cameras see undarkened. Needs the
+        cameras (:func:`extract_silhouettes`); a single view (:func:`extract_silhouette`) then has no
+        shadow test. "colour": every shadow-like pixel (the single-view rule of Horprasert et al.; it
+        also drops dark clothing in front of a similar background). "none": no shadow test.
     background_jitter_px : float
         How far (pixels) the background may seem to move between the clean plate and a frame (camera
         vibration, compression of fine texture): a textured pixel's noise grows by its gradient times this.
@@ -124,7 +151,8 @@ class SilhouetteParams:
     strong_threshold: float = 8.0
     weak_threshold: float = 4.0
     shadow_min: float = 0.5
-    shadow_max: float = 0.8
+    shadow_max: float = 1.0
+    shadows: str = "floor"
     background_jitter_px: float = 0.2
     opening_px: int = 1
     closing_px: int = 2
@@ -140,6 +168,8 @@ class SilhouetteParams:
                 "silhouettes.shadow_min/shadow_max: expected 0 < shadow_min < shadow_max <= 1, "
                 f"got {self.shadow_min} and {self.shadow_max}"
             )
+        if self.shadows not in SHADOW_TESTS:
+            raise InputError(f"silhouettes.shadows: expected one of {', '.join(SHADOW_TESTS)}, got {self.shadows!r}")
         kernel = self.blur_kernel_px
         if not (isinstance(kernel, int) and kernel >= 1 and kernel % 2):
             raise InputError(f"silhouettes.blur_kernel_px: expected an odd integer >= 1, got {kernel!r}")
@@ -238,16 +268,36 @@ def median_background(images: Iterable[np.ndarray], *, max_frames: int = 31) -> 
     return np.median(stack, axis=0).round().astype(np.uint8)
 
 
-def extract_silhouette(
-    image: np.ndarray, background: np.ndarray | BackgroundModel, params: SilhouetteParams
-) -> np.ndarray:
-    """(H, W) uint8 mask of the person, 0 = background, 255 = person.
+@dataclass(frozen=True, eq=False)
+class Evidence:
+    """One view's frame after the per-pixel test, before its shadows are settled.
+
+    Made by :func:`measure_evidence`; :func:`floor_shadows` reads every view's to decide which shadow-like
+    pixels are shadows, and :func:`silhouette_from_evidence` then makes the mask. Maps cover ``region``
+    of the working-resolution frame only (None: nothing differs from the background anywhere).
+    """
+
+    image: np.ndarray  # (H, W, 3) uint8 the frame
+    model: BackgroundModel
+    I_sharp: np.ndarray  # (h, w, 3) uint8 the frame at the working resolution
+    noise: _Noise
+    region: tuple[slice, slice] | None
+    difference2: np.ndarray  # (h', w') float32 ‖I − gB‖² in noise variances
+    chroma2: np.ndarray  # (h', w') float32 ‖I − αB‖² in noise variances (the colour direction's change)
+    alpha: np.ndarray  # (h', w') float32 α = I·B / B·B
+    shadow_like: np.ndarray  # (h', w') bool above the weak threshold, but as a shadow would be
+
+    def darkening(self) -> np.ndarray:
+        """(h', w') float32 1 − α / g, how much darker than the background each pixel is (< 0: brighter)."""
+        return 1.0 - self.alpha / np.float32(self.noise.g)
+
+
+def measure_evidence(image: np.ndarray, background: np.ndarray | BackgroundModel, params: SilhouetteParams) -> Evidence:
+    """The per-pixel foreground test of one view (see the module's docstring), shadows not yet settled.
 
     The exposure ratio and the noise level come from a sparse sample of the frame; blocks of
-    ``COARSE_FACTOR`` x ``COARSE_FACTOR`` working pixels show where the person may be; there, at the working
-    resolution (``params.downsample``), the foreground test, hysteresis, morphology and component
-    filtering give the mask, and in the mask's box the matting places the outline, measured again at full
-    resolution where a working pixel is mixed. The costly steps thus run on a fraction of the pixels.
+    ``COARSE_FACTOR`` x ``COARSE_FACTOR`` working pixels show where the person may be, and the evidence
+    is measured there only.
 
     Parameters
     ----------
@@ -273,15 +323,139 @@ def extract_silhouette(
         raise InputError(f"background: model of {background.shape} images, expected the image's {image.shape}")
     elif (background.downsample, background.blur_kernel_px) != (params.downsample, params.blur_kernel_px):
         raise InputError("background: model built with another downsample/blur_kernel_px than params")
-    ds = params.downsample
-    silhouette = np.zeros(image.shape[:2], np.uint8)
-    I_sharp = _downsample(image, ds)
+    I_sharp = _downsample(image, params.downsample)
     noise = _noise(I_sharp[::SAMPLE_STRIDE, ::SAMPLE_STRIDE], background)
     region = _person_region(I_sharp, background, noise, params)
     if region is None:
+        empty = np.zeros((0, 0), np.float32)
+        return Evidence(image, background, I_sharp, noise, None, empty, empty, empty, empty.astype(bool))
+    difference2, chroma2, alpha = _evidence(_blur(I_sharp[region], params.blur_kernel_px), background, region, noise)
+    g = np.float32(noise.g)
+    weak2 = np.float32(params.weak_threshold**2)
+    shadow_like = ((difference2 > weak2) & (chroma2 <= weak2)
+                   & (alpha >= g * np.float32(params.shadow_min)) & (alpha <= g * np.float32(params.shadow_max)))
+    return Evidence(image, background, I_sharp, noise, region, difference2, chroma2, alpha, shadow_like)
+
+
+def floor_shadows(views: Sequence[Evidence], cameras: Sequence[Camera], footprint: np.ndarray,
+                  params: SilhouetteParams) -> list[np.ndarray]:
+    """Per view, which of its shadow-like pixels are the person's shadow on the floor, (h', w') bool each.
+
+    A shadow-like pixel's ray meets the floor (z = 0, the world's convention) at a point X within the
+    working volume's ``footprint`` (2, 2) [[x_min, y_min], [x_max, y_max]]. If the pixel is a shadow,
+    X is darkened, and every other camera that sees X unoccluded sees it darkened alike (a matt floor
+    looks the same from every side). If the pixel is clothing darker than the background behind it,
+    X is bare floor somewhere behind the person, and the other cameras see it undarkened. Each other
+    camera votes: no vote where X is outside its image or hidden by foreground that is not shadow-like
+    (a limb in front of it); a vote for a shadow where X is darkened by at least ``SHADOW_AGREEMENT`` of
+    the pixel's darkening; against otherwise. A pixel is a shadow when it has a vote for and at least as
+    many for as against. Rays that never reach the floor (above the horizon) are never shadows.
+
+    ``cameras`` are at the frames' full resolution, in the order of ``views``; ``params`` gives the weak
+    threshold, above which a pixel that is not shadow-like hides the floor.
+    """
+    if len(views) != len(cameras):
+        raise InputError(f"floor_shadows: {len(views)} views but {len(cameras)} cameras, expected as many")
+    looks = [_floor_look(view, params) for view in views]
+    shadows = []
+    for index, (view, camera) in enumerate(zip(views, cameras, strict=True)):
+        shadow = np.zeros(view.shadow_like.shape, bool)
+        rows, cols = np.nonzero(view.shadow_like)
+        # Shadows are soft: the floor points of FLOOR_BLOCK x FLOOR_BLOCK pixels are looked at together.
+        blocks, pixel_block = np.unique((rows // FLOOR_BLOCK) * shadow.shape[1] + cols // FLOOR_BLOCK,
+                                        return_inverse=True)
+        block_rows, block_cols = np.divmod(blocks, shadow.shape[1])
+        centre = (FLOOR_BLOCK - 1) / 2
+        X, on_floor = _floor_points(camera, _full_resolution_pixels(view, block_rows * FLOOR_BLOCK + centre,
+                                                                     block_cols * FLOOR_BLOCK + centre))
+        on_floor &= np.all((X[:, :2] >= footprint[0]) & (X[:, :2] <= footprint[1]), axis=1)
+        needed = SHADOW_AGREEMENT * view.darkening()[rows, cols]  # (n,) per pixel
+        votes_for = np.zeros(len(rows), np.int32)
+        votes_against = np.zeros(len(rows), np.int32)
+        X = X[on_floor]
+        for other, (look, other_camera) in enumerate(zip(looks, cameras, strict=True)):
+            if other == index or len(X) == 0:
+                continue
+            seen_darkening, seen = np.zeros(len(blocks), np.float32), np.zeros(len(blocks), bool)
+            seen_darkening[on_floor], seen[on_floor] = _darkening_seen(look, views[other], other_camera, X)
+            darkening, visible = seen_darkening[pixel_block], seen[pixel_block]
+            votes_for += visible & (darkening >= needed)
+            votes_against += visible & (darkening < needed)
+        shadow[rows, cols] = (votes_for > 0) & (votes_for >= votes_against)
+        shadows.append(shadow)
+    return shadows
+
+
+@dataclass(frozen=True, eq=False)
+class _FloorLook:
+    darkening: np.ndarray  # (h', w') float32 1 − α/g smoothed over 3 x 3 pixels (noise), 0 for the hidden
+    hidden: np.ndarray  # (h', w') bool foreground that is not shadow-like: whatever lies behind is not seen
+
+
+def _floor_look(view: Evidence, params: SilhouetteParams) -> _FloorLook:
+    """What a view says of the floor points it sees: how dark each pixel is, and where it sees none."""
+    if view.region is None:
+        return _FloorLook(np.zeros((0, 0), np.float32), np.zeros((0, 0), bool))
+    hidden = (view.difference2 > np.float32(params.weak_threshold**2)) & ~view.shadow_like
+    return _FloorLook(cv2.blur(view.darkening(), (3, 3)), hidden)
+
+
+def _full_resolution_pixels(view: Evidence, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """(n, 2) full-resolution pixel coordinates (u, v) of points (rows, cols) of the region, in working
+    pixels (integers at their centres)."""
+    ds = view.model.downsample
+    u = (cols + view.region[1].start + 0.5) * ds - 0.5
+    v = (rows + view.region[0].start + 0.5) * ds - 0.5
+    return np.column_stack([u, v]).astype(np.float64)
+
+
+def _floor_points(camera: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) points where the rays through pixels ``uv`` meet the floor z = 0, and (n,) whether they do."""
+    rays = camera.pixel_rays(uv)
+    centre = camera.centre
+    with np.errstate(divide="ignore", invalid="ignore"):
+        distance = -centre[2] / rays[:, 2]
+    meets = np.isfinite(distance) & (distance > 0)
+    return centre + np.where(meets, distance, 0.0)[:, None] * rays, meets
+
+
+def _darkening_seen(look: _FloorLook, view: Evidence, camera: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) darkening that ``view`` sees at the floor points ``X`` (n, 3), and (n,) whether it sees them.
+
+    Outside the view's region nothing differs from the background: the floor is seen undarkened.
+    """
+    uv = camera.project(X)
+    visible = (camera.depth(X) > 0) & camera.in_image(uv)
+    darkening = np.zeros(len(X), np.float32)
+    if view.region is None:
+        return darkening, visible
+    ds = view.model.downsample
+    cols = np.floor((uv[:, 0] + 0.5) / ds).astype(np.int64) - view.region[1].start
+    rows = np.floor((uv[:, 1] + 0.5) / ds).astype(np.int64) - view.region[0].start
+    height, width = look.darkening.shape
+    inside = visible & (rows >= 0) & (rows < height) & (cols >= 0) & (cols < width)
+    at_rows, at_cols = rows[inside], cols[inside]
+    darkening[inside] = look.darkening[at_rows, at_cols]
+    visible[np.flatnonzero(inside)[look.hidden[at_rows, at_cols]]] = False
+    return darkening, visible
+
+
+def silhouette_from_evidence(view: Evidence, shadow: np.ndarray | None, params: SilhouetteParams) -> np.ndarray:
+    """(H, W) uint8 mask of the person, 0 = background, 255 = person, from one view's evidence.
+
+    ``shadow`` (h', w') bool marks the pixels of the region known to be shadow (only their change of
+    colour direction counts there); None: none. At the working resolution (``params.downsample``),
+    hysteresis, morphology and component filtering give the mask, and in the mask's box the matting
+    places the outline, measured again at full resolution where a working pixel is mixed. The costly
+    steps thus run on a fraction of the pixels.
+    """
+    image, background, ds = view.image, view.model, params.downsample
+    silhouette = np.zeros(image.shape[:2], np.uint8)
+    if view.region is None:
         return silhouette
-    I = _blur(I_sharp[region], params.blur_kernel_px)
-    evidence2, alpha = _evidence(I, background, region, noise, params)
+    evidence2 = view.difference2
+    if shadow is not None and shadow.any():
+        evidence2 = np.where(shadow, view.chroma2, evidence2)
     mask = _clean_mask(_hysteresis(evidence2, params), params, ds, image.shape[0] * image.shape[1] / ds**2)
     x, y, w, h = cv2.boundingRect(mask)
     if w == 0:
@@ -292,9 +466,11 @@ def extract_silhouette(
     x0, y0 = max(x - margin, 0), max(y - margin, 0)
     x1, y1 = min(x + w + margin, mask.shape[1]), min(y + h + margin, mask.shape[0])
     box = (slice(y0, y1), slice(x0, x1))  # in the region
+    region = view.region
     y0, y1, x0, x1 = y0 + region[0].start, y1 + region[0].start, x0 + region[1].start, x1 + region[1].start
     frame_box = (slice(y0, y1), slice(x0, x1))  # the same in the working-resolution frame
-    matte = _matte(mask[box], I_sharp[frame_box], background.B_sharp[frame_box], alpha[box], noise.g, ds)
+    matte = _matte(mask[box], view.I_sharp[frame_box], background.B_sharp[frame_box], view.alpha[box],
+                   view.noise.g, ds)
     if ds > 1:
         score = _full_resolution_score(matte, image, background.image, (y0 * ds, x0 * ds), ds)
     else:
@@ -302,6 +478,49 @@ def extract_silhouette(
     inside = silhouette[y0 * ds : y1 * ds, x0 * ds : x1 * ds]  # a view, clipped at the image's edges
     cv2.compare(score[: inside.shape[0], : inside.shape[1]], 0.0, cv2.CMP_GT, dst=inside)
     return silhouette
+
+
+def extract_silhouette(
+    image: np.ndarray, background: np.ndarray | BackgroundModel, params: SilhouetteParams
+) -> np.ndarray:
+    """(H, W) uint8 mask of the person in a single view, 0 = background, 255 = person.
+
+    Without the other cameras the floor test of shadows (``params.shadows == "floor"``) cannot be made,
+    and no pixel is taken for a shadow; "colour" takes every shadow-like pixel for one. See
+    :func:`measure_evidence` for ``image`` and ``background``; :func:`extract_silhouettes` for the
+    multi-view version.
+    """
+    view = measure_evidence(image, background, params)
+    return silhouette_from_evidence(view, view.shadow_like if params.shadows == "colour" else None, params)
+
+
+def extract_silhouettes(
+    images: Sequence[np.ndarray], backgrounds: Sequence[np.ndarray | BackgroundModel], cameras: Sequence[Camera],
+    volume: np.ndarray, params: SilhouetteParams,
+) -> list[np.ndarray]:
+    """(H, W) uint8 masks of the person in every view of one frame, shadows settled across the views.
+
+    Parameters
+    ----------
+    images, backgrounds : sequences of (H, W, 3) uint8 (backgrounds may be :class:`BackgroundModel`)
+        The frame and background of each camera, as in :func:`measure_evidence`.
+    cameras : sequence of Camera
+        The views' cameras at the images' resolution, world frame with the floor at z = 0.
+    volume : (2, 3) float
+        Working volume [min; max], metres: shadows are looked for on the floor within its footprint.
+    params : SilhouetteParams
+    """
+    if not len(images) == len(backgrounds) == len(cameras):
+        raise InputError(f"extract_silhouettes: {len(images)} images, {len(backgrounds)} backgrounds and "
+                         f"{len(cameras)} cameras; expected as many of each")
+    views = [measure_evidence(image, background, params) for image, background in zip(images, backgrounds, strict=True)]
+    if params.shadows == "floor":
+        shadows = floor_shadows(views, cameras, np.asarray(volume, dtype=float)[:, :2], params)
+    elif params.shadows == "colour":
+        shadows = [view.shadow_like for view in views]
+    else:
+        shadows = [None] * len(views)
+    return [silhouette_from_evidence(view, shadow, params) for view, shadow in zip(views, shadows, strict=True)]
 
 
 def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
@@ -383,13 +602,13 @@ def _span(start: int, length: int, size: int) -> slice:
 
 
 def _evidence(
-    I: np.ndarray, model: BackgroundModel, region: tuple[slice, slice], noise: _Noise, params: SilhouetteParams
-) -> tuple[np.ndarray, np.ndarray]:
-    """Squared evidence per pixel of ``region``, in noise variances, and the brightness distortion α.
+    I: np.ndarray, model: BackgroundModel, region: tuple[slice, slice], noise: _Noise
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """‖I − gB‖² and ‖I − αB‖² per pixel of ``region``, in noise variances, and the brightness distortion α.
 
     ``I`` (h', w', 3) uint8 is the region. With α = I·B / B·B, the chromaticity distortion is
-    ‖I − αB‖² = I·I − α I·B (the remainder orthogonal to B) and ‖I − gB‖² = I·I − 2g I·B + g² B·B;
-    shadow-band pixels keep only the first. The products are taken straight from uint8 into float32.
+    ‖I − αB‖² = I·I − α I·B (the remainder orthogonal to B) and ‖I − gB‖² = I·I − 2g I·B + g² B·B.
+    The products are taken straight from uint8 into float32.
     """
     g = noise.g
     II = cv2.transform(cv2.multiply(I, I, dtype=cv2.CV_32F), _CHANNEL_SUM)  # (h', w') I·I
@@ -397,10 +616,8 @@ def _evidence(
     alpha = cv2.multiply(IB, model.inverse_BB[region])  # (h', w') α
     chroma2 = cv2.subtract(II, cv2.multiply(IB, alpha))  # (h', w') ‖I − αB‖² (≥ 0 up to rounding)
     difference2 = cv2.scaleAdd(model.BB[region], g * g, cv2.addWeighted(II, 1.0, IB, -2.0 * g, 0.0))  # ‖I − gB‖²
-    shadow = cv2.inRange(alpha, g * params.shadow_min, g * params.shadow_max)
-    cv2.copyTo(chroma2, shadow, difference2)  # shadow band: the colour direction alone
-    evidence2 = cv2.divide(difference2, model.texture_variance[region] + np.float32(noise.sigma2))
-    return evidence2, alpha
+    variance = model.texture_variance[region] + np.float32(noise.sigma2)
+    return cv2.divide(difference2, variance), cv2.divide(chroma2, variance), alpha
 
 
 def _quantile(values: np.ndarray, q: float) -> float:

@@ -42,7 +42,7 @@ from pipeline.synth.render import body_scene, pixel_grid_rays, render_body
 from pipeline.synth.writer import SynthParams, prepare_motion
 from stages.export.metrics import mask_iou
 from stages.reconstruction import Observations, ReconstructionParams, reconstruct
-from stages.silhouettes import SilhouetteParams, background_model, extract_silhouette
+from stages.silhouettes import SilhouetteParams, background_model, extract_silhouettes
 
 OUTLIER_DISTANCE_M = 0.03
 IMAGE_SIZE = (780, 580)
@@ -124,16 +124,24 @@ def bench_silhouettes(captures: list[Path], max_frames: int) -> None:
     for path in captures:
         capture = Capture.open(path)
         frames = spread_frames(capture.frame_numbers, max_frames)
-        ious, seconds = [], np.zeros(len(frames))
-        for camera in capture.rig.names:
-            background = background_model(background_image(capture, camera), params)
-            for k, (frame, image) in enumerate(capture.iter_images(camera, frames)):
-                start = time.perf_counter()
-                mask = extract_silhouette(image, background, params)
-                seconds[k] += time.perf_counter() - start
-                ious.append(mask_iou(mask, _true_mask(Path(path), camera, frame)))
+        segmented, seconds = _segment(capture, frames, params)
+        ious = [mask_iou(mask, _true_mask(Path(path), camera, frame))
+                for frame in frames for camera, mask in zip(capture.rig.names, segmented[frame], strict=True)]
         print(f"{Path(path).name:12s} {len(frames):6d} {np.median(ious):8.3f} {np.percentile(ious, 5):7.3f} "
               f"{np.median(seconds) * 1e3:20.1f}")
+
+
+def _segment(capture: Capture, frames: list[int], params: SilhouetteParams) -> tuple[dict[int, list], np.ndarray]:
+    """Every camera's mask of each of ``frames`` as the silhouette stage makes them, and (F,) seconds per frame."""
+    backgrounds = [background_model(background_image(capture, camera), params) for camera in capture.rig.names]
+    images = [dict(capture.iter_images(camera, frames)) for camera in capture.rig.names]
+    segmented, seconds = {}, np.zeros(len(frames))
+    for k, frame in enumerate(frames):
+        start = time.perf_counter()
+        segmented[frame] = extract_silhouettes([views[frame] for views in images], backgrounds, list(capture.rig),
+                                               capture.volume, params)
+        seconds[k] = time.perf_counter() - start
+    return segmented, seconds
 
 
 def _true_mask(capture_dir: Path, camera: str, frame: int) -> np.ndarray:
@@ -173,11 +181,7 @@ def bench_capture_reconstruction(captures: list[Path], max_frames: int, n_observ
         motion = prepare_motion(synth)
         body = build_body(motion, synth.body)
         frames = spread_frames(capture.frame_numbers, max_frames)
-        segmented = {frame: [] for frame in frames}
-        for camera in capture.rig.names:
-            background = background_model(background_image(capture, camera), silhouette_params)
-            for frame, image in capture.iter_images(camera, frames):
-                segmented[frame].append(extract_silhouette(image, background, silhouette_params))
+        segmented, _ = _segment(capture, frames, silhouette_params)
         results = {kind: {"d": [], "a": [], "n": [], "t": []} for kind in ("segmented", "true")}
         for frame in frames:
             posed = pose_body(body, motion, frame)

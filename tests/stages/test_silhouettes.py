@@ -2,8 +2,15 @@ import cv2
 import numpy as np
 import pytest
 
+from calib.camera import Camera
 from calib.errors import InputError
-from stages.silhouettes import SilhouetteParams, background_model, extract_silhouette, median_background
+from stages.silhouettes import (
+    SilhouetteParams,
+    background_model,
+    extract_silhouette,
+    extract_silhouettes,
+    median_background,
+)
 
 HEIGHT, WIDTH = 290, 390
 
@@ -45,7 +52,7 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 @pytest.mark.parametrize("downsample", [1, 2])
 def test_silhouette_of_noisy_compressed_frame_with_shadow_matches_truth(downsample):
     image, background, truth, shadow = _scene(np.random.default_rng(1))
-    mask = extract_silhouette(image, background, SilhouetteParams(downsample=downsample))
+    mask = extract_silhouette(image, background, SilhouetteParams(downsample=downsample, shadows="colour"))
     assert mask.dtype == np.uint8 and mask.shape == truth.shape
     assert set(np.unique(mask)) <= {0, 255}
     assert _iou(mask, truth) > 0.96  # thin limbs on a small image: a 1 px rim is 2 % of the area
@@ -147,3 +154,77 @@ def test_extract_silhouette_rejects_mismatched_background():
 def test_params_reject_inverted_shadow_band():
     with pytest.raises(InputError, match="shadow_min"):
         SilhouetteParams(shadow_min=0.9, shadow_max=0.8)
+
+
+def test_params_reject_an_unknown_shadow_test():
+    with pytest.raises(InputError, match="shadows"):
+        SilhouetteParams(shadows="sun")
+
+
+# A studio seen by a ring of cameras: a plain floor (z = 0) under a grey wall, a person standing at the
+# origin as a vertical cylinder, and the person's soft contact shadow on the floor around the feet.
+FLOOR, WALL = np.array([80.0, 110.0, 140.0]), np.array([150.0, 150.0, 150.0])  # BGR
+PERSON_RADIUS_M, PERSON_HEIGHT_M, SHADOW_RADIUS_M = 0.2, 1.7, 0.6
+
+
+def _ring(count: int) -> list[Camera]:
+    angles = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
+    return [Camera.look_at(f"cam{i}", (3.0 * np.cos(a), 3.0 * np.sin(a), 1.6), (0.0, 0.0, 0.8), f_px=300.0,
+                           size=(WIDTH, HEIGHT)) for i, a in enumerate(angles)]
+
+
+def _render(camera: Camera, clothing: np.ndarray | None, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(image, true mask) of the studio by ray casting; ``clothing`` None: the empty studio (the clean plate)."""
+    v, u = np.mgrid[0:HEIGHT, 0:WIDTH]
+    rays = camera.pixel_rays(np.column_stack([u.ravel(), v.ravel()]).astype(float))
+    centre = camera.centre
+    with np.errstate(divide="ignore", invalid="ignore"):
+        to_floor = -centre[2] / rays[:, 2]
+    floor = np.isfinite(to_floor) & (to_floor > 0)
+    ground = centre[:2] + np.where(floor, to_floor, 0.0)[:, None] * rays[:, :2]
+    image = np.where(floor[:, None], FLOOR, WALL)
+    if clothing is None:
+        return _noisy(image, rng), np.zeros((HEIGHT, WIDTH), np.uint8)
+    radius = np.linalg.norm(ground, axis=1)
+    darkening = 0.45 * np.clip(1.0 - radius / SHADOW_RADIUS_M, 0.0, 1.0) ** 0.5  # soft, darkest at the feet
+    image = image * (1.0 - np.where(floor, darkening, 0.0))[:, None]
+    # Ray and cylinder x² + y² = r²: a s² + b s + c = 0 along the ray, the nearer root, within the height.
+    a = (rays[:, :2] ** 2).sum(axis=1)
+    b = 2.0 * rays[:, :2] @ centre[:2]
+    c = centre[:2] @ centre[:2] - PERSON_RADIUS_M**2
+    with np.errstate(invalid="ignore"):
+        s = (-b - np.sqrt(b * b - 4.0 * a * c)) / (2.0 * a)
+    z = centre[2] + s * rays[:, 2]
+    person = np.isfinite(s) & (s > 0) & (z >= 0) & (z <= PERSON_HEIGHT_M)
+    image[person] = clothing
+    return _noisy(image, rng), (person.reshape(HEIGHT, WIDTH) * 255).astype(np.uint8)
+
+
+def _noisy(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    noisy = image.reshape(HEIGHT, WIDTH, 3) + rng.normal(0.0, 2.0, (HEIGHT, WIDTH, 3))
+    return np.clip(noisy, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("clothing", [np.array([40.0, 40.0, 160.0]), 0.55 * FLOOR], ids=["red", "floor-like"])
+def test_floor_shadows_are_removed_and_dark_clothing_of_the_floor_s_hue_is_kept(clothing):
+    rng = np.random.default_rng(10)
+    cameras = _ring(5)
+    backgrounds = [_render(camera, None, rng)[0] for camera in cameras]
+    frames, truths = zip(*(_render(camera, clothing, rng) for camera in cameras), strict=True)
+    volume = np.array([[-2.0, -2.0, 0.0], [2.0, 2.0, 2.0]])
+    masks = extract_silhouettes(frames, backgrounds, cameras, volume, SilhouetteParams())
+    for mask, truth in zip(masks, truths, strict=True):
+        assert _iou(mask, truth) > 0.9
+    # Without a shadow test the shadow is taken for the person; the single-view colour rule also takes
+    # the clothing of the floor's hue, darker than the floor, for a shadow.
+    unshadowed = extract_silhouettes(frames, backgrounds, cameras, volume, SilhouetteParams(shadows="none"))
+    assert np.mean([_iou(mask, truth) for mask, truth in zip(unshadowed, truths, strict=True)]) < 0.8
+    if clothing is not None and np.allclose(clothing, 0.55 * FLOOR):
+        by_colour = extract_silhouettes(frames, backgrounds, cameras, volume, SilhouetteParams(shadows="colour"))
+        assert np.mean([_iou(mask, truth) for mask, truth in zip(by_colour, truths, strict=True)]) < 0.5
+
+
+def test_extract_silhouettes_rejects_mismatched_views():
+    image = np.zeros((HEIGHT, WIDTH, 3), np.uint8)
+    with pytest.raises(InputError, match="as many"):
+        extract_silhouettes([image, image], [image], _ring(2), np.array([[-1, -1, 0], [1, 1, 2.0]]), SilhouetteParams())
