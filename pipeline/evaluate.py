@@ -65,8 +65,9 @@ def silhouette_iou(estimated_dir: str | os.PathLike, truth_dir: str | os.PathLik
     Returns
     -------
     dict or None
-        ``{"mean": mean IoU over all compared masks, "per_camera": {camera: mean IoU},
-        "masks_compared": count}``, or None when no mask pair exists.
+        ``{"mean": mean IoU over all compared masks, "median": their median, "per_camera": {camera: mean IoU},
+        "masks_compared": count}``, or None when no mask pair exists. The median is there because a few
+        masks a distractor or a shadow ruined pull the mean down: it says how good a typical mask is.
     """
     estimated_dir, truth_dir = Path(estimated_dir), Path(truth_dir)
     if not estimated_dir.is_dir() or not truth_dir.is_dir():
@@ -84,7 +85,7 @@ def silhouette_iou(estimated_dir: str | os.PathLike, truth_dir: str | os.PathLik
     if not per_camera:
         return None
     every = [value for values in per_camera.values() for value in values]
-    return {"mean": float(np.mean(every)), "masks_compared": len(every),
+    return {"mean": float(np.mean(every)), "median": float(np.median(every)), "masks_compared": len(every),
             "per_camera": {camera: float(np.mean(values)) for camera, values in per_camera.items()}}
 
 

@@ -1,4 +1,4 @@
-"""Benchmark the pipeline: speed, accuracy on unseen synthetic captures, the paper's experiments.
+"""Benchmark the pipeline: speed, accuracy on unseen synthetic captures, the paper's experiments, foreign captures.
 
 Examples:
   python -m pipeline bench --out runs/bench                      # every suite (make bench)
@@ -16,6 +16,8 @@ when the recipe changes. Suites:
           media, calibration format/units/up axis and known height, scored against ground truth
   paper   Horaud et al. 2009 Fig. 4: flexion trajectories, error vs silhouette noise, frame rate and
           number of observations, points+normals vs points vs the algebraic distance (20 % outliers)
+  foreign the whole pipeline on the captures in <repo>/../shared/foreign (made by another renderer), scored
+          against their ground truth, with the tracker's statuses and speed (skipped when the folder is absent)
 """
 
 from __future__ import annotations

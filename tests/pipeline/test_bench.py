@@ -230,6 +230,10 @@ def results():
            "distractors": 0, "media": "video", "calibration": "colmap m +z", "height_known": True, "frames": 84,
            "fraction_estimated": 1.0, "mpjpe_mm": 20.0, "worst_frame_mm": 95.0, "knee_flexion_deg": 3.0,
            "elbow_flexion_deg": 6.0, "silhouette_iou": 0.95, "run": run}
+    statuses = {"tracked": 114, "initialised": 6, "predicted": 0, "lost": 0, "doubtful": 2}
+    walk = {"capture": "walk", "cameras": 5, "size": "640x480", "frames": 120, "run": run, "fraction_estimated": 1.0,
+            "mpjpe_mm": 22.0, "worst_frame_mm": 60.0, "silhouette_iou_median": 0.95, "tracker_ms_per_frame": 30.0,
+            "tracker_vs_reference": 1.2, "statuses": statuses, "reinitialised_fraction": 0.05}
     sweep = _sweep({0.0: {"normals": 2.0, "points": 3.0, "algebraic": 4.0},
                     1.0: {"normals": 5.0, "points": 4.0, "algebraic": 6.0}})
     return {
@@ -251,6 +255,9 @@ def results():
                                                             for name in paper.TRAJECTORY_ANGLES}},
                   "base": [r for r in sweep if r["x"] == 0.0], "noise": sweep, "fps": sweep,
                   "observations": [r for r in sweep if r["distance"] != "algebraic"]},
+        "foreign": {"quick": False, "command": "python -m pipeline bench --suite foreign", "made": made,
+                    "root": "/shared/foreign", "rows": [walk, {"capture": "odd", "error": "odd/capture.yaml: no fps"}],
+                    "reference": {**walk, "capture": "data_samples/taekwondo", "tracker_vs_reference": 1.0}},
     }
 
 
@@ -265,6 +272,13 @@ def test_targets_are_judged_on_the_measured_numbers(results):
     assert not verdicts[("unseen", "worst frame (worst capture)")]["met"]
     share = verdicts[("paper", "points+normals beat points alone (share of noise levels)")]
     assert share["value"] == 0.5 and not share["met"]
+    assert verdicts[("foreign", "MPJPE (worst capture)")]["met"]  # over the scored captures
+    assert not verdicts[("foreign", "frames estimated (worst capture run)")]["met"]  # "odd" was never run
+    reinitialised = verdicts[("foreign", "frames re-initialised after the first (worst capture)")]
+    assert reinitialised["value"] == 5.0 and reinitialised["threshold"] == "< 5 %" and not reinitialised["met"]
+    assert verdicts[("foreign", "tracker ms/frame, worst capture / data_samples/taekwondo")]["met"]
+    iou = verdicts[("foreign", "silhouette IoU, median over frames and cameras (worst capture)")]
+    assert iou["met"] and iou["digits"] == 2  # shown as 0.95, not rounded to 0.9 or 1.0 against 0.93
 
 
 def test_a_missing_number_is_a_miss_not_a_crash(results):
@@ -281,13 +295,17 @@ def test_format_table_aligns_numbers_and_shows_missing_values():
 
 def test_results_markdown_has_every_section_command_and_verdict(results):
     text = suite.format_results(results, {"paper": "figures/paper_fig4.png"})
-    for heading in ("## Targets", "## Speed", "## Accuracy on unseen captures", "## The paper's experiments"):
+    for heading in ("## Targets", "## Speed", "## Accuracy on unseen captures", "## The paper's experiments",
+                    "## Accuracy on captures made by another program"):
         assert heading in text
     for section in results.values():
         assert section["command"] in text
     assert "**MISSED**" in text and "| met |" in text
     assert "`broken` was not scored: boom" in text and "`unrendered` was not scored: capture not" in text
     assert "![Fig. 4 redone](figures/paper_fig4.png)" in text
+    walk = "| walk | 5 | 640x480 | 120 | 100 % | 22.0 | 60.0 | 0.950 | 30.0 | 1.20 | 114 | 6 | 0 | 0 | 2 | 5 % |"
+    assert walk in text
+    assert "| data_samples/taekwondo (reference) |" in text and "`odd` was not scored: odd/capture.yaml" in text
 
 
 def test_results_round_trip_through_strict_json(results, tmp_path):

@@ -49,7 +49,8 @@ def test_explicit_truth_and_silhouette_iou(run, tmp_path):
         frames_io.write_mask(capture / "groundtruth" / "masks" / "cam_a" / f"{frame:06d}.png", mask)
         frames_io.write_mask(out / "silhouettes" / "cam_a" / f"{frame:06d}.png", estimate)
     metrics = evaluate_run(out, truth=capture / "groundtruth" / "joints.csv")
-    assert metrics["silhouette_iou"] == {"mean": pytest.approx((1 + 1 / 3) / 2), "masks_compared": 2,
+    assert metrics["silhouette_iou"] == {"mean": pytest.approx((1 + 1 / 3) / 2),
+                                         "median": pytest.approx((1 + 1 / 3) / 2), "masks_compared": 2,
                                          "per_camera": {"cam_a": pytest.approx((1 + 1 / 3) / 2)}}
 
 

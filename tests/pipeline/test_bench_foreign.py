@@ -1,0 +1,92 @@
+"""Foreign suite helpers on small synthetic folders: finding captures, the skip line, statuses, IoU (no run)."""
+
+import numpy as np
+import pytest
+
+from pipeline import frames_io
+from pipeline.bench import foreign, suite
+from pipeline.evaluate import evaluate_run
+from pipeline.export_io import write_joints_csv
+from pipeline.graph import tracking_path
+
+
+def _result(status: str, doubtful: bool = False) -> dict:
+    return {"status": status, "doubtful": doubtful}
+
+
+def test_status_counts_every_status_and_doubtful_frames_beside_them():
+    results = [_result("initialised", doubtful=True), _result("tracked"), _result("tracked", doubtful=True),
+               _result("predicted"), _result("lost"), _result("initialised")]
+    assert foreign.status_counts(results) == {"tracked": 2, "initialised": 2, "predicted": 1, "lost": 1,
+                                              "doubtful": 2}
+    assert foreign.status_counts([_result("tracked")])["initialised"] == 0  # absent statuses are counted as 0
+
+
+def test_only_initialisations_after_the_first_frame_count_as_re_initialised():
+    assert foreign.reinitialised_after_first([_result("initialised")] + [_result("tracked")] * 19) == 0.0
+    results = [_result("initialised"), _result("tracked"), _result("lost"), _result("initialised")]
+    assert foreign.reinitialised_after_first(results) == 0.25
+
+
+def test_tracking_rows_read_the_stage_records_in_frame_order(tmp_path):
+    for frame, status in ((3, "initialised"), (4, "tracked"), (5, "initialised")):
+        frames_io.write_json(tracking_path(tmp_path / "tracking", frame),
+                             {"frame": frame, "result": _result(status, doubtful=frame == 5), "state": {}})
+    row = foreign.tracking_row(tmp_path, [3, 4, 5], stage_ms=12.5)
+    assert row == {"tracker_ms_per_frame": 12.5, "reinitialised_fraction": pytest.approx(1 / 3),
+                   "statuses": {"tracked": 1, "initialised": 2, "predicted": 0, "lost": 0, "doubtful": 1}}
+
+
+def test_captures_are_the_subfolders_with_a_capture_yaml(tmp_path):
+    for name in ("walk", "frontkick", "notes"):
+        (tmp_path / name).mkdir()
+    for name in ("walk", "frontkick"):
+        (tmp_path / name / "capture.yaml").write_text("fps: 30\n")
+    assert foreign.find_captures(tmp_path) == [tmp_path / "frontkick", tmp_path / "walk"]
+    with pytest.raises(suite.SuiteSkipped, match="holds no capture"):
+        foreign.find_captures(tmp_path / "notes")
+
+
+def test_absent_folder_skips_the_suite_with_one_line_and_keeps_the_results(tmp_path, monkeypatch):
+    monkeypatch.setattr(foreign, "FOREIGN_ROOT", tmp_path / "shared" / "foreign")
+    options = suite.BenchOptions(out=tmp_path / "bench", captures=tmp_path / "captures", quick=False, workers=1)
+    lines = []
+    assert suite.run_bench(["foreign"], options, log=lines.append) == {}
+    assert lines[1:] == [f"bench: foreign suite skipped: no folder {tmp_path / 'shared' / 'foreign'} "
+                         "(expected one capture folder with a capture.yaml per subfolder)"]
+    assert not (tmp_path / "bench" / suite.RESULTS_JSON).exists()
+
+
+SQUARE = np.zeros((20, 30), np.uint8)
+SQUARE[5:15, 10:20] = 255
+
+
+def _evaluated_run(root, estimates: tuple[np.ndarray, ...] = ()) -> dict:
+    """A run whose joints are the truth and whose camera ``cam_a`` has ``estimates`` as silhouettes of a
+    true mask (a 10 x 10 square), evaluated against ``<capture>/groundtruth/``."""
+    capture, out = root / "capture", root / "out"
+    truth = np.random.default_rng(0).uniform([-0.3, -0.3, 0.0], [0.3, 0.3, 1.8], (3, 17, 3))
+    write_joints_csv(capture / "groundtruth" / "joints.csv", np.arange(3), truth)
+    write_joints_csv(out / "export" / "joints.csv", np.arange(3), truth)
+    for frame, estimate in enumerate(estimates):
+        frames_io.write_mask(capture / "groundtruth" / "masks" / "cam_a" / f"{frame:06d}.png", SQUARE)
+        frames_io.write_mask(out / "silhouettes" / "cam_a" / f"{frame:06d}.png", estimate)
+    return evaluate_run(out, truth=capture / "groundtruth" / "joints.csv")
+
+
+def test_silhouettes_are_scored_against_the_groundtruth_masks_by_their_median(tmp_path):
+    # IoU 1, 1/3 (half overlap: 50 / 150) and 0 (no overlap): the median is the middle one, the mean lower.
+    metrics = _evaluated_run(tmp_path, (SQUARE, np.roll(SQUARE, 5, axis=1), np.roll(SQUARE, 10, axis=1)))
+    scores = foreign.foreign_scores(metrics)
+    assert scores["silhouette_iou_median"] == pytest.approx(1 / 3)
+    assert scores["silhouette_iou"] == pytest.approx(4 / 9) and scores["mpjpe_mm"] == 0.0
+
+
+def test_without_true_masks_the_median_is_unknown_not_zero(tmp_path):
+    assert foreign.foreign_scores(_evaluated_run(tmp_path))["silhouette_iou_median"] is None
+
+
+def test_tracker_time_is_a_multiple_of_the_references():
+    assert foreign.with_reference({"tracker_ms_per_frame": 30.0}, 20.0)["tracker_vs_reference"] == 1.5
+    assert foreign.with_reference({"capture": "broken"}, 20.0)["tracker_vs_reference"] is None
+    assert foreign.with_reference({"tracker_ms_per_frame": 30.0}, None)["tracker_vs_reference"] is None
