@@ -34,6 +34,7 @@ SUBCOMMANDS: dict[str, str] = {
     "synth": "pipeline.synth.cli",
     "params": "pipeline.commands.params",
     "bench": "pipeline.commands.bench",
+    "warmup": "pipeline.commands.warmup",
 }
 
 #: Exit status for a user error (as argparse uses for a bad command line).
