@@ -10,16 +10,17 @@ so a shadow lowers α but leaves ‖r‖ small, while a person in front of the b
 direction or the brightness. As in that paper, distortions are measured in units of the noise; with a
 clean plate instead of a training sequence, the noise is estimated from each frame:
 
-- the camera's exposure may drift from the plate's (and a codec may shift levels): the frame's exposure
-  ratio g is the median of α over the image (the person covers less than half of it), and the
-  background model is gB;
-- the noise level σ comes from the lower quartile of ‖I − gB‖ over the image, and grows where the
+- the camera's exposure and white balance may drift from the plate's (flicker, automatic white balance,
+  a codec shifting levels): each channel's exposure ratio g_k is the median of I_k / B_k over the image
+  (the person covers less than half of it), and the background model is G B with G = diag(g); α and the
+  distortions below are taken against G B;
+- the noise level σ comes from the lower quartile of ‖I − GB‖ over the image, and grows where the
   background is textured, because a sub-pixel shift or compression changes a textured pixel by about its
   gradient times the shift: σ_p² = σ² + (κ ‖∇B‖)² / 3.
 
-The evidence is ‖I − gB‖ / σ_p, except on shadows, where only the chromaticity distortion counts. A
+The evidence is ‖I − GB‖ / σ_p, except on shadows, where only the chromaticity distortion counts. A
 pixel looks like a shadow when it is darker than the background by as much as a shadow darkens
-(α / g between ``shadow_min`` and ``shadow_max``) with its colour direction unchanged. Colour alone cannot
+(α between ``shadow_min`` and ``shadow_max``) with its colour direction unchanged. Colour alone cannot
 tell a shadow from dark clothing in front of a background of the same hue (navy trousers on a blue mat, a
 grey shirt on a lighter grey wall), and taking every such pixel for a shadow cut a tenth of the person
 away. Geometry can: a person's shadow lies on the floor and darkens it alike from every side, so a
@@ -55,8 +56,8 @@ BACKGROUND_ENERGY_FLOOR = 1e-3
 # Every SAMPLE_STRIDE-th pixel along both axes enters the exposure and noise estimates: a few thousand
 # pixels fix a median or a quartile to well under a percent, at a sixteenth of the cost.
 SAMPLE_STRIDE = 4
-# The 25th percentile of a χ² variable with 3 degrees of freedom: ‖I − gB‖² / σ² of background pixels
-# under Gaussian noise of σ per channel, so σ² = (lower quartile of ‖I − gB‖²) / this.
+# The 25th percentile of a χ² variable with 3 degrees of freedom: ‖I − GB‖² / σ² of background pixels
+# under Gaussian noise of σ per channel, so σ² = (lower quartile of ‖I − GB‖²) / this.
 CHI2_3_LOWER_QUARTILE = 1.2125
 # Bounds on the per-channel noise σ (8-bit levels). Below: 8-bit quantisation, after blur and averaging,
 # is still about this much. Above: heavier than any usable camera's noise; a larger lower quartile means
@@ -68,9 +69,13 @@ NOISE_SIGMA_MAX = 6.0
 # faint to show on blocks lie next to parts that do).
 COARSE_FACTOR = 4
 COARSE_MARGIN = 3
-# Bounds on the exposure ratio g between frame and background: drift and codec level shifts stay well
-# inside; outside, the median is not the background's (a person filling the view) and is not trusted.
+# Bounds on each channel's exposure ratio g_k between frame and background: drift, white balance and codec
+# level shifts stay well inside; outside, the median is not the background's (a person filling the view)
+# and is not trusted.
 EXPOSURE_RATIO_RANGE = (0.7, 1.4)
+# Channel levels below this do not enter the exposure ratios (their ratio is mostly noise), unless too few
+# pixels of the sample are brighter (a dark room): then every pixel does.
+EXPOSURE_MIN_LEVEL = 16
 # Matting (full-resolution pixels): the person's colour next to the outline is the mean of the mask's
 # pixels at least CORE_DEPTH_PX inside it (lens blur and compression mix the outermost ones) within
 # MATTE_RADIUS_PX, and the outline is measured on pixels up to MATTE_RADIUS_PX from it, on both sides.
@@ -111,13 +116,13 @@ class SilhouetteParams:
         only, for very noisy input; 1 = none (the thresholds already follow the noise, and a blur widens
         the person's edges, which the weak threshold then takes in).
     strong_threshold : float
-        Evidence ‖I − gB‖ / σ (in noise standard deviations) above which a pixel seeds the person: high
+        Evidence ‖I − GB‖ / σ (in noise standard deviations) above which a pixel seeds the person: high
         enough that noise alone practically never reaches it.
     weak_threshold : float
         Evidence above which a pixel is person when its region holds a seed: low enough to keep clothing
         close to the background colour, high enough that the noise does not grow a halo.
     shadow_min, shadow_max : float
-        Pixels whose brightness relative to the background, α / g, lies in [min, max] and whose colour
+        Pixels whose brightness relative to the background, α, lies in [min, max] and whose colour
         direction has not changed (chromaticity distortion below ``weak_threshold``) look like a shadow
         (at darkest ``shadow_min``, at faintest ``shadow_max``). Darker or brighter changes are never
         shadows.
@@ -198,12 +203,10 @@ class BackgroundModel:
     image: np.ndarray  # (H, W, 3) uint8 the background itself
     B: np.ndarray  # (h, w, 3) uint8 background colours at the working resolution, blurred
     B_sharp: np.ndarray  # (h, w, 3) uint8 the same before the blur
-    BB: np.ndarray  # (h, w) float32 B·B
-    inverse_BB: np.ndarray  # (h, w) float32 1 / (B·B + BACKGROUND_ENERGY_FLOOR)
+    B2: np.ndarray  # (h, w, 3) float32 the squares B_k² (a frame's G B · G B is their sum weighted by g_k²)
     texture_variance: np.ndarray  # (h, w) float32 (κ ‖∇B‖)² / 3, per-channel noise variance from texture
     # Colours below are stored channels first, as :func:`_dot` wants them (a copy saved per frame).
     sample_B: np.ndarray  # (3, h / SAMPLE_STRIDE, w / SAMPLE_STRIDE) float32 every SAMPLE_STRIDE-th of B_sharp
-    sample_divisor: np.ndarray  # (h / SAMPLE_STRIDE, w / SAMPLE_STRIDE) float32 B·B + BACKGROUND_ENERGY_FLOOR there
     coarse_B: np.ndarray  # (3, h / COARSE_FACTOR, w / COARSE_FACTOR) float32 B_sharp averaged over blocks
     coarse_texture_variance: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR) float32 the same for the texture
 
@@ -215,7 +218,6 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
         raise InputError(f"background: expected an (H, W, 3) uint8 array, got {background.dtype} {background.shape}")
     B_sharp = _downsample(background, params.downsample)
     B = _blur(B_sharp, params.blur_kernel_px)  # (h, w, 3) uint8
-    BB = cv2.transform(cv2.multiply(B, B, dtype=cv2.CV_32F), _CHANNEL_SUM)  # (h, w) B·B
     # A shift of the background by κ pixels changes a pixel by about κ times the gradient, which the
     # range of each channel over the 3x3 neighbourhood (two pixels across) measures twice over.
     spread = cv2.morphologyEx(B, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8))  # (h, w, 3) uint8
@@ -230,11 +232,9 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
         image=background,
         B=B,
         B_sharp=B_sharp,
-        BB=BB,
-        inverse_BB=1.0 / (BB + np.float32(BACKGROUND_ENERGY_FLOOR)),
+        B2=cv2.multiply(B, B, dtype=cv2.CV_32F),
         texture_variance=texture_variance,
         sample_B=sample_B,
-        sample_divisor=_dot(sample_B, sample_B) + np.float32(BACKGROUND_ENERGY_FLOOR),
         coarse_B=_channels_first(_block_mean(B_sharp, COARSE_FACTOR)),
         coarse_texture_variance=_block_mean(texture_variance, COARSE_FACTOR),
     )
@@ -282,14 +282,14 @@ class Evidence:
     I_sharp: np.ndarray  # (h, w, 3) uint8 the frame at the working resolution
     noise: _Noise
     region: tuple[slice, slice] | None
-    difference2: np.ndarray  # (h', w') float32 ‖I − gB‖² in noise variances
-    chroma2: np.ndarray  # (h', w') float32 ‖I − αB‖² in noise variances (the colour direction's change)
-    alpha: np.ndarray  # (h', w') float32 α = I·B / B·B
+    difference2: np.ndarray  # (h', w') float32 ‖I − GB‖² in noise variances
+    chroma2: np.ndarray  # (h', w') float32 ‖I − αGB‖² in noise variances (the colour direction's change)
+    alpha: np.ndarray  # (h', w') float32 α = I·GB / GB·GB, 1 on the background
     shadow_like: np.ndarray  # (h', w') bool above the weak threshold, but as a shadow would be
 
     def darkening(self) -> np.ndarray:
-        """(h', w') float32 1 − α / g, how much darker than the background each pixel is (< 0: brighter)."""
-        return 1.0 - self.alpha / np.float32(self.noise.g)
+        """(h', w') float32 1 − α, how much darker than the background each pixel is (< 0: brighter)."""
+        return 1.0 - self.alpha
 
 
 def measure_evidence(image: np.ndarray, background: np.ndarray | BackgroundModel, params: SilhouetteParams) -> Evidence:
@@ -330,10 +330,9 @@ def measure_evidence(image: np.ndarray, background: np.ndarray | BackgroundModel
         empty = np.zeros((0, 0), np.float32)
         return Evidence(image, background, I_sharp, noise, None, empty, empty, empty, empty.astype(bool))
     difference2, chroma2, alpha = _evidence(_blur(I_sharp[region], params.blur_kernel_px), background, region, noise)
-    g = np.float32(noise.g)
     weak2 = np.float32(params.weak_threshold**2)
     shadow_like = ((difference2 > weak2) & (chroma2 <= weak2)
-                   & (alpha >= g * np.float32(params.shadow_min)) & (alpha <= g * np.float32(params.shadow_max)))
+                   & (alpha >= np.float32(params.shadow_min)) & (alpha <= np.float32(params.shadow_max)))
     return Evidence(image, background, I_sharp, noise, region, difference2, chroma2, alpha, shadow_like)
 
 
@@ -469,10 +468,10 @@ def silhouette_from_evidence(view: Evidence, shadow: np.ndarray | None, params: 
     region = view.region
     y0, y1, x0, x1 = y0 + region[0].start, y1 + region[0].start, x0 + region[1].start, x1 + region[1].start
     frame_box = (slice(y0, y1), slice(x0, x1))  # the same in the working-resolution frame
-    matte = _matte(mask[box], view.I_sharp[frame_box], background.B_sharp[frame_box], view.alpha[box],
-                   view.noise.g, ds)
+    exposed = cv2.multiply(background.B_sharp[frame_box], view.noise.gains, dtype=cv2.CV_32F)  # G B in the box
+    matte = _matte(mask[box], view.I_sharp[frame_box], exposed, view.alpha[box], ds)
     if ds > 1:
-        score = _full_resolution_score(matte, image, background.image, (y0 * ds, x0 * ds), ds)
+        score = _full_resolution_score(matte, image, background.image, view.noise.gains, (y0 * ds, x0 * ds), ds)
     else:
         score = matte.score
     inside = silhouette[y0 * ds : y1 * ds, x0 * ds : x1 * ds]  # a view, clipped at the image's edges
@@ -553,25 +552,41 @@ def _blur(image: np.ndarray, blur_kernel: int) -> np.ndarray:
     return image
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class _Noise:
-    g: float  # exposure ratio of the frame to the background
+    gains: tuple[float, float, float]  # g_k, each channel's exposure ratio of the frame to the background
     sigma2: float  # σ², the per-channel noise variance (8-bit levels squared)
+
+    def exposure(self) -> np.ndarray:
+        """(3, 1, 1) float32 G's diagonal, shaped to scale channels-first colours."""
+        return np.array(self.gains, np.float32).reshape(3, 1, 1)
 
 
 def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
-    """The frame's exposure ratio and noise level, from a sample ``I`` (every SAMPLE_STRIDE-th pixel).
+    """The frame's exposure ratios and noise level, from a sample ``I`` (every SAMPLE_STRIDE-th pixel).
 
-    g is the median of α = I·B / B·B (the person covers less than half of the image); σ² the lower
-    quartile of ‖I − gB‖² over χ²₃'s, both clipped to plausible ranges (see the constants).
+    g_k is the median of I_k / B_k over the pixels bright enough in channel k (the person covers less than
+    half of the image); σ² the lower quartile of ‖I − GB‖² over χ²₃'s, both clipped to plausible ranges
+    (see the constants).
     """
     I = _channels_first(I)
     B = model.sample_B
-    alpha = _dot(I, B) / model.sample_divisor
-    g = min(max(_quantile(alpha, 0.5), EXPOSURE_RATIO_RANGE[0]), EXPOSURE_RATIO_RANGE[1])
-    D = I - np.float32(g) * B
+    gains = tuple(_exposure_ratio(I[k], B[k]) for k in range(3))
+    noise = _Noise(gains, 0.0)
+    D = I - noise.exposure() * B
     quartile = _quantile(_dot(D, D), 0.25)
-    return _Noise(g, min(max(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2), NOISE_SIGMA_MAX**2))
+    return _Noise(gains, min(max(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2), NOISE_SIGMA_MAX**2))
+
+
+def _exposure_ratio(I: np.ndarray, B: np.ndarray) -> float:
+    """One channel's exposure ratio, the median of I / B (float32 arrays of a channel), clipped to range."""
+    bright = B >= EXPOSURE_MIN_LEVEL
+    if np.count_nonzero(bright) < bright.size // 4:
+        bright = B > 0
+    if not bright.any():
+        return 1.0
+    ratio = _quantile(I[bright] / B[bright], 0.5)
+    return min(max(ratio, EXPOSURE_RATIO_RANGE[0]), EXPOSURE_RATIO_RANGE[1])
 
 
 def _person_region(
@@ -579,12 +594,12 @@ def _person_region(
 ) -> tuple[slice, slice] | None:
     """The part of the working-resolution frame ``I`` (h, w, 3) uint8 worth a close look, or None.
 
-    On blocks of COARSE_FACTOR x COARSE_FACTOR working pixels, ‖I − gB‖² is compared with the weak
+    On blocks of COARSE_FACTOR x COARSE_FACTOR working pixels, ‖I − GB‖² is compared with the weak
     threshold at the working resolution's noise (averaging only lowers the noise, so this errs towards
     looking); the answer is the box around every block that passes, with a margin of COARSE_MARGIN
     blocks for the parts of the person too faint to show on blocks.
     """
-    D = _channels_first(_block_mean(I, COARSE_FACTOR)) - np.float32(noise.g) * model.coarse_B
+    D = _channels_first(_block_mean(I, COARSE_FACTOR)) - noise.exposure() * model.coarse_B
     difference2 = _dot(D, D)
     passing = cv2.compare(difference2, params.weak_threshold**2 * (model.coarse_texture_variance + noise.sigma2),
                           cv2.CMP_GT)
@@ -604,18 +619,20 @@ def _span(start: int, length: int, size: int) -> slice:
 def _evidence(
     I: np.ndarray, model: BackgroundModel, region: tuple[slice, slice], noise: _Noise
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """‖I − gB‖² and ‖I − αB‖² per pixel of ``region``, in noise variances, and the brightness distortion α.
+    """‖I − GB‖² and ‖I − αGB‖² per pixel of ``region``, in noise variances, and the brightness distortion α.
 
-    ``I`` (h', w', 3) uint8 is the region. With α = I·B / B·B, the chromaticity distortion is
-    ‖I − αB‖² = I·I − α I·B (the remainder orthogonal to B) and ‖I − gB‖² = I·I − 2g I·B + g² B·B.
-    The products are taken straight from uint8 into float32.
+    ``I`` (h', w', 3) uint8 is the region. With α = I·GB / GB·GB, the chromaticity distortion is
+    ‖I − αGB‖² = I·I − α I·GB (the remainder orthogonal to GB) and ‖I − GB‖² = I·I − 2 I·GB + GB·GB.
+    The products are taken straight from uint8 into float32; I·GB and GB·GB are channel sums weighted by
+    g_k and g_k².
     """
-    g = noise.g
+    gains = np.array([noise.gains], np.float32)  # (1, 3)
     II = cv2.transform(cv2.multiply(I, I, dtype=cv2.CV_32F), _CHANNEL_SUM)  # (h', w') I·I
-    IB = cv2.transform(cv2.multiply(I, model.B[region], dtype=cv2.CV_32F), _CHANNEL_SUM)  # (h', w') I·B
-    alpha = cv2.multiply(IB, model.inverse_BB[region])  # (h', w') α
-    chroma2 = cv2.subtract(II, cv2.multiply(IB, alpha))  # (h', w') ‖I − αB‖² (≥ 0 up to rounding)
-    difference2 = cv2.scaleAdd(model.BB[region], g * g, cv2.addWeighted(II, 1.0, IB, -2.0 * g, 0.0))  # ‖I − gB‖²
+    IB = cv2.transform(cv2.multiply(I, model.B[region], dtype=cv2.CV_32F), gains)  # (h', w') I·GB
+    BB = cv2.transform(model.B2[region], gains * gains)  # (h', w') GB·GB
+    alpha = cv2.divide(IB, BB + np.float32(BACKGROUND_ENERGY_FLOOR))  # (h', w') α
+    chroma2 = cv2.subtract(II, cv2.multiply(IB, alpha))  # (h', w') ‖I − αGB‖² (≥ 0 up to rounding)
+    difference2 = cv2.add(cv2.addWeighted(II, 1.0, IB, -2.0, 0.0), BB)  # ‖I − GB‖²
     variance = model.texture_variance[region] + np.float32(noise.sigma2)
     return cv2.divide(difference2, variance), cv2.divide(chroma2, variance), alpha
 
@@ -650,25 +667,25 @@ class _Matte:
     rows: np.ndarray  # (m,) int working-resolution pixels
     cols: np.ndarray  # (m,) int
     F: np.ndarray  # (3, m) float32 the person's colour next to each
-    lam: np.ndarray  # (m,) float32 the background's brightness factor λ next to each
+    lam: np.ndarray  # (m,) float32 the exposed background's brightness factor λ next to each
 
 
 # The matte's score where the mask decides, by mask value: a table lookup costs a third of np.where.
 _MASK_SCORE = np.where(np.arange(256) > 0, np.float32(SCORE_FLOOR), np.float32(-SCORE_FLOOR))
 
 
-def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, g: float, downsample: int) -> _Matte:
+def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, downsample: int) -> _Matte:
     """The person's share φ of the pixels near the outline, and what it was measured against.
 
     A pixel on a blurred edge mixes the person's colour F and the background's, λB:
     I = φ F + (1 − φ) λB, so φ = (I − λB)·(F − λB) / ‖F − λB‖². F is the mean colour of the mask's core
     nearby (pixels ``CORE_DEPTH_PX`` inside it) and λ the mean brightness distortion of the pixels just
-    outside (g, or less in the person's shadow). The true outline runs where φ = 1/2; a fixed threshold
-    would keep the whole blurred edge of a high-contrast outline and grow the silhouette. ``I`` and ``B``
-    (h, w, 3) uint8 are not blurred, so the edge is as sharp as the camera made it. φ is measured within
-    ``MATTE_RADIUS_PX`` of the outline, on both sides; elsewhere (and where F is too close to the
-    background to measure it) the mask decides, with a small magnitude so that interpolation still places
-    the outline between pixels.
+    outside (1, or less in the person's shadow). The true outline runs where φ = 1/2; a fixed threshold
+    would keep the whole blurred edge of a high-contrast outline and grow the silhouette. ``I`` (h, w, 3)
+    uint8 and the exposed background ``B`` = GB (h, w, 3) float32 are not blurred, so the edge is as sharp
+    as the camera made it. φ is measured within ``MATTE_RADIUS_PX`` of the outline, on both sides;
+    elsewhere (and where F is too close to the background to measure it) the mask decides, with a small
+    magnitude so that interpolation still places the outline between pixels.
     """
     depth = _disk(max(1, round(CORE_DEPTH_PX / downsample)))
     radius = max(1, round(MATTE_RADIUS_PX / downsample))
@@ -687,7 +704,7 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, g:
     sums = sums.ravel().take(_channel_index(index, 5))  # (5, n)
     n_core, n_outside = sums[3:] / 255.0  # (n,) pixels nearby
     alpha_sum = cv2.boxFilter(cv2.bitwise_and(alpha, alpha, mask=outside), -1, size, normalize=False)
-    lam = np.where(n_outside > 0, alpha_sum.ravel().take(index) / np.maximum(n_outside, 1.0), np.float32(g))  # λ
+    lam = np.where(n_outside > 0, alpha_sum.ravel().take(index) / np.maximum(n_outside, 1.0), np.float32(1.0))  # λ
     F = sums[:3] / np.maximum(n_core, 1.0)  # (3, n)
     at = _channel_index(index, 3)
     phi, EE = _share(I.ravel().take(at), F, lam * B.ravel().take(at))
@@ -748,7 +765,8 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _full_resolution_score(
-    matte: _Matte, image: np.ndarray, background: np.ndarray, origin: tuple[int, int], downsample: int
+    matte: _Matte, image: np.ndarray, background: np.ndarray, gains: tuple[float, float, float],
+    origin: tuple[int, int], downsample: int,
 ) -> np.ndarray:
     """(h ds, w ds) float32 outline score of the box at full resolution, from its working-resolution matte.
 
@@ -768,7 +786,8 @@ def _full_resolution_score(
     index = (np.minimum(rows + origin[0], image.shape[0] - 1) * image.shape[1]
              + np.minimum(cols + origin[1], image.shape[1] - 1))  # (m, ds²) flat indices in the image
     at = _channel_index(index, 3)
-    lam_B = background.ravel().take(at) * matte.lam[:, None]  # (3, m, ds²) λB
+    exposure = np.array(gains, np.float32)[:, None, None]
+    lam_B = background.ravel().take(at) * (exposure * matte.lam[:, None])  # (3, m, ds²) λGB
     phi, _ = _share(image.ravel().take(at), matte.F[:, :, None], lam_B)
     score.ravel()[rows * (width * ds) + cols] = phi - 0.5
     return score

@@ -228,3 +228,16 @@ def test_extract_silhouettes_rejects_mismatched_views():
     image = np.zeros((HEIGHT, WIDTH, 3), np.uint8)
     with pytest.raises(InputError, match="as many"):
         extract_silhouettes([image, image], [image], _ring(2), np.array([[-1, -1, 0], [1, 1, 2.0]]), SilhouetteParams())
+
+
+
+def test_clothing_close_to_the_wall_is_found_after_a_change_of_white_balance():
+    rng = np.random.default_rng(11)
+    background = np.full((HEIGHT, WIDTH, 3), (170.0, 180.0, 185.0))
+    truth = _person_mask()
+    image = background.copy()
+    image[truth > 0] += (12.0, -9.0, 10.0)  # about 18 levels from the wall
+    image = image * np.array([1.06, 1.0, 0.94])  # the camera's automatic white balance moved since the plate
+    image = np.clip(image + rng.normal(0.0, 2.0, image.shape), 0, 255).astype(np.uint8)
+    mask = extract_silhouette(image, background.astype(np.uint8), SilhouetteParams())
+    assert _iou(mask, truth) > 0.9
