@@ -87,7 +87,7 @@ MIN_MATTE_CONTRAST = 8.0
 # Magnitude (a share of the pixel) given to the outline score where the mask decides.
 SCORE_FLOOR = 0.1
 # The floor test looks at the floor behind blocks of FLOOR_BLOCK x FLOOR_BLOCK working pixels at once
-# (a shadow's darkening changes over many pixels; a quarter of the rays and projections).
+# (a shadow's darkening changes over many pixels; a quarter of the look-up tables' size and making).
 FLOOR_BLOCK = 2
 #: Choices of ``SilhouetteParams.shadows``.
 SHADOW_TESTS = ("floor", "colour", "none")
@@ -336,76 +336,59 @@ def measure_evidence(image: np.ndarray, background: np.ndarray | BackgroundModel
     return Evidence(image, background, I_sharp, noise, region, difference2, chroma2, alpha, shadow_like)
 
 
-def floor_shadows(views: Sequence[Evidence], cameras: Sequence[Camera], footprint: np.ndarray,
-                  params: SilhouetteParams) -> list[np.ndarray]:
-    """Per view, which of its shadow-like pixels are the person's shadow on the floor, (h', w') bool each.
-
-    A shadow-like pixel's ray meets the floor (z = 0, the world's convention) at a point X within the
-    working volume's ``footprint`` (2, 2) [[x_min, y_min], [x_max, y_max]]. If the pixel is a shadow,
-    X is darkened, and every other camera that sees X unoccluded sees it darkened alike (a matt floor
-    looks the same from every side). If the pixel is clothing darker than the background behind it,
-    X is bare floor somewhere behind the person, and the other cameras see it undarkened. Each other
-    camera votes: no vote where X is outside its image or hidden by foreground that is not shadow-like
-    (a limb in front of it); a vote for a shadow where X is darkened by at least ``SHADOW_AGREEMENT`` of
-    the pixel's darkening; against otherwise. A pixel is a shadow when it has a vote for and at least as
-    many for as against. Rays that never reach the floor (above the horizon) are never shadows.
-
-    ``cameras`` are at the frames' full resolution, in the order of ``views``; ``params`` gives the weak
-    threshold, above which a pixel that is not shadow-like hides the floor.
-    """
-    if len(views) != len(cameras):
-        raise InputError(f"floor_shadows: {len(views)} views but {len(cameras)} cameras, expected as many")
-    looks = [_floor_look(view, params) for view in views]
-    shadows = []
-    for index, (view, camera) in enumerate(zip(views, cameras, strict=True)):
-        shadow = np.zeros(view.shadow_like.shape, bool)
-        rows, cols = np.nonzero(view.shadow_like)
-        # Shadows are soft: the floor points of FLOOR_BLOCK x FLOOR_BLOCK pixels are looked at together.
-        blocks, pixel_block = np.unique((rows // FLOOR_BLOCK) * shadow.shape[1] + cols // FLOOR_BLOCK,
-                                        return_inverse=True)
-        block_rows, block_cols = np.divmod(blocks, shadow.shape[1])
-        centre = (FLOOR_BLOCK - 1) / 2
-        X, on_floor = _floor_points(camera, _full_resolution_pixels(view, block_rows * FLOOR_BLOCK + centre,
-                                                                     block_cols * FLOOR_BLOCK + centre))
-        on_floor &= np.all((X[:, :2] >= footprint[0]) & (X[:, :2] <= footprint[1]), axis=1)
-        needed = SHADOW_AGREEMENT * view.darkening()[rows, cols]  # (n,) per pixel
-        votes_for = np.zeros(len(rows), np.int32)
-        votes_against = np.zeros(len(rows), np.int32)
-        X = X[on_floor]
-        for other, (look, other_camera) in enumerate(zip(looks, cameras, strict=True)):
-            if other == index or len(X) == 0:
-                continue
-            seen_darkening, seen = np.zeros(len(blocks), np.float32), np.zeros(len(blocks), bool)
-            seen_darkening[on_floor], seen[on_floor] = _darkening_seen(look, views[other], other_camera, X)
-            darkening, visible = seen_darkening[pixel_block], seen[pixel_block]
-            votes_for += visible & (darkening >= needed)
-            votes_against += visible & (darkening < needed)
-        shadow[rows, cols] = (votes_for > 0) & (votes_for >= votes_against)
-        shadows.append(shadow)
-    return shadows
-
-
 @dataclass(frozen=True, eq=False)
-class _FloorLook:
-    darkening: np.ndarray  # (h', w') float32 1 − α/g smoothed over 3 x 3 pixels (noise), 0 for the hidden
-    hidden: np.ndarray  # (h', w') bool foreground that is not shadow-like: whatever lies behind is not seen
+class FloorGeometry:
+    """Where each camera sees the floor behind its pixels, and where the other cameras see those points.
+
+    Built once per rig by :func:`floor_geometry`: the undistortions and projections cost tens of
+    milliseconds per camera, the look-ups a frame makes in them almost nothing. Pixels are grouped in
+    blocks of FLOOR_BLOCK x FLOOR_BLOCK working pixels (a shadow's darkening changes over many pixels).
+    """
+
+    working_shapes: tuple[tuple[int, int], ...]  # (h, w) of each camera's working-resolution frame
+    block_columns: tuple[int, ...]  # blocks per row of each camera's frame
+    # seen_at[c][b] (blocks of c,) int32: the flat working pixel of camera b that sees the floor point
+    # behind each block of camera c; -1 where that ray misses the floor or the footprint, or b does not
+    # see the point. None for b = c.
+    seen_at: tuple[tuple[np.ndarray | None, ...], ...]
 
 
-def _floor_look(view: Evidence, params: SilhouetteParams) -> _FloorLook:
-    """What a view says of the floor points it sees: how dark each pixel is, and where it sees none."""
-    if view.region is None:
-        return _FloorLook(np.zeros((0, 0), np.float32), np.zeros((0, 0), bool))
-    hidden = (view.difference2 > np.float32(params.weak_threshold**2)) & ~view.shadow_like
-    return _FloorLook(cv2.blur(view.darkening(), (3, 3)), hidden)
+def floor_geometry(cameras: Sequence[Camera], volume: np.ndarray, params: SilhouetteParams) -> FloorGeometry:
+    """The :class:`FloorGeometry` of a rig, for :func:`floor_shadows`.
 
-
-def _full_resolution_pixels(view: Evidence, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """(n, 2) full-resolution pixel coordinates (u, v) of points (rows, cols) of the region, in working
-    pixels (integers at their centres)."""
-    ds = view.model.downsample
-    u = (cols + view.region[1].start + 0.5) * ds - 0.5
-    v = (rows + view.region[0].start + 0.5) * ds - 0.5
-    return np.column_stack([u, v]).astype(np.float64)
+    Parameters
+    ----------
+    cameras : sequence of Camera
+        The views' cameras at the images' resolution, world frame with the floor at z = 0.
+    volume : (2, 3) float
+        Working volume [min; max], metres: shadows are looked for on the floor within its footprint.
+    params : SilhouetteParams
+        Its ``downsample`` sets the working resolution.
+    """
+    footprint = np.asarray(volume, dtype=float)[:, :2]
+    ds = params.downsample
+    shapes = tuple((max(1, round(camera.size[1] / ds)), max(1, round(camera.size[0] / ds))) for camera in cameras)
+    columns, seen_at = [], []
+    for index, (camera, (height, width)) in enumerate(zip(cameras, shapes, strict=True)):
+        block_rows, block_cols = np.divmod(np.arange(-(-height // FLOOR_BLOCK) * -(-width // FLOOR_BLOCK)),
+                                           -(-width // FLOOR_BLOCK))
+        centre = (FLOOR_BLOCK - 1) / 2
+        uv = np.column_stack([(block_cols * FLOOR_BLOCK + centre + 0.5) * ds - 0.5,
+                              (block_rows * FLOOR_BLOCK + centre + 0.5) * ds - 0.5])
+        X, on_floor = _floor_points(camera, uv)
+        on_floor &= np.all((X[:, :2] >= footprint[0]) & (X[:, :2] <= footprint[1]), axis=1)
+        X = X[on_floor]
+        seen = []
+        for other, (other_camera, other_shape) in enumerate(zip(cameras, shapes, strict=True)):
+            if other == index:
+                seen.append(None)
+                continue
+            pixels = np.full(len(uv), -1, np.int32)
+            pixels[on_floor] = _working_pixel(other_camera, other_shape, ds, X)
+            seen.append(pixels)
+        columns.append(-(-width // FLOOR_BLOCK))
+        seen_at.append(tuple(seen))
+    return FloorGeometry(shapes, tuple(columns), tuple(seen_at))
 
 
 def _floor_points(camera: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -418,24 +401,91 @@ def _floor_points(camera: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return centre + np.where(meets, distance, 0.0)[:, None] * rays, meets
 
 
-def _darkening_seen(look: _FloorLook, view: Evidence, camera: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(n,) darkening that ``view`` sees at the floor points ``X`` (n, 3), and (n,) whether it sees them.
-
-    Outside the view's region nothing differs from the background: the floor is seen undarkened.
-    """
+def _working_pixel(camera: Camera, shape: tuple[int, int], downsample: int, X: np.ndarray) -> np.ndarray:
+    """(n,) int32 flat index of the working pixel (of a frame of ``shape``) where ``camera`` sees ``X``
+    (n, 3); -1 where it does not (behind it, outside the image)."""
     uv = camera.project(X)
-    visible = (camera.depth(X) > 0) & camera.in_image(uv)
-    darkening = np.zeros(len(X), np.float32)
+    seen = (camera.depth(X) > 0) & camera.in_image(uv)
+    height, width = shape
+    cols = np.clip(np.floor((uv[:, 0] + 0.5) / downsample), 0, width - 1)
+    rows = np.clip(np.floor((uv[:, 1] + 0.5) / downsample), 0, height - 1)
+    return np.where(seen, rows * width + cols, -1).astype(np.int32)
+
+
+def floor_shadows(views: Sequence[Evidence], floor: FloorGeometry, params: SilhouetteParams) -> list[np.ndarray]:
+    """Per view, which of its shadow-like pixels are the person's shadow on the floor, (h', w') bool each.
+
+    A shadow-like pixel's ray meets the floor (z = 0, the world's convention) at a point X within the
+    working volume's footprint. If the pixel is a shadow, X is darkened, and every other camera that sees
+    X unoccluded sees it darkened alike (a matt floor looks the same from every side). If the pixel is
+    clothing darker than the background behind it, X is bare floor somewhere behind the person, and the
+    other cameras see it undarkened. Each other camera votes: no vote where X is outside its image or
+    hidden by foreground that is not shadow-like (a limb in front of it); a vote for a shadow where X is
+    darkened by at least ``SHADOW_AGREEMENT`` of the pixel's darkening; against otherwise. A pixel is a
+    shadow when it has a vote for and at least as many for as against. Rays that never reach the floor
+    (above the horizon) are never shadows.
+
+    ``floor`` is the rig's :func:`floor_geometry`, its cameras in the order of ``views``; ``params`` gives
+    the weak threshold, above which a pixel that is not shadow-like hides the floor.
+    """
+    shapes = tuple(view.I_sharp.shape[:2] for view in views)
+    if shapes != floor.working_shapes:
+        raise InputError(f"floor_shadows: views of working sizes {shapes}, but a floor geometry made for "
+                         f"{floor.working_shapes}; expected the same cameras in the same order")
+    looks = [_floor_look(view, params) for view in views]
+    shadows = []
+    for index, view in enumerate(views):
+        shadow = np.zeros(view.shadow_like.shape, bool)
+        rows, cols = np.nonzero(view.shadow_like)
+        if len(rows) == 0:
+            shadows.append(shadow)
+            continue
+        blocks = (((rows + view.region[0].start) // FLOOR_BLOCK) * floor.block_columns[index]
+                  + (cols + view.region[1].start) // FLOOR_BLOCK)
+        needed = SHADOW_AGREEMENT * view.darkening()[rows, cols]  # (n,)
+        votes_for = np.zeros(len(rows), np.int32)
+        votes_against = np.zeros(len(rows), np.int32)
+        for other, (look, other_view) in enumerate(zip(looks, views, strict=True)):
+            if other == index:
+                continue
+            darkening, visible = _darkening_seen(look, other_view, floor.seen_at[index][other].take(blocks))
+            votes_for += visible & (darkening >= needed)
+            votes_against += visible & (darkening < needed)
+        shadow[rows, cols] = (votes_for > 0) & (votes_for >= votes_against)
+        shadows.append(shadow)
+    return shadows
+
+
+@dataclass(frozen=True, eq=False)
+class _FloorLook:
+    darkening: np.ndarray  # (h', w') float32 1 − α smoothed over 3 x 3 pixels (noise)
+    hidden: np.ndarray  # (h', w') bool foreground that is not shadow-like: whatever lies behind is not seen
+
+
+def _floor_look(view: Evidence, params: SilhouetteParams) -> _FloorLook:
+    """What a view says of the floor points it sees: how dark each pixel is, and where it sees none."""
+    if view.region is None:
+        return _FloorLook(np.zeros((0, 0), np.float32), np.zeros((0, 0), bool))
+    hidden = (view.difference2 > np.float32(params.weak_threshold**2)) & ~view.shadow_like
+    return _FloorLook(cv2.blur(view.darkening(), (3, 3)), hidden)
+
+
+def _darkening_seen(look: _FloorLook, view: Evidence, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) darkening that ``view`` sees at its flat working ``pixels`` (n,) (-1: none), and (n,) whether
+    it sees the floor there. Outside the view's region nothing differs from the background: the floor is
+    seen undarkened."""
+    visible = pixels >= 0
+    darkening = np.zeros(len(pixels), np.float32)
     if view.region is None:
         return darkening, visible
-    ds = view.model.downsample
-    cols = np.floor((uv[:, 0] + 0.5) / ds).astype(np.int64) - view.region[1].start
-    rows = np.floor((uv[:, 1] + 0.5) / ds).astype(np.int64) - view.region[0].start
+    rows, cols = np.divmod(pixels, view.I_sharp.shape[1])
+    rows -= view.region[0].start
+    cols -= view.region[1].start
     height, width = look.darkening.shape
-    inside = visible & (rows >= 0) & (rows < height) & (cols >= 0) & (cols < width)
+    inside = np.flatnonzero(visible & (rows >= 0) & (rows < height) & (cols >= 0) & (cols < width))
     at_rows, at_cols = rows[inside], cols[inside]
     darkening[inside] = look.darkening[at_rows, at_cols]
-    visible[np.flatnonzero(inside)[look.hidden[at_rows, at_cols]]] = False
+    visible[inside[look.hidden[at_rows, at_cols]]] = False
     return darkening, visible
 
 
@@ -494,8 +544,8 @@ def extract_silhouette(
 
 
 def extract_silhouettes(
-    images: Sequence[np.ndarray], backgrounds: Sequence[np.ndarray | BackgroundModel], cameras: Sequence[Camera],
-    volume: np.ndarray, params: SilhouetteParams,
+    images: Sequence[np.ndarray], backgrounds: Sequence[np.ndarray | BackgroundModel], floor: FloorGeometry,
+    params: SilhouetteParams,
 ) -> list[np.ndarray]:
     """(H, W) uint8 masks of the person in every view of one frame, shadows settled across the views.
 
@@ -503,18 +553,18 @@ def extract_silhouettes(
     ----------
     images, backgrounds : sequences of (H, W, 3) uint8 (backgrounds may be :class:`BackgroundModel`)
         The frame and background of each camera, as in :func:`measure_evidence`.
-    cameras : sequence of Camera
-        The views' cameras at the images' resolution, world frame with the floor at z = 0.
-    volume : (2, 3) float
-        Working volume [min; max], metres: shadows are looked for on the floor within its footprint.
+    floor : FloorGeometry
+        The rig's :func:`floor_geometry`, its cameras in the order of ``images`` (used when
+        ``params.shadows`` is "floor").
     params : SilhouetteParams
     """
-    if not len(images) == len(backgrounds) == len(cameras):
+    if not len(images) == len(backgrounds) == len(floor.working_shapes):
         raise InputError(f"extract_silhouettes: {len(images)} images, {len(backgrounds)} backgrounds and "
-                         f"{len(cameras)} cameras; expected as many of each")
-    views = [measure_evidence(image, background, params) for image, background in zip(images, backgrounds, strict=True)]
+                         f"{len(floor.working_shapes)} cameras; expected as many of each")
+    views = [measure_evidence(image, background, params)
+             for image, background in zip(images, backgrounds, strict=True)]
     if params.shadows == "floor":
-        shadows = floor_shadows(views, cameras, np.asarray(volume, dtype=float)[:, :2], params)
+        shadows = floor_shadows(views, floor, params)
     elif params.shadows == "colour":
         shadows = [view.shadow_like for view in views]
     else:

@@ -42,7 +42,7 @@ from pipeline.synth.render import body_scene, pixel_grid_rays, render_body
 from pipeline.synth.writer import SynthParams, prepare_motion
 from stages.export.metrics import mask_iou
 from stages.reconstruction import Observations, ReconstructionParams, reconstruct
-from stages.silhouettes import SilhouetteParams, background_model, extract_silhouettes
+from stages.silhouettes import SilhouetteParams, background_model, extract_silhouettes, floor_geometry
 
 OUTLIER_DISTANCE_M = 0.03
 IMAGE_SIZE = (780, 580)
@@ -134,12 +134,12 @@ def bench_silhouettes(captures: list[Path], max_frames: int) -> None:
 def _segment(capture: Capture, frames: list[int], params: SilhouetteParams) -> tuple[dict[int, list], np.ndarray]:
     """Every camera's mask of each of ``frames`` as the silhouette stage makes them, and (F,) seconds per frame."""
     backgrounds = [background_model(background_image(capture, camera), params) for camera in capture.rig.names]
+    floor = floor_geometry(list(capture.rig), capture.volume, params)
     images = [dict(capture.iter_images(camera, frames)) for camera in capture.rig.names]
     segmented, seconds = {}, np.zeros(len(frames))
     for k, frame in enumerate(frames):
         start = time.perf_counter()
-        segmented[frame] = extract_silhouettes([views[frame] for views in images], backgrounds, list(capture.rig),
-                                               capture.volume, params)
+        segmented[frame] = extract_silhouettes([views[frame] for views in images], backgrounds, floor, params)
         seconds[k] = time.perf_counter() - start
     return segmented, seconds
 

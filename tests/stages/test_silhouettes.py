@@ -9,6 +9,7 @@ from stages.silhouettes import (
     background_model,
     extract_silhouette,
     extract_silhouettes,
+    floor_geometry,
     median_background,
 )
 
@@ -211,23 +212,27 @@ def test_floor_shadows_are_removed_and_dark_clothing_of_the_floor_s_hue_is_kept(
     cameras = _ring(5)
     backgrounds = [_render(camera, None, rng)[0] for camera in cameras]
     frames, truths = zip(*(_render(camera, clothing, rng) for camera in cameras), strict=True)
-    volume = np.array([[-2.0, -2.0, 0.0], [2.0, 2.0, 2.0]])
-    masks = extract_silhouettes(frames, backgrounds, cameras, volume, SilhouetteParams())
+    floor = floor_geometry(cameras, np.array([[-2.0, -2.0, 0.0], [2.0, 2.0, 2.0]]), SilhouetteParams())
+    masks = extract_silhouettes(frames, backgrounds, floor, SilhouetteParams())
     for mask, truth in zip(masks, truths, strict=True):
         assert _iou(mask, truth) > 0.9
     # Without a shadow test the shadow is taken for the person; the single-view colour rule also takes
     # the clothing of the floor's hue, darker than the floor, for a shadow.
-    unshadowed = extract_silhouettes(frames, backgrounds, cameras, volume, SilhouetteParams(shadows="none"))
+    unshadowed = extract_silhouettes(frames, backgrounds, floor, SilhouetteParams(shadows="none"))
     assert np.mean([_iou(mask, truth) for mask, truth in zip(unshadowed, truths, strict=True)]) < 0.8
     if clothing is not None and np.allclose(clothing, 0.55 * FLOOR):
-        by_colour = extract_silhouettes(frames, backgrounds, cameras, volume, SilhouetteParams(shadows="colour"))
+        by_colour = extract_silhouettes(frames, backgrounds, floor, SilhouetteParams(shadows="colour"))
         assert np.mean([_iou(mask, truth) for mask, truth in zip(by_colour, truths, strict=True)]) < 0.5
 
 
 def test_extract_silhouettes_rejects_mismatched_views():
     image = np.zeros((HEIGHT, WIDTH, 3), np.uint8)
+    params = SilhouetteParams()
+    floor = floor_geometry(_ring(2), np.array([[-1, -1, 0], [1, 1, 2.0]]), params)
     with pytest.raises(InputError, match="as many"):
-        extract_silhouettes([image, image], [image], _ring(2), np.array([[-1, -1, 0], [1, 1, 2.0]]), SilhouetteParams())
+        extract_silhouettes([image, image], [image], floor, params)
+    with pytest.raises(InputError, match="floor geometry"):
+        extract_silhouettes([image[:100], image[:100]], [image[:100], image[:100]], floor, params)
 
 
 
