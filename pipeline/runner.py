@@ -24,6 +24,12 @@ frame file is a finished frame. On the next run, if the marker holds the same ke
 kept and the stage only computes the frames whose files are missing; otherwise the folder is
 emptied first. So a run never trusts a stale or half-written result.
 
+**What the runner deletes.** Only what it can show it wrote: a stage folder is emptied only when it
+holds the marker (written as the folder is made, before any result), and an output folder may not
+overlap the capture (be it, lie inside it or contain it), so that ``--out`` pointed at the capture
+cannot empty the capture's own ``calibration/`` or ``silhouettes/``. Anything else in the way is an
+:class:`InputError` naming it.
+
 A lock (``fcntl.flock`` on ``<out>/.lock``) refuses a second concurrent run on the same folder.
 """
 
@@ -483,6 +489,41 @@ class StageOutcome:
     reason: str = ""
 
 
+def check_output_folder(output_root: Path, capture_root: Path) -> None:
+    """Refuse an output folder that is the capture, lies inside it or contains it.
+
+    The runner empties ``<out>/<stage>`` folders; with ``--out`` at the capture, those would be the
+    capture's own ``calibration/`` or ``silhouettes/``, and with the capture inside ``--out`` a stage
+    folder could hold it.
+    """
+    out, capture = output_root.resolve(), capture_root.resolve()
+    if out == capture or capture in out.parents or out in capture.parents:
+        raise InputError(f"--out {output_root}: overlaps the capture {capture_root} "
+                         "(expected an output folder outside the capture, and not containing it)")
+
+
+def written_by_runner(folder: Path) -> bool:
+    """Whether ``folder`` is a stage folder the runner made: a real folder (not a link) with a marker."""
+    return not folder.is_symlink() and (folder / MARKER).is_file()
+
+
+def fresh_stage_folder(folder: Path, key: str) -> None:
+    """Make ``folder`` empty but for the marker holding ``key`` (``""`` when not known yet).
+
+    An existing folder is deleted only when it holds a marker: the runner writes one in every stage
+    folder it makes, before any result, so a folder without one (or a file, or a link) is not the
+    runner's to delete.
+    """
+    if (folder.exists() or folder.is_symlink()) and not written_by_runner(folder):
+        raise InputError(f"{folder}: not a stage folder written by the pipeline (no {MARKER} in it); "
+                         "refusing to delete it (expected only the pipeline's own folders in --out; "
+                         "move it away or choose another --out)")
+    if folder.exists():
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+    atomic.write_text(folder / MARKER, key + "\n")
+
+
 @contextlib.contextmanager
 def output_lock(output_root: Path) -> Iterator[None]:
     """Hold an exclusive lock on ``<out>/.lock`` for the duration of a run."""
@@ -534,6 +575,7 @@ class Runner:
 
     def __post_init__(self) -> None:
         check_graph(self.stages)
+        check_output_folder(self.output_root, self.capture.root)
 
     def run(self, selected: Collection[str] | None = None, *, force: bool = False) -> list[StageOutcome]:
         """Run the ``selected`` stages (default all) in declaration order; return what happened.
@@ -621,27 +663,21 @@ class Runner:
                 return StageOutcome(stage.name, "up to date", reason="")
             log.info("%s: stale (%s)", stage.name, "; ".join(reasons) or "output files changed on disk")
 
-        (folder / MANIFEST).unlink(missing_ok=True)
-        marker = folder / MARKER
-        resumable = (not force and marker.is_file()
-                     and marker.read_text(encoding="utf-8").strip() == expected.key)
+        resumable = (not force and written_by_runner(folder)
+                     and (folder / MARKER).read_text(encoding="utf-8").strip() == expected.key)
         if resumable:
+            (folder / MANIFEST).unlink(missing_ok=True)
             removed = atomic.remove_temp_files(folder)
             log.info("%s: resuming (%d leftover temporary files removed)", stage.name, removed)
         else:
-            if folder.exists():
-                shutil.rmtree(folder)
-            folder.mkdir(parents=True)
-            atomic.write_text(marker, expected.key + "\n")
+            fresh_stage_folder(folder, expected.key)
 
         frames, seconds = self._execute(stage)
         return self._finish(stage, expected, frames, seconds)
 
     def _run_streaming_stage(self, stage: Stage, upstream: cf.Future) -> StageOutcome:
         folder = self.output_root / stage.name
-        if folder.exists():
-            shutil.rmtree(folder)
-        folder.mkdir(parents=True)
+        fresh_stage_folder(folder, "")  # its key depends on the upstream's outputs: known at the end
         frames, seconds = self._execute(stage, upstream)
         upstream.result()  # its manifest is written: this stage's inputs are known now
         expected = expected_record(stage, self.capture, self.params[stage.name], self.output_root)

@@ -55,9 +55,9 @@ def main(args: argparse.Namespace) -> int:
     # The workers start first: their start-up overlaps the checks of the capture.
     with make_executor(args.workers, args.scheduler, preload=graph.WORKER_MODULES) as workers:
         capture = Capture.open(args.capture)
+        runner = Runner(stages, capture, params, args.out, workers, show_progress)  # refuses --out in the capture
         with output_lock(args.out):
             write_run_record(args.out, capture, params)
-            runner = Runner(stages, capture, params, args.out, workers, show_progress)
             outcomes = runner.run(selected, force=args.force)
     print(format_summary(outcomes))
     return 0

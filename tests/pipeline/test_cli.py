@@ -283,3 +283,11 @@ def test_failed_rerun_leaves_no_stale_result(tiny_capture, tmp_path, capsys):
     os.remove(tiny_capture / "images" / "cam0" / "000002.png")
     expect_error(capsys, run_argv(tiny_capture, out), "same frame numbers")
     assert (out / "calibration" / MANIFEST).exists()  # validation failed before touching the results
+
+
+@pytest.mark.parametrize("where", ["capture", "inside", "around"])
+def test_an_output_folder_overlapping_the_capture_is_refused_untouched(tiny_capture, capsys, where):
+    out = {"capture": tiny_capture, "inside": tiny_capture / "runs", "around": tiny_capture.parent}[where]
+    before = sorted(path.relative_to(tiny_capture) for path in tiny_capture.rglob("*"))
+    expect_error(capsys, run_argv(tiny_capture, out), f"--out {out}: overlaps the capture")
+    assert sorted(path.relative_to(tiny_capture) for path in tiny_capture.rglob("*")) == before

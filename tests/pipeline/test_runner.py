@@ -204,6 +204,41 @@ def test_deleted_output_file_is_recomputed_alone(setup):
     assert work() == ["per_frame 2"]  # identical content again, so summary stays valid
 
 
+@pytest.mark.parametrize("kind", ["folder", "file", "link"])
+def test_a_stage_folder_the_runner_did_not_write_is_never_deleted(setup, tmp_path, kind):
+    _, out, run, work = setup
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("my data")
+    out.mkdir()
+    if kind == "folder":
+        (out / "source").mkdir()
+        (out / "source" / "notes.txt").write_text("my data")
+    elif kind == "file":
+        (out / "source").write_text("my data")
+    else:
+        (out / "source").symlink_to(mine, target_is_directory=True)
+    with pytest.raises(InputError, match=f"{out / 'source'}: not a stage folder written by the pipeline"):
+        run()
+    assert work() == []
+    assert (mine / "notes.txt").read_text() == "my data"
+    assert (out / "source" if kind == "file" else out / "source" / "notes.txt").read_text() == "my data"
+
+
+def test_a_stage_folder_the_runner_wrote_is_emptied_for_a_fresh_start(setup):
+    _, out, run, _ = setup
+    run()
+    (out / "per_frame" / "extra.txt").write_text("left over")
+    run({"per_frame": {"scale": 3.0}})
+    assert not (out / "per_frame" / "extra.txt").exists()
+
+
+def test_the_runner_refuses_an_output_folder_in_the_capture(setup):
+    capture, _, _, _ = setup
+    with pytest.raises(InputError, match="overlaps the capture"):
+        Runner(STAGES, capture, default_params(STAGES), capture.root / "out", None)
+
+
 def test_force_reruns_selected_stages(setup):
     _, _, run, work = setup
     run()
