@@ -32,7 +32,7 @@ def test_tracking_rows_read_the_stage_records_in_frame_order(tmp_path):
     for frame, status in ((3, "initialised"), (4, "tracked"), (5, "initialised")):
         frames_io.write_json(tracking_path(tmp_path / "tracking", frame),
                              {"frame": frame, "result": _result(status, doubtful=frame == 5), "state": {}})
-    row = foreign.tracking_row(tmp_path, [3, 4, 5], stage_ms=12.5)
+    row = foreign.tracking_row(tmp_path, [3, 4, 5], tracker_ms=12.5)
     assert row == {"tracker_ms_per_frame": 12.5, "reinitialised_fraction": pytest.approx(1 / 3),
                    "statuses": {"tracked": 1, "initialised": 2, "predicted": 0, "lost": 0, "doubtful": 1}}
 
