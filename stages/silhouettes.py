@@ -445,10 +445,11 @@ def floor_shadows(views: Sequence[Evidence], floor: FloorGeometry, params: Silho
         needed = SHADOW_AGREEMENT * view.darkening()[rows, cols]  # (n,)
         votes_for = np.zeros(len(rows), np.int32)
         votes_against = np.zeros(len(rows), np.int32)
-        for other, (look, other_view) in enumerate(zip(looks, views, strict=True)):
+        for other, look in enumerate(looks):
             if other == index:
                 continue
-            darkening, visible = _darkening_seen(look, other_view, floor.seen_at[index][other].take(blocks))
+            pixels = floor.seen_at[index][other].take(blocks)  # (n,) -1 where there is no floor point to see
+            darkening, visible = look.darkening.take(pixels), look.visible.take(pixels)
             votes_for += visible & (darkening >= needed)
             votes_against += visible & (darkening < needed)
         shadow[rows, cols] = (votes_for > 0) & (votes_for >= votes_against)
@@ -458,35 +459,25 @@ def floor_shadows(views: Sequence[Evidence], floor: FloorGeometry, params: Silho
 
 @dataclass(frozen=True, eq=False)
 class _FloorLook:
-    darkening: np.ndarray  # (h', w') float32 1 − α smoothed over 3 x 3 pixels (noise)
-    hidden: np.ndarray  # (h', w') bool foreground that is not shadow-like: whatever lies behind is not seen
+    """What a view says of the floor points it sees, indexed by flat working pixel, plus one last entry
+    that index -1 (no floor point there) reads."""
+
+    darkening: np.ndarray  # (h w + 1,) float32 1 − α smoothed over 3 x 3 pixels (noise); 0 outside the region
+    visible: np.ndarray  # (h w + 1,) bool the floor is seen: not behind foreground that is not shadow-like
 
 
 def _floor_look(view: Evidence, params: SilhouetteParams) -> _FloorLook:
-    """What a view says of the floor points it sees: how dark each pixel is, and where it sees none."""
-    if view.region is None:
-        return _FloorLook(np.zeros((0, 0), np.float32), np.zeros((0, 0), bool))
-    hidden = (view.difference2 > np.float32(params.weak_threshold**2)) & ~view.shadow_like
-    return _FloorLook(cv2.blur(view.darkening(), (3, 3)), hidden)
-
-
-def _darkening_seen(look: _FloorLook, view: Evidence, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(n,) darkening that ``view`` sees at its flat working ``pixels`` (n,) (-1: none), and (n,) whether
-    it sees the floor there. Outside the view's region nothing differs from the background: the floor is
-    seen undarkened."""
-    visible = pixels >= 0
-    darkening = np.zeros(len(pixels), np.float32)
-    if view.region is None:
-        return darkening, visible
-    rows, cols = np.divmod(pixels, view.I_sharp.shape[1])
-    rows -= view.region[0].start
-    cols -= view.region[1].start
-    height, width = look.darkening.shape
-    inside = np.flatnonzero(visible & (rows >= 0) & (rows < height) & (cols >= 0) & (cols < width))
-    at_rows, at_cols = rows[inside], cols[inside]
-    darkening[inside] = look.darkening[at_rows, at_cols]
-    visible[inside[look.hidden[at_rows, at_cols]]] = False
-    return darkening, visible
+    """The view's :class:`_FloorLook`. Outside its region nothing differs from the background: the floor is
+    seen there, undarkened."""
+    height, width = view.I_sharp.shape[:2]
+    darkening = np.zeros(height * width + 1, np.float32)
+    visible = np.ones(height * width + 1, bool)
+    visible[-1] = False
+    if view.region is not None:
+        hidden = (view.difference2 > np.float32(params.weak_threshold**2)) & ~view.shadow_like
+        darkening[:-1].reshape(height, width)[view.region] = cv2.blur(view.darkening(), (3, 3))
+        visible[:-1].reshape(height, width)[view.region] = ~hidden
+    return _FloorLook(darkening, visible)
 
 
 def silhouette_from_evidence(view: Evidence, shadow: np.ndarray | None, params: SilhouetteParams) -> np.ndarray:
