@@ -139,7 +139,8 @@ def reconstruction_task(chunk: Sequence[int], *, capture: Capture, params: Recon
 
     with single_threaded_opencv():
         for frame in chunk:
-            masks = [frames_io.read_mask(silhouette_path(masks_dir, camera, frame)) for camera in capture.rig.names]
+            masks = [frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame), camera.size)
+                     for camera in capture.rig]
             empty = [camera for camera, mask in zip(capture.rig.names, masks, strict=True) if not mask.any()]
             if empty:
                 log.warning("frame %d: empty silhouette in camera(s) %s", frame, ", ".join(empty))

@@ -119,7 +119,7 @@ def _backgrounds(ctx: StageContext) -> None:
     """
     for camera in ctx.capture.rig.names:
         path = background_path(ctx.out_dir, camera)
-        if path.exists():
+        if path.exists() and frames_io.file_problem(path) is None:  # kept from an interrupted run, intact
             continue
         plate = ctx.capture.background_paths.get(camera)
         if plate is not None and plate.suffix.lower() == ".png":
@@ -158,16 +158,35 @@ def run_reconstruction(ctx: StageContext) -> int:
     return ctx.map_frames(task, lambda frame: [observations_path(ctx.out_dir, frame)])
 
 
+#: Statuses of tracked frames that are exported (the others were only predicted).
+EXPORTED_STATUSES = ("tracked", "initialised")
+#: Every status a tracking record may have (FrameResult.status).
+TRACKING_STATUSES = (*EXPORTED_STATUSES, "predicted", "lost")
+
+
 def tracking_path(out_dir: Path, frame: int) -> Path:
     return out_dir / "frames" / frames_io.frame_name(frame, ".json")
 
 
 def read_tracking(folder: Path, frame: int) -> tuple[FrameResult, TrackerState]:
-    """One frame's tracking record: its estimate and the tracker's state after it."""
-    record = frames_io.read_json(tracking_path(folder, frame))
-    result = record["result"]
-    return (FrameResult(**{**result, "pose": np.asarray(result["pose"]), "joints": np.asarray(result["joints"])}),
-            TrackerState.from_dict(record["state"]))
+    """One frame's tracking record: its estimate and the tracker's state after it.
+
+    Raises :class:`~pipeline.frames_io.DamagedFileError` when the record fails its content check or is
+    not a record of this frame with a (17, 3) array of joints and a known status.
+    """
+    path = tracking_path(folder, frame)
+    record = frames_io.read_record(path)
+    try:
+        result, state = record["result"], TrackerState.from_dict(record["state"])
+        estimate = FrameResult(**{**result, "pose": np.asarray(result["pose"], dtype=float),
+                                  "joints": np.asarray(result["joints"], dtype=float)})
+    except (KeyError, TypeError, ValueError) as error:
+        raise frames_io.DamagedFileError(path, f"not a tracking record ({type(error).__name__}: {error})") from None
+    if (record.get("frame") != frame or estimate.joints.shape != (len(JOINT_NAMES), 3)
+            or estimate.status not in TRACKING_STATUSES):
+        raise frames_io.DamagedFileError(path, f"not the tracking record of frame {frame} "
+                                         "(its frame number, joints or status differ)")
+    return estimate, state
 
 
 def run_tracking(ctx: StageContext) -> int:
@@ -184,7 +203,7 @@ def run_tracking(ctx: StageContext) -> int:
     body = load_body()
     frames = ctx.capture.frame_numbers
     pending = ctx.pending_frames(lambda frame: [tracking_path(ctx.out_dir, frame)])
-    done = len(frames) - len(pending)
+    done = frames.index(pending[0]) if pending else len(frames)  # frames after a missing one are redone
     state = read_tracking(ctx.out_dir, frames[done - 1])[1] if done else None
     observations_dir = ctx.input_dir("reconstruction")
     with ctx.progress(len(frames), initial=done) as bar:
@@ -193,14 +212,10 @@ def run_tracking(ctx: StageContext) -> int:
             result, state = track_frame(state, Observations(points, normals), body, params, ctx.capture.volume)
             if result.status in ("predicted", "lost"):
                 log.warning("frame %d: pose %s, not exported (%d observations)", frame, result.status, len(points))
-            frames_io.write_json(tracking_path(ctx.out_dir, frame),
-                                 {"frame": frame, "result": result.to_dict(), "state": state.to_dict()})
+            frames_io.write_record(tracking_path(ctx.out_dir, frame),
+                                   {"frame": frame, "result": result.to_dict(), "state": state.to_dict()})
             bar.update(1)
     return len(frames) - done
-
-
-#: Statuses of tracked frames that are exported (the others were only predicted).
-EXPORTED_STATUSES = ("tracked", "initialised")
 
 
 #: The report's module: it imports matplotlib (a quarter of a second), so it is imported only for a report.

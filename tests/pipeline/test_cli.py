@@ -291,3 +291,43 @@ def test_an_output_folder_overlapping_the_capture_is_refused_untouched(tiny_capt
     before = sorted(path.relative_to(tiny_capture) for path in tiny_capture.rglob("*"))
     expect_error(capsys, run_argv(tiny_capture, out), f"--out {out}: overlaps the capture")
     assert sorted(path.relative_to(tiny_capture) for path in tiny_capture.rglob("*")) == before
+
+
+def result_files(out: Path) -> dict[str, bytes]:
+    """Every result file of an output folder by relative path (manifests and the lock left out)."""
+    return {path.relative_to(out).as_posix(): path.read_bytes() for path in sorted(out.rglob("*"))
+            if path.is_file() and path.name not in (MANIFEST, ".lock")}
+
+
+def test_damaged_results_are_recomputed_as_they_were(tiny_capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert run_cli(*run_argv(tiny_capture, out)) == 0
+    before = result_files(out)
+    ply = out / "reconstruction" / "000001.ply"
+    data = bytearray(ply.read_bytes())
+    data[-20] ^= 0x40  # a coordinate, same size
+    ply.write_bytes(bytes(data))
+    mask = out / "silhouettes" / "cam1" / "000002.png"
+    mask.write_bytes(mask.read_bytes()[:-5])  # truncated
+    record = out / "tracking" / "frames" / "000002.json"
+    text = record.read_text()
+    digit = text.index('"log_likelihood": ') + 20
+    record.write_text(text[:digit] + ("1" if text[digit] != "1" else "2") + text[digit + 1:])
+    capsys.readouterr()
+    assert run_cli("stages", out) == 0
+    status = capsys.readouterr().out
+    for stage, name in (("silhouettes", "cam1/000002.png"), ("reconstruction", "000001.ply"),
+                        ("tracking", "frames/000002.json")):
+        assert re.search(rf"{stage}\s+stale: output files changed on disk: 1 damaged \({name}\)", status), status
+    assert run_cli(*run_argv(tiny_capture, out)) == 0
+    assert stage_actions(capsys.readouterr().out) == {
+        "calibration": "up to date", "silhouettes": "ran", "reconstruction": "ran", "tracking": "ran",
+        "export": "up to date"}  # the same files again, so the export stays valid
+    assert result_files(out) == before
+
+
+def test_a_damaged_file_of_the_capture_is_a_one_line_error(tmp_path, capsys):
+    capture = make_capture(tmp_path / "c", media="none", silhouettes=True)
+    mask = capture / "silhouettes" / "cam0" / "000001.png"
+    mask.write_bytes(mask.read_bytes()[:-5])
+    expect_error(capsys, run_argv(capture, tmp_path / "out"), f"{mask}: PNG file is truncated")

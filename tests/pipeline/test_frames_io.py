@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pickle
+
 import cv2
 import numpy as np
 import open3d as o3d
@@ -94,3 +96,107 @@ def test_json_round_trip_with_numpy_values(tmp_path):
     with pytest.raises(ValueError):
         frames_io.write_json(tmp_path / "nan.json", {"x": float("nan")})
     assert not (tmp_path / "nan.json").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# Content checks: a damaged or implausible file is noticed, not used
+
+
+def flip_byte(path, offset: int) -> None:
+    """Change one byte of ``path`` in place (same size: no size check can see it)."""
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0x10
+    path.write_bytes(bytes(data))
+
+
+def unit_cloud(n: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(1)
+    normals = rng.normal(size=(n, 3))
+    return rng.normal(size=(n, 3)), normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def plain_ply(points: np.ndarray, normals: np.ndarray) -> bytes:
+    """A PLY file as other writers make it: no content check in the header."""
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}",
+              *(f"property float {name}" for name in ("x", "y", "z", "nx", "ny", "nz")), "end_header", ""]
+    return "\n".join(header).encode() + np.hstack([points, normals]).astype("<f4").tobytes()
+
+
+def test_a_flipped_byte_in_a_ply_is_noticed(tmp_path):
+    path = tmp_path / "c.ply"
+    frames_io.write_ply(path, *unit_cloud())
+    assert frames_io.file_problem(path) is None
+    flip_byte(path, -30)  # inside a coordinate: still a finite number, the cloud looks fine
+    assert frames_io.file_problem(path) == "PLY vertex data fails its crc32 check"
+    with pytest.raises(frames_io.DamagedFileError, match="c.ply: PLY vertex data fails its crc32 check"):
+        frames_io.read_ply(path)
+
+
+def test_plys_without_a_check_are_read_when_plausible(tmp_path):
+    points, normals = unit_cloud()
+    (tmp_path / "c.ply").write_bytes(plain_ply(points, normals))
+    read_points, read_normals = frames_io.read_ply(tmp_path / "c.ply")
+    np.testing.assert_allclose(read_normals, normals, atol=1e-6)
+    points[3, 1] = np.nan
+    (tmp_path / "nan.ply").write_bytes(plain_ply(points, normals))
+    with pytest.raises(frames_io.DamagedFileError, match="nan.ply: PLY holds a coordinate that is not a finite"):
+        frames_io.read_ply(tmp_path / "nan.ply")
+    points[3, 1], normals[5] = 0.0, [3.0, 0.0, 0.0]
+    (tmp_path / "long.ply").write_bytes(plain_ply(points, normals))
+    with pytest.raises(frames_io.DamagedFileError, match="long.ply: PLY normal 5 has length 3, not 1"):
+        frames_io.read_ply(tmp_path / "long.ply")
+
+
+def test_a_damaged_mask_is_noticed(tmp_path):
+    mask = np.zeros((48, 64), np.uint8)
+    mask[10:30, 20:40] = 255
+    path = tmp_path / "m.png"
+    frames_io.write_mask(path, mask)
+    good = path.read_bytes()
+    assert frames_io.file_problem(path) is None
+    flip_byte(path, len(good) - 20)  # in the pixel data (IDAT)
+    assert frames_io.file_problem(path) == "PNG chunk IDAT fails its CRC check"
+    with pytest.raises(frames_io.DamagedFileError, match="m.png: PNG chunk IDAT fails its CRC check"):
+        frames_io.read_mask(path)
+    path.write_bytes(good[:-6])
+    with pytest.raises(frames_io.DamagedFileError, match="PNG file is truncated"):
+        frames_io.read_mask(path)
+
+
+def test_a_mask_of_the_wrong_size_is_refused(tmp_path):
+    frames_io.write_mask(tmp_path / "m.png", np.zeros((48, 64), np.uint8))
+    assert frames_io.read_mask(tmp_path / "m.png", (64, 48)).shape == (48, 64)
+    with pytest.raises(frames_io.DamagedFileError, match="mask is 64x48 pixels, not the camera's 80x60"):
+        frames_io.read_mask(tmp_path / "m.png", (80, 60))
+
+
+def test_a_changed_value_in_a_json_record_is_noticed(tmp_path):
+    path = tmp_path / "r.json"
+    record = {"frame": 3, "result": {"log_likelihood": -1234.5678, "joints": [[0.1, 0.2, 0.3]]}}
+    frames_io.write_record(path, record)
+    assert frames_io.read_record(path) == record and frames_io.file_problem(path) is None
+    path.write_text(path.read_text().replace("-1234.5678", "-1234.5679"))  # same size, still valid JSON
+    assert frames_io.file_problem(path) == "JSON record fails its crc32 check"
+    with pytest.raises(frames_io.DamagedFileError, match="r.json: JSON record fails its crc32 check"):
+        frames_io.read_record(path)
+    path.write_text(path.read_text()[:-8])
+    assert frames_io.file_problem(path).startswith("not valid JSON")
+
+
+def test_plain_json_has_no_check_to_fail(tmp_path):
+    frames_io.write_json(tmp_path / "plain.json", {"a": 1})
+    assert frames_io.file_problem(tmp_path / "plain.json") is None
+    with pytest.raises(frames_io.DamagedFileError, match="not a JSON record with a crc32 content check"):
+        frames_io.read_record(tmp_path / "plain.json")
+
+
+def test_a_damaged_file_error_comes_back_whole_from_a_worker_process():
+    error = pickle.loads(pickle.dumps(frames_io.DamagedFileError("out/reconstruction/000001.ply", "truncated")))
+    assert isinstance(error, InputError) and str(error).startswith("out/reconstruction/000001.ply: truncated")
+    assert error.path.name == "000001.ply" and error.problem == "truncated"
+
+
+def test_the_png_check_is_the_formats_own_crc(tmp_path):
+    """A PNG from any writer passes: the check is the chunk CRC every PNG carries."""
+    cv2.imwrite(str(tmp_path / "photo.png"), np.full((8, 8, 3), 7, np.uint8))
+    assert frames_io.png_problem((tmp_path / "photo.png").read_bytes()) is None

@@ -10,9 +10,11 @@ from __future__ import annotations
 import functools
 import json
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from calib.errors import InputError
@@ -26,7 +28,9 @@ from pipeline.runner import (
     Runner,
     Stage,
     consecutive_chunks,
+    describe_outputs,
     graph_status,
+    output_changes,
     output_lock,
     select_stages,
 )
@@ -66,7 +70,7 @@ def per_frame_task(chunk: tuple[int, ...], *, value: float, scale: float, out_di
         if str(frame) == os.environ.get(FAIL_AT):
             raise RuntimeError(f"simulated crash at frame {frame}")
         _log(f"per_frame {frame}")
-        frames_io.write_json(out_dir / frames_io.frame_name(frame, ".json"), {"v": value * scale * frame})
+        frames_io.write_record(out_dir / frames_io.frame_name(frame, ".json"), {"v": value * scale * frame})
 
 
 def run_per_frame(ctx) -> int:
@@ -79,7 +83,7 @@ def run_per_frame(ctx) -> int:
 def run_summary(ctx) -> None:
     _log("summary")
     frame_files = sorted(ctx.input_dir("per_frame").glob("[0-9]*.json"))
-    total = sum(frames_io.read_json(path)["v"] for path in frame_files)
+    total = sum(frames_io.read_record(path)["v"] for path in frame_files)
     frames_io.write_json(ctx.out_dir / "total.json", {"total": round(total, ctx.params.rounding)})
 
 
@@ -172,7 +176,7 @@ def test_interrupted_run_with_other_parameters_starts_over(setup, monkeypatch):
     run({"per_frame": {"scale": 5.0}})
     per_frame_work = [entry for entry in work() if entry.startswith("per_frame")]
     assert per_frame_work == [f"per_frame {f}" for f in range(4)]
-    assert frames_io.read_json(out / "per_frame" / "000001.json") == {"v": 5.0}
+    assert frames_io.read_record(out / "per_frame" / "000001.json") == {"v": 5.0}
 
 
 def test_leftover_temporary_files_are_removed_on_resume(setup, monkeypatch):
@@ -237,6 +241,68 @@ def test_the_runner_refuses_an_output_folder_in_the_capture(setup):
     capture, _, _, _ = setup
     with pytest.raises(InputError, match="overlaps the capture"):
         Runner(STAGES, capture, default_params(STAGES), capture.root / "out", None)
+
+
+def change_value(path: Path, old: str, new: str) -> None:
+    """Replace one value in a file by another of the same length: a size check cannot see it."""
+    text = path.read_text()
+    assert len(old) == len(new) and old in text
+    path.write_text(text.replace(old, new))
+
+
+def test_a_damaged_file_of_a_finished_stage_is_recomputed_alone(setup):
+    capture, out, run, work = setup
+    run()
+    original = (out / "per_frame" / "000002.json").read_text()
+    change_value(out / "per_frame" / "000002.json", "4.0", "5.0")
+    statuses = {s.name: s for s in graph_status(STAGES, capture, default_params(STAGES), out)}
+    assert statuses["per_frame"].reason == "output files changed on disk: 1 damaged (000002.json)"
+    assert run() == {"source": "up to date", "per_frame": "ran", "summary": "up to date"}
+    assert work() == ["per_frame 2"]
+    assert (out / "per_frame" / "000002.json").read_text() == original
+
+
+def test_a_damaged_frame_kept_from_an_interrupted_run_is_recomputed(setup, monkeypatch, caplog):
+    _, out, run, work = setup
+    monkeypatch.setenv(FAIL_AT, "3")
+    with pytest.raises(RuntimeError):
+        run()
+    change_value(out / "per_frame" / "000001.json", "2.0", "7.0")  # no manifest yet: only the file's own check
+    monkeypatch.delenv(FAIL_AT)
+    assert run() == {"source": "up to date", "per_frame": "ran", "summary": "ran"}
+    assert work() == ["per_frame 1", "per_frame 3", "summary"]
+    assert "000001.json: JSON record fails its crc32 check; deleted, computed again" in caplog.text
+    assert frames_io.read_json(out / "summary" / "total.json") == {"total": 12.0}
+
+
+def test_a_damaged_file_a_stage_reads_is_recomputed_not_used(setup, caplog):
+    """A damaged file blessed into its stage's manifest (as runs before the content hashes did) is
+    found by the reader of the next stage; the runner computes it again instead of stopping."""
+    _, out, run, work = setup
+    run()
+    change_value(out / "per_frame" / "000001.json", "2.0", "7.0")
+    manifest = json.loads((out / "per_frame" / MANIFEST).read_text())
+    manifest["outputs"] = describe_outputs(out / "per_frame")
+    (out / "per_frame" / MANIFEST).write_text(json.dumps(manifest))
+    assert run() == {"source": "up to date", "per_frame": "ran", "summary": "ran"}
+    assert work() == ["summary", "per_frame 1", "summary"]
+    assert "000001.json: JSON record fails its crc32 check; deleted, the per_frame stage computes it again" in (
+        caplog.text)
+    assert frames_io.read_json(out / "summary" / "total.json") == {"total": 12.0}
+
+
+def test_checking_a_thousand_output_files_takes_well_under_a_second(tmp_path):
+    folder = tmp_path / "stage"
+    rng = np.random.default_rng(0)
+    for index in range(1000):  # about the files of a 112-frame, 6-camera capture, and their 13 MB
+        frames_io.write_ply(folder / frames_io.frame_name(index, ".ply"), rng.normal(size=(270, 3)),
+                            np.tile([0.0, 0.0, 1.0], (270, 1)))
+    manifest = {"outputs": describe_outputs(folder)}
+    started = time.perf_counter()
+    assert not output_changes(folder, manifest)
+    seconds = time.perf_counter() - started
+    print(f"up-to-date check of 1000 files: {1000 * seconds:.0f} ms")
+    assert seconds < 0.5
 
 
 def test_force_reruns_selected_stages(setup):
@@ -321,7 +387,7 @@ def run_follower(ctx) -> int:
     """Reads every per-frame file through ``ctx.ready`` (waiting for it while the upstream runs)."""
     frames = ctx.capture.frame_numbers
     for frame in frames:
-        value = frames_io.read_json(ctx.ready(ctx.input_dir("per_frame") / frames_io.frame_name(frame, ".json")))
+        value = frames_io.read_record(ctx.ready(ctx.input_dir("per_frame") / frames_io.frame_name(frame, ".json")))
         _log(f"follower {frame}")
         frames_io.write_json(ctx.out_dir / frames_io.frame_name(frame, ".json"), {"twice": 2 * value["v"]})
     return len(frames)
