@@ -123,7 +123,13 @@ def load(path: Path) -> Rig:
 
 
 def _colmap_camera(camera: Camera, camera_id: int) -> pycolmap.Camera:
-    """The smallest COLMAP model holding ``camera``'s lens: PINHOLE, OPENCV, or FULL_OPENCV when k3 != 0."""
+    """The smallest COLMAP model holding ``camera``'s lens: PINHOLE, OPENCV, or FULL_OPENCV when k3 != 0.
+
+    COLMAP's models have no skew, so a skewed camera is refused rather than written as another camera.
+    """
+    if camera.K[0, 1] != 0:
+        raise InputError(f"camera {camera.name!r}: skew K[0, 1] = {camera.K[0, 1]:g} px has no COLMAP camera "
+                         "model, expected K[0, 1] = 0 (write it as opencv, anipose or projection instead)")
     fx, fy = camera.K[0, 0], camera.K[1, 1]
     cx, cy = camera.K[:2, 2] + PIXEL_CENTRE_SHIFT
     k1, k2, p1, p2, k3 = camera.dist

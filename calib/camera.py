@@ -4,6 +4,12 @@ Conventions (CAPTURE_FORMAT.md): a world point X (metres) maps to the camera fra
 ``x_cam = R @ X + t``; the image point is ``K @ distort(x_cam / z_cam)`` with OpenCV's
 distortion ``(k1, k2, p1, p2, k3)``; pixel ``(0, 0)`` is the *centre* of the top-left pixel,
 so the image covers ``[-0.5, w - 0.5) x [-0.5, h - 0.5)``; image size is ``(width, height)``.
+
+``K`` may carry skew ``s = K[0, 1]`` (``u = fx x_d + s y_d + cx``), as projection matrices decomposed
+into K, R, t usually do. OpenCV's ``projectPoints`` and ``undistortPoints`` have no skew, so it is
+applied as the affine map K after the distortion (the camera model of Bouguet's toolbox, where
+``s = fx alpha_c``) and removed before OpenCV undistorts: with ``y_d = (v - cy) / fy`` the skew shifts
+each row of pixels sideways by ``s y_d``, which :func:`_unskew` takes back exactly.
 """
 
 from __future__ import annotations
@@ -67,6 +73,20 @@ def _distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return np.stack([xd, yd], axis=1)
 
 
+def _unskew(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(uv' (N, 2), K' (3, 3))``: pixels ``uv`` of a camera with skew as the same camera without it sees them.
+
+    ``u = fx x_d + s y_d + cx`` and ``v = fy y_d + cy``: the row ``v`` gives ``y_d`` alone, so
+    ``u' = u - s (v - cy) / fy`` is the pixel of ``(x_d, y_d)`` under ``K'`` = ``K`` with ``s = 0``, exactly.
+    """
+    fy, cy = K[1, 1], K[1, 2]
+    unskewed = uv.copy()
+    unskewed[:, 0] -= K[0, 1] * (uv[:, 1] - cy) / fy
+    K_plain = K.copy()
+    K_plain[0, 1] = 0.0
+    return unskewed, K_plain
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """One calibrated camera: ``x_cam = R @ X + t``, ``x_img ~ K @ distort(x_cam / z_cam)``.
@@ -76,7 +96,8 @@ class Camera:
     name : str
         Camera name (COLMAP image stem, YAML/TOML camera name, video file stem).
     K : (3, 3) float
-        Intrinsics ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` in pixels, pixel centres at integers.
+        Intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels, pixel centres at integers;
+        the skew ``s`` is usually 0.
     dist : (5,) float
         OpenCV distortion ``(k1, k2, p1, p2, k3)``.
     R : (3, 3) float
@@ -104,9 +125,9 @@ class Camera:
         K = _readonly(self.K, (3, 3), f"{what} K")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise InputError(f"{what} K: focal lengths must be positive, got ({K[0, 0]}, {K[1, 1]})")
-        if K[0, 1] != 0 or K[1, 0] != 0 or np.any(K[2] != (0.0, 0.0, 1.0)):
+        if K[1, 0] != 0 or np.any(K[2] != (0.0, 0.0, 1.0)):
             raise InputError(
-                f"{what} K: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), got {K.tolist()}"
+                f"{what} K: expected upper triangular [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}"
             )
         dist = _readonly(self.dist, (5,), f"{what} dist (k1, k2, p1, p2, k3)")
         R = _readonly(self.R, (3, 3), f"{what} R")
@@ -182,19 +203,22 @@ class Camera:
         x_cam = _as_rows(X, 3, "X") @ self.R.T + self.t
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = x_cam[:, :2] / x_cam[:, 2:3]
-        xy_distorted = _distort(xy, self.dist)
-        return xy_distorted * np.diag(self.K)[:2] + self.K[:2, 2]
+        return _distort(xy, self.dist) @ self.K[:2, :2].T + self.K[:2, 2]
 
     def undistort_pixels(self, uv) -> np.ndarray:
         """(N, 2) normalised image coordinates ``(x/z, y/z)`` of pixels ``uv (N, 2)``.
 
         Inverts the distortion iteratively (``cv2.undistortPoints`` with a tight criterion), so
-        ``project`` of the corresponding ray returns ``uv`` to about 1e-9 px inside the image.
+        ``project`` of the corresponding ray returns ``uv`` to about 1e-9 px inside the image. A skewed
+        camera's pixels are first mapped to those of the same camera without skew (:func:`_unskew`).
         """
         uv = _as_rows(uv, 2, "uv")
         if len(uv) == 0:
             return np.empty((0, 2))
-        xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist, criteria=UNDISTORT_CRITERIA)
+        K = self.K
+        if K[0, 1] != 0:
+            uv, K = _unskew(uv, K)
+        xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, self.dist, criteria=UNDISTORT_CRITERIA)
         return xy.reshape(-1, 2).astype(np.float64, copy=False)
 
     def pixel_rays(self, uv) -> np.ndarray:

@@ -34,7 +34,7 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[i
         # BLAS multiplies a single column differently (gemv, not gemm), last bits included: tested as a pair,
         # a point gets the same answer whichever points it is tested with.
         return inside_view(camera, mask, np.repeat(X, 2, axis=1), corner)[:1]
-    R, t, dist, focal, centre = _float32_camera(camera)
+    R, t, dist, focal, centre, skew = _float32_camera(camera)
     xyz = R @ X
     xyz += t[:, None]
     z, xy = xyz[2], xyz[:2]
@@ -57,7 +57,9 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[i
         else:  # radial distortion only, common after calibration: a third of the arithmetic
             xy *= radial
     # Pixel coordinates; the centre is shifted by half a pixel so that truncation rounds to the nearest
-    # pixel centre: pixel (0, 0) covers [-0.5, 0.5).
+    # pixel centre: pixel (0, 0) covers [-0.5, 0.5). A skewed K adds s y to u: (s / fx) y before the scaling.
+    if skew:
+        xy[0] += skew * xy[1]
     xy *= focal
     xy += centre
     # In the box, which lies in the image: for u >= 0, u >= left exactly when the pixel column int(u) >= left.
@@ -77,9 +79,9 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[i
 
 @functools.lru_cache(maxsize=64)
 def _float32_camera(camera: Camera) -> tuple:
-    """``(R (3, 3), t (3,), dist (5,) or None without distortion, (fx, fy) (2, 1), (cx + ½, cy + ½) (2, 1))``
-    of ``camera`` in float32, as :func:`inside_view` uses them: converted once per camera rather than on
-    every call (cameras are immutable and hash by identity)."""
+    """``(R (3, 3), t (3,), dist (5,) or None without distortion, (fx, fy) (2, 1), (cx + ½, cy + ½) (2, 1),
+    s / fx)`` of ``camera`` in float32, as :func:`inside_view` uses them: converted once per camera rather
+    than on every call (cameras are immutable and hash by identity)."""
     K = camera.K
     fx, fy, cx, cy = (np.float32(value) for value in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     dist = camera.dist.astype(np.float32) if np.any(camera.dist) else None
@@ -89,6 +91,7 @@ def _float32_camera(camera: Camera) -> tuple:
         dist,
         np.array([[fx], [fy]], np.float32),
         np.array([[cx + np.float32(0.5)], [cy + np.float32(0.5)]], np.float32),
+        np.float32(K[0, 1] / K[0, 0]),
     )
 
 

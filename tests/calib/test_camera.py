@@ -55,6 +55,46 @@ def test_undistort_pixels_inverts_distortion_of_normalised_coordinates():
     np.testing.assert_allclose(camera.project(X), uv, rtol=0, atol=1e-6)
 
 
+def skewed_camera(skew: float = 9.0) -> Camera:
+    """``front_camera`` with skew ``K[0, 1]`` pixels (real decomposed projection matrices: -0.5 to +1 px)."""
+    camera = front_camera()
+    K = camera.K.copy()
+    K[0, 1] = skew
+    return Camera(camera.name, K, camera.dist, camera.R, camera.t, camera.size)
+
+
+def test_skewed_camera_round_trips_pixel_ray_pixel():
+    camera = skewed_camera()
+    uv = image_grid(camera)
+    reprojected = camera.project(camera.centre + 2.5 * camera.pixel_rays(uv))
+    error = np.max(np.linalg.norm(reprojected - uv, axis=1))
+    assert error < 1e-6, f"max round-trip error {error:.3g} px"
+    np.testing.assert_allclose(camera.project(camera.backproject(uv, np.full(len(uv), 3.0))), uv, atol=1e-6)
+
+
+def test_skewed_projection_matches_the_hand_computed_one():
+    # Identity pose, no distortion: x_img ~ K x, so (x, y, z) = (0.2, -0.1, 2) is
+    # u = fx 0.1 + s (-0.05) + cx, v = fy (-0.05) + cy.
+    K = np.array([[800.0, 12.0, 320.0], [0.0, 780.0, 240.0], [0.0, 0.0, 1.0]])
+    camera = Camera("c", K, np.zeros(5), np.eye(3), np.zeros(3), (640, 480))
+    expected = [[800.0 * 0.1 + 12.0 * -0.05 + 320.0, 780.0 * -0.05 + 240.0]]
+    np.testing.assert_allclose(camera.project([[0.2, -0.1, 2.0]]), expected, rtol=0, atol=1e-12)
+    # With distortion the skew acts on the distorted coordinates (u = fx x_d + s y_d + cx).
+    dist = np.array([-0.2, 0.05, 1e-3, -2e-3, 0.01])
+    distorted = Camera("c", K, dist, np.eye(3), np.zeros(3), (640, 480))
+    plain, _ = cv2.projectPoints(np.array([[0.2, -0.1, 2.0]]), np.zeros(3), np.zeros(3), np.eye(3), dist)
+    x_d, y_d = plain.reshape(2)
+    np.testing.assert_allclose(distorted.project([[0.2, -0.1, 2.0]]),
+                               [[800.0 * x_d + 12.0 * y_d + 320.0, 780.0 * y_d + 240.0]], rtol=0, atol=1e-9)
+
+
+def test_skewed_projection_matrix_agrees_with_project():
+    camera = Camera("c", skewed_camera().K, np.zeros(5), front_camera().R, front_camera().t, (1280, 720))
+    X = subject_points(20)
+    homogeneous = np.column_stack([X, np.ones(len(X))]) @ camera.P.T
+    np.testing.assert_allclose(homogeneous[:, :2] / homogeneous[:, 2:], camera.project(X), atol=1e-9)
+
+
 def test_backproject_then_project_and_depth_round_trip(rig12):
     for camera in rig12:
         uv = image_grid(camera, step=97)
@@ -156,7 +196,8 @@ def test_camera_rejects_scaled_rotation():
     ("field", "value", "message"),
     [
         ("K", np.diag([-500.0, 500.0, 1.0]), "focal lengths must be positive"),
-        ("K", [[500.0, 3.0, 32.0], [0.0, 500.0, 24.0], [0.0, 0.0, 1.0]], "no skew"),
+        ("K", [[500.0, 3.0, 32.0], [2.0, 500.0, 24.0], [0.0, 0.0, 1.0]], "upper triangular"),
+        ("K", [[500.0, 0.0, 32.0], [0.0, 500.0, 24.0], [0.0, 0.0, 2.0]], "upper triangular"),
         ("K", np.eye(2), r"expected shape \(3, 3\)"),
         ("dist", np.zeros(4), r"expected shape \(5,\)"),
         ("t", [0.0, np.nan, 1.0], "NaN"),

@@ -109,6 +109,28 @@ def test_round_trip_twelve_cameras(rig12, tmp_path, fmt):
     assert_same_rig(load_rig(fmt, tmp_path / fmt), rig12)
 
 
+def skewed(rig: Rig, skew_px: float = 0.8) -> Rig:
+    """``rig`` with skew ``K[0, 1]`` alternating in sign from camera to camera."""
+    cameras = []
+    for index, camera in enumerate(rig):
+        K = camera.K.copy()
+        K[0, 1] = skew_px * (-1) ** index
+        cameras.append(Camera(camera.name, K, camera.dist, camera.R, camera.t, camera.size))
+    return Rig(tuple(cameras))
+
+
+@pytest.mark.parametrize("fmt", ["opencv", "anipose"])
+def test_skewed_intrinsics_round_trip(rig12, tmp_path, fmt):
+    rig = skewed(rig12)
+    save_rig(rig, fmt, tmp_path / fmt)
+    assert_same_rig(load_rig(fmt, tmp_path / fmt), rig)
+
+
+def test_colmap_writer_refuses_skew(rig12, tmp_path):
+    with pytest.raises(InputError, match="cam_0.*skew K\\[0, 1\\] = 0.8 px has no COLMAP camera model"):
+        save_rig(skewed(rig12), "colmap", tmp_path)
+
+
 def test_colmap_binary_model_loads_like_text(rig12, tmp_path):
     save_rig(rig12, "colmap", tmp_path / "text")
     (tmp_path / "binary").mkdir()

@@ -9,15 +9,19 @@ RADIUS = 0.25
 VOLUME = np.array([[-1.5, -1.5, 0.0], [1.5, 1.5, 2.2]])
 
 
-def ring_rig(n_cameras: int = 6, *, size=(390, 290), f_px: float = 380.0, distortion: bool = False) -> Rig:
-    """Cameras on a 4 m ring at uneven angles and heights, all aimed near the sphere."""
+def ring_rig(n_cameras: int = 6, *, size=(390, 290), f_px: float = 380.0, distortion: bool = False,
+             skew_px: float = 0.0) -> Rig:
+    """Cameras on a 4 m ring at uneven angles and heights, all aimed near the sphere; ``skew_px`` is
+    ``K[0, 1]`` of every other camera (its negative for the rest)."""
     cameras = []
     for i in range(n_cameras):
         angle = 2 * np.pi * i / n_cameras + 0.3 * np.sin(1.7 * i)
         eye = [4.0 * np.cos(angle), 4.0 * np.sin(angle), 1.2 + 0.6 * np.sin(i)]
         camera = Camera.look_at(f"cam_{i}", eye, [0.0, 0.0, 1.0], f_px=f_px, size=size)
-        if distortion:
-            camera = Camera(camera.name, camera.K, [-0.12, 0.03, 0.0, 0.0, 0.0], camera.R, camera.t, size)
+        K = camera.K.copy()
+        K[0, 1] = skew_px if i % 2 else -skew_px
+        dist = [-0.12, 0.03, 0.0, 0.0, 0.0] if distortion else camera.dist
+        camera = Camera(camera.name, K, dist, camera.R, camera.t, size)
         cameras.append(camera)
     return Rig(tuple(cameras))
 

@@ -20,6 +20,8 @@ def _inside_view_reference(camera, mask, X):
     x, y = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
             y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
     fx, fy, cx, cy = (np.float32(value) for value in (camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]))
+    if camera.K[0, 1]:  # u = fx x + s y + cx, as fx (x + (s / fx) y) + cx
+        x = x + np.float32(camera.K[0, 1] / camera.K[0, 0]) * y
     u = fx * x + (cx + np.float32(0.5))
     v = fy * y + (cy + np.float32(0.5))
     height, width = mask.shape
@@ -44,10 +46,14 @@ def scene():
 # Points just in front of the image plane overflow the distortion polynomial: their pixel is meaningless
 # (and unused), and casting it warns, as it always did.
 @pytest.mark.filterwarnings("ignore:invalid value encountered in cast:RuntimeWarning")
-@pytest.mark.parametrize("dist", [(0, 0, 0, 0, 0), (-0.2, 0.05, 0, 0, 0.01), (-0.1, 0.02, 0.002, -0.003, 0.0)])
-def test_inside_view_matches_the_plain_projection_bit_for_bit(scene, dist):
+@pytest.mark.parametrize(("dist", "skew"), [((0, 0, 0, 0, 0), 0.0), ((-0.2, 0.05, 0, 0, 0.01), 0.0),
+                                           ((-0.1, 0.02, 0.002, -0.003, 0.0), 0.0), ((0, 0, 0, 0, 0), 6.0),
+                                           ((-0.2, 0.05, 0, 0, 0.01), -4.0)])
+def test_inside_view_matches_the_plain_projection_bit_for_bit(scene, dist, skew):
     camera, mask, X = scene
-    camera = dataclasses.replace(camera, dist=np.array(dist, float))
+    K = camera.K.copy()
+    K[0, 1] = skew
+    camera = dataclasses.replace(camera, K=K, dist=np.array(dist, float))
     expected = _inside_view_reference(camera, mask, X)
     assert expected.sum() > 1000  # thousands of points land on foreground pixels
     assert np.array_equal(inside_view(camera, mask, X), expected)
