@@ -1,4 +1,4 @@
-"""Read and write a rig in the calibration formats of CAPTURE_FORMAT.md: colmap, opencv, anipose.
+"""Read and write a rig in the calibration formats of CAPTURE_FORMAT.md: colmap, opencv, anipose, projection.
 
 Readers return the rig exactly as the file states it (file units, file up axis); ``calib.world``
 converts it to the pipeline's world frame. Every problem with a file raises ``InputError`` naming
@@ -15,7 +15,9 @@ from types import ModuleType
 from calib.camera import Rig
 from calib.errors import InputError
 
-FORMATS = ("colmap", "opencv", "anipose")
+FORMATS = ("colmap", "opencv", "anipose", "projection")
+#: Formats that store no image size: it comes from the media.
+SIZELESS_FORMATS = ("opencv", "projection")
 
 
 def _reader(fmt: str) -> ModuleType:
@@ -34,19 +36,20 @@ def load_rig(fmt: str, path: str | Path, *, image_sizes: Mapping[str, tuple[int,
 
     Parameters
     ----------
-    fmt : {"colmap", "opencv", "anipose"}
+    fmt : {"colmap", "opencv", "anipose", "projection"}
     path : str or Path
         colmap: the model directory; opencv: the directory holding ``intri.yml`` and ``extri.yml``
-        (or ``intri.yml`` itself); anipose: ``calibration.toml`` or the directory holding it.
+        (or ``intri.yml`` itself); anipose: ``calibration.toml`` or the directory holding it;
+        projection: the directory of one 3x4 matrix file per camera.
     image_sizes : mapping of camera name to (width, height), optional
-        Sizes read from the media. opencv files do not store sizes (EasyMocap's ``W_``/``H_`` keys
-        aside), so they come from here. Formats that store sizes must agree with the given ones:
+        Sizes read from the media. opencv files (EasyMocap's ``W_``/``H_`` keys aside) and projection
+        matrices do not store sizes, so they come from here. Formats that store sizes must agree with the given ones:
         intrinsics calibrated at another resolution would silently misproject.
     """
     _check_format(fmt)
     path = Path(path)
     sizes = dict(image_sizes or {})
-    if fmt == "opencv":
+    if fmt in SIZELESS_FORMATS:
         return _reader(fmt).load(path, sizes)
     rig = _reader(fmt).load(path)
     for camera in rig:
@@ -61,7 +64,8 @@ def load_rig(fmt: str, path: str | Path, *, image_sizes: Mapping[str, tuple[int,
 def save_rig(rig: Rig, fmt: str, path: str | Path) -> None:
     """Write ``rig`` to ``path`` in format ``fmt`` (COLMAP as text); ``load_rig`` reads it back.
 
-    ``path`` is a directory (created if needed); for anipose it may also be the ``.toml`` file.
+    ``path`` is a directory (created if needed); for anipose it may also be the ``.toml`` file. projection
+    holds no distortion and colmap no skew: a camera with them is refused (``InputError``).
     """
     _check_format(fmt)
     path = Path(path)

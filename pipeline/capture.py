@@ -39,7 +39,7 @@ from pipeline import frames_io
 
 log = logging.getLogger(__name__)
 
-CALIBRATION_FORMATS = ("colmap", "opencv", "anipose")
+CALIBRATION_FORMATS = ("colmap", "opencv", "anipose", "projection")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 FRAME_FILE = re.compile(r"^(\d{6,})(\.[A-Za-z]+)$")

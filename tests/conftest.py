@@ -79,7 +79,7 @@ def make_capture(root: Path, *, n_cameras: int = 3, n_frames: int = 4, media: st
     root.mkdir(parents=True, exist_ok=True)
     rig = tiny_rig(n_cameras, size=size)
     calibration_dir = {"anipose": "calibration/calibration.toml", "opencv": "calibration",
-                       "colmap": "calibration/colmap"}[fmt]
+                       "colmap": "calibration/colmap", "projection": "calibration/projection"}[fmt]
     save_rig(from_world(rig, units=units, up=up), fmt, root / calibration_dir)
     config = {"fps": 25.0, "calibration": {"format": fmt, "path": calibration_dir, "units": units, "up": up}}
     if volume is not None:

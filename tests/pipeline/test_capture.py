@@ -73,6 +73,17 @@ def test_calibration_is_converted_to_the_world_frame(tmp_path, fmt, units, up):
     np.testing.assert_allclose(capture.rig.centres, tiny_rig().centres, atol=1e-9)
 
 
+def test_projection_matrix_capture_matches_the_same_capture_in_another_format(tmp_path):
+    projection = Capture.open(make_capture(tmp_path / "p", fmt="projection", units="mm", up="+y"))
+    anipose = Capture.open(make_capture(tmp_path / "a", fmt="anipose"))
+    assert projection.rig.names == anipose.rig.names
+    for got, want in zip(projection.rig, anipose.rig, strict=True):
+        assert got.size == want.size
+        for field in ("K", "R", "t"):
+            np.testing.assert_allclose(getattr(got, field), getattr(want, field), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(projection.volume, anipose.volume, atol=1e-9)
+
+
 def test_volume_from_capture_yaml(tmp_path):
     volume = {"min": [-1.0, -1.5, 0.0], "max": [1.0, 1.5, 2.0]}
     capture = Capture.open(make_capture(tmp_path / "c", volume=volume))
