@@ -10,11 +10,16 @@ Adding a stage
    ``ctx.out_dir`` with the atomic writers of :mod:`pipeline.frames_io`, and returns the number of
    frames it computed (``None`` when the stage is not per-frame).
 3. Append one declaration to :data:`STAGES`: name, run function, upstream stages, parameter class,
-   the capture parts it reads directly, and the modules whose source defines its results::
+   the capture parts it reads directly, and the first-party modules, packages and data folders whose
+   files define its results (its cache key; the helpers of this module it calls count by themselves)::
 
        Stage("silhouettes", run_silhouettes, inputs=("calibration",), params_type=SilhouetteParams,
              capture_parts=("frames", "images", "background", "silhouettes"),
-             code=("stages.silhouettes",))
+             code=("stages.silhouettes", "pipeline.frame_tasks", "pipeline.capture", "calib", *FILES_CODE))
+
+   tests/pipeline/test_graph.py runs each stage under a profiler and fails when it runs first-party
+   code or reads first-party data that ``code`` leaves out. (A module of constants only, such as
+   ``stages.joints``, runs no code the profiler could see: declare it where its values are used.)
 
 Per-frame stages: the run function calls ``ctx.map_frames(task, outputs_of)``. ``task`` is a
 module-level function bound with ``functools.partial`` to plain picklable arguments (the
@@ -264,19 +269,26 @@ def run_export(ctx: StageContext) -> None:
 #: Modules the per-frame tasks come from: a local worker pool imports them as its processes start.
 WORKER_MODULES = ("pipeline.frame_tasks",)
 
+#: Modules every stage runs to write (and read) its files.
+FILES_CODE = ("pipeline.frames_io", "pipeline.atomic")
+
 STAGES: tuple[Stage, ...] = (
     Stage("calibration", run_calibration,
           capture_parts=("config", "calibration", "image_sizes", "frames"),
-          code=("calib", "pipeline.capture")),
+          code=("calib", "pipeline.capture", *FILES_CODE)),
     Stage("silhouettes", run_silhouettes, inputs=("calibration",), params_type=SilhouetteParams,
           capture_parts=("frames", "images", "background", "silhouettes"),
-          code=("stages.silhouettes",)),
+          code=("stages.silhouettes", "pipeline.frame_tasks", "pipeline.capture", "calib", *FILES_CODE)),
     Stage("reconstruction", run_reconstruction, inputs=("calibration", "silhouettes"),
           params_type=ReconstructionParams, capture_parts=("config", "frames"),
-          code=("stages.reconstruction",)),
+          code=("stages.reconstruction", "pipeline.frame_tasks", "pipeline.capture", "calib", *FILES_CODE)),
     Stage("tracking", run_tracking, inputs=("calibration", "reconstruction"), params_type=TrackerParams,
-          capture_parts=("config", "frames"), code=("stages.tracking",), streams=True),
+          capture_parts=("config", "frames"),
+          code=("stages.tracking", "stages.joints", "stages.reconstruction", "pipeline.frame_tasks", *FILES_CODE),
+          streams=True),
     Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
-          code=("stages.export", "pipeline.export_io", REPORT_MODULE), warm_up=warm_up_export),
+          code=("stages.export", "stages.joints", "stages.tracking.tracker", "pipeline.export_io", REPORT_MODULE,
+                "pipeline.report_assets", "pipeline.evaluate", "pipeline.capture", "calib", *FILES_CODE),
+          warm_up=warm_up_export),
 )

@@ -11,8 +11,10 @@ parameters (only its section, so a tracker parameter does not invalidate silhoue
 input hashes: each upstream stage's output digest (content hash of its files, so an upstream
 rerun that produces identical files does not ripple down) and a fingerprint of each capture part
 it reads (content for capture.yaml and the calibration, path + size + mtime for media files).
-The code version is the package version plus a hash of the run function's source and of the
-modules listed in ``Stage.code``.
+The code version is the package version plus a hash of the code and data the stage runs and reads
+(:func:`code_inputs`): the run function with the helpers and constants of its module it uses, and
+every file of the modules and packages listed in ``Stage.code`` (data files such as the tracker's
+pose library included).
 
 A stage is **up to date** when its manifest parses, its key equals the one computed now, and its
 output files are still the ones it wrote: the manifest records each file's content hash, and the
@@ -54,6 +56,7 @@ import re
 import shutil
 import sys
 import time
+import types
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -82,7 +85,6 @@ MAX_CHUNK_FRAMES = 25
 CHUNKS_PER_WORKER = 4
 
 _STAGE_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
-_SOURCE_SUFFIXES = (".py", ".yaml", ".yml", ".toml", ".json")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -107,8 +109,10 @@ class Stage:
     capture_parts : tuple of str
         Parts of the capture it reads directly (see :meth:`Capture.fingerprint`).
     code : tuple of str
-        Modules or packages (import names) whose source is part of its code version, in addition
-        to the run function's own source, e.g. ``("stages.silhouettes",)``.
+        Modules, packages or resource folders (import names) whose files are part of its code version,
+        in addition to the run function and the helpers of its module it uses, e.g.
+        ``("stages.silhouettes",)``: every first-party module whose code the stage runs and every data
+        file it reads, which tests/pipeline/test_graph.py checks (see :func:`code_inputs`).
     streams : bool
         The stage may run while its last input stage is still writing: it reads each input file
         through :meth:`StageContext.ready`, which waits for the file. A run then overlaps the two
@@ -332,22 +336,99 @@ def package_version() -> str:
         return "unknown"
 
 
-def _source_files(module: str) -> list[Path]:
+def declared_files(module: str) -> list[tuple[str, Path]]:
+    """``(name, path)`` of the files a :attr:`Stage.code` entry stands for, names independent of where
+    the repository lies.
+
+    A module is its file; a package, or a folder of resources inside one (``pipeline.report_assets``),
+    is every file under it, data as well as source: the pose library ``stages/tracking/data/poses.npz``
+    defines the tracker's results as much as its code does. Caches (``__pycache__``) and hidden files
+    are left out.
+    """
     spec = importlib.util.find_spec(module)
     if spec is None:
         raise ValueError(f"Stage.code: no module named {module!r}")
-    if spec.submodule_search_locations:
-        return sorted(path for folder in spec.submodule_search_locations for path in Path(folder).rglob("*")
-                      if path.suffix in _SOURCE_SUFFIXES and "__pycache__" not in path.parts)
-    return [Path(spec.origin)]
+    if not spec.submodule_search_locations:
+        return [(module, Path(spec.origin))]
+    return sorted((f"{module}/{path.relative_to(folder).as_posix()}", path)
+                  for folder in map(Path, spec.submodule_search_locations) for path in folder.rglob("*")
+                  if path.is_file() and not any(part == "__pycache__" or part.startswith(".")
+                                                for part in path.relative_to(folder).parts))
+
+
+@dataclass(frozen=True)
+class CodeInputs:
+    """What a stage's code version is made of (:func:`code_inputs`).
+
+    Attributes
+    ----------
+    functions : tuple of function
+        The run function and every function of its module that it uses, directly or through another.
+    constants : tuple of (str, str)
+        Name and ``repr`` of the plain values (numbers, strings, tuples of them) of that module they read.
+    files : tuple of (str, Path)
+        The files of the :attr:`Stage.code` entries (:func:`declared_files`).
+    """
+
+    functions: tuple[Callable, ...]
+    constants: tuple[tuple[str, str], ...]
+    files: tuple[tuple[str, Path], ...]
+
+
+def code_inputs(stage: Stage) -> CodeInputs:
+    """The code and data ``stage``'s results depend on.
+
+    Run functions share a module (``pipeline/graph.py``) with other stages' run functions, so that module
+    counts function by function: the run function, the functions of the module it names (found in the
+    names its code, nested functions included, reads), theirs, and so on, with the plain constants
+    they read. Everything else comes from :attr:`Stage.code`; tests/pipeline/test_graph.py runs each
+    real stage under a profiler and fails when first-party code or data outside these runs.
+    """
+    namespace = stage.run.__globals__
+    functions: dict[str, Callable] = {}
+    constants: dict[str, str] = {}
+    todo = [stage.run]
+    while todo:
+        function = todo.pop()
+        if function.__qualname__ in functions:
+            continue
+        functions[function.__qualname__] = function
+        for name in sorted(_names_read(function.__code__)):
+            value = namespace.get(name)
+            if inspect.isfunction(value) and value.__module__ == stage.run.__module__:
+                todo.append(value)
+            elif _is_plain(value):
+                constants[name] = repr(value)
+    files = tuple(entry for module in stage.code for entry in declared_files(module))
+    return CodeInputs(tuple(functions[name] for name in sorted(functions)), tuple(sorted(constants.items())), files)
+
+
+def _names_read(code: types.CodeType) -> set[str]:
+    """Global (and attribute) names the code object and the code objects nested in it read."""
+    names = set(code.co_names)
+    for constant in code.co_consts:
+        if isinstance(constant, types.CodeType):
+            names |= _names_read(constant)
+    return names
+
+
+def _is_plain(value: Any) -> bool:
+    """Whether ``value`` is data whose ``repr`` is the same in every process (no object addresses)."""
+    if isinstance(value, (tuple, frozenset)):
+        return all(_is_plain(item) for item in value)
+    return value is not None and isinstance(value, (bool, int, float, str, bytes))
 
 
 def code_version(stage: Stage) -> str:
-    """Package version + hash of the run function's source and of the modules in ``stage.code``."""
-    digest = hashlib.sha256(inspect.getsource(stage.run).encode("utf-8"))
-    for module in stage.code:
-        for path in _source_files(module):
-            digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    """Package version + hash of what :func:`code_inputs` finds: sources, constants, declared files."""
+    inputs = code_inputs(stage)
+    digest = hashlib.sha256()
+    for function in inputs.functions:
+        digest.update(f"{function.__qualname__}\0{inspect.getsource(function)}\0".encode())
+    for name, value in inputs.constants:
+        digest.update(f"{name}={value}\0".encode())
+    for name, path in inputs.files:
+        digest.update(name.encode() + b"\0" + path.read_bytes() + b"\0")
     return f"{package_version()}+{digest.hexdigest()[:16]}"
 
 

@@ -27,6 +27,8 @@ from pipeline.runner import (
     MARKER,
     Runner,
     Stage,
+    code_inputs,
+    code_version,
     consecutive_chunks,
     describe_outputs,
     graph_status,
@@ -303,6 +305,33 @@ def test_checking_a_thousand_output_files_takes_well_under_a_second(tmp_path):
     seconds = time.perf_counter() - started
     print(f"up-to-date check of 1000 files: {1000 * seconds:.0f} ms")
     assert seconds < 0.5
+
+
+def test_a_code_version_follows_every_file_of_a_declared_package(tmp_path, monkeypatch):
+    package = tmp_path / "keyed_package"
+    (package / "data").mkdir(parents=True)
+    (package / "__init__.py").write_text("SCALE = 2\n")
+    (package / "data" / "table.npz").write_bytes(b"first table")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    stage = Stage("keyed", run_source, code=("keyed_package",))
+    first = code_version(stage)
+    (package / "data" / "table.npz").write_bytes(b"other table")  # data, not source: part of the key
+    second = code_version(stage)
+    (package / "__pycache__").mkdir()
+    (package / "__pycache__" / "cache.nbi").write_bytes(b"compiled")  # a cache is not
+    assert first != second == code_version(stage)
+
+
+def test_a_run_function_counts_with_the_helpers_and_constants_of_its_module_it_uses():
+    from pipeline import graph
+
+    silhouettes, tracking = (code_inputs(stage) for stage in graph.STAGES if stage.name in ("silhouettes", "tracking"))
+    assert {function.__name__ for function in silhouettes.functions} >= {
+        "run_silhouettes", "_backgrounds", "background_image", "spread_frames", "video_chunk_size"}
+    assert ("MEDIAN_BACKGROUND_FRAMES", repr(graph.MEDIAN_BACKGROUND_FRAMES)) in silhouettes.constants
+    assert "background_image" not in {function.__name__ for function in tracking.functions}
+    assert {"read_tracking", "tracking_path"} <= {function.__name__ for function in tracking.functions}
+    assert any(name == "stages.tracking/data/poses.npz" for name, _ in tracking.files)
 
 
 def test_force_reruns_selected_stages(setup):
