@@ -47,6 +47,11 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
         if not tmp.exists():
             raise OSError(f"{path}: nothing was written to the temporary file {tmp.name}")
         os.replace(tmp, path)
+    except OSError as error:
+        if error.errno is None or error.filename is not None:
+            raise
+        # A write's error (a full disk) names no file: name the one being written (same errno, same type).
+        raise OSError(error.errno, error.strerror, str(path)) from error
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()

@@ -231,12 +231,13 @@ class Capture:
             return _hash_text(_canonical_json(list(self.frame_numbers)))
         if part == "image_sizes":
             return _hash_text(_canonical_json({camera.name: list(camera.size) for camera in self.rig}))
-        if part == "calibration":
+        if part == "calibration":  # named within the calibration itself, which may lie anywhere
             path = self.root / self.config["calibration"]["path"]
             files = sorted(p for p in ([path] if path.is_file() else path.rglob("*")) if p.is_file())
             digest = hashlib.sha256()
             for file in files:
-                digest.update(str(file.relative_to(self.root)).encode() + b"\0" + file.read_bytes() + b"\0")
+                name = file.name if file == path else file.relative_to(path).as_posix()
+                digest.update(name.encode() + b"\0" + file.read_bytes() + b"\0")
             return digest.hexdigest()[:32]
         if part == "images":
             files = (self._media_files(self.camera_media) if self.has_images else [])

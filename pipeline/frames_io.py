@@ -153,9 +153,10 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     """Atomically write an image (``(H, W)`` or ``(H, W, 3)`` uint8; PNG is lossless)."""
     if image.dtype != np.uint8 or image.ndim not in (2, 3):
         raise ValueError(f"write_image: expected a (H, W[, 3]) uint8 array, got {image.dtype} {image.shape}")
-    with atomic.atomic_output(path) as tmp:
-        if not cv2.imwrite(str(tmp), image):
-            raise OSError(f"{path}: OpenCV could not write the image")
+    ok, encoded = cv2.imencode(Path(path).suffix, image)
+    if not ok:
+        raise ValueError(f"write_image: OpenCV cannot encode {Path(path).suffix!r} images ({path})")
+    atomic.write_bytes(path, encoded.tobytes())  # a full disk is an OSError with its errno, as for any file
 
 
 def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import errno
 import fcntl
 import hashlib
 import importlib.metadata
@@ -661,7 +662,12 @@ def fresh_stage_folder(folder: Path, key: str) -> None:
 @contextlib.contextmanager
 def output_lock(output_root: Path) -> Iterator[None]:
     """Hold an exclusive lock on ``<out>/.lock`` for the duration of a run."""
-    output_root.mkdir(parents=True, exist_ok=True)
+    try:
+        output_root.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        in_the_way = next(path for path in (output_root, *output_root.parents) if path.exists())
+        raise InputError(f"--out {output_root}: {in_the_way} is a file, not a folder (expected a folder for the "
+                         "results, or a path where one can be made)") from None
     with open(output_root / LOCK, "a") as handle:
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -672,6 +678,30 @@ def output_lock(output_root: Path) -> Iterator[None]:
             yield
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+#: errno of the OSErrors that are about the storage a run reads and writes, not about the pipeline, with
+#: what the user is expected to provide.
+STORAGE_ERRORS = {
+    errno.ENOSPC: "free space on the output's disk; the frames already written are kept and the next run "
+                  "resumes from them",
+    errno.EDQUOT: "disk quota left for the output; the frames already written are kept and the next run "
+                  "resumes from them",
+    errno.EFBIG: "files allowed to grow that large (see ulimit -f)",
+    errno.EROFS: "an output folder on a file system that can be written",
+    errno.EACCES: "permission to read the capture and to write the output folder",
+    errno.EPERM: "permission to read the capture and to write the output folder",
+}
+
+
+def storage_error(error: OSError, output_root: Path) -> InputError | None:
+    """The one-line error for an ``OSError`` about the storage (full, read-only, not permitted), wherever
+    it was raised (a worker process's comes back whole), or None for any other (a bug, which keeps its
+    traceback)."""
+    expected = STORAGE_ERRORS.get(error.errno)
+    if expected is None:
+        return None
+    return InputError(f"{error.filename or output_root}: {error.strerror} (expected {expected})")
 
 
 def write_run_record(output_root: Path, capture: Capture, params: Mapping[str, Any]) -> None:

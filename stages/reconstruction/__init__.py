@@ -173,5 +173,21 @@ def reconstruct(masks: Sequence[np.ndarray], rig: Rig, volume, params: Reconstru
             samples_per_ray=params.samples_per_ray,
             contour_smoothing_px=params.contour_smoothing_px,
         )
-    finite = np.all(np.isfinite(points), axis=1) & np.all(np.isfinite(normals), axis=1)
-    return Observations(points[finite], normals[finite])
+    return Observations(*usable_observations(points, normals))
+
+
+#: How far from 1 an observation's normal length may be: float32 rounding on disk is far below it, and a
+#: reader of the observations (``pipeline.frames_io.read_ply``) refuses more.
+UNIT_NORMAL_TOLERANCE = 1e-3
+
+
+def usable_observations(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of ``points`` and ``normals`` (N, 3) that are finite and whose normal has unit length.
+
+    A cone face seen edge-on (contour tangent along the ray) has no normal; its zero vector would be read
+    back as a damaged file and means nothing to the tracker, so such a point is not an observation.
+    """
+    length = np.sqrt(np.einsum("ij,ij->i", normals, normals))
+    keep = (np.all(np.isfinite(points), axis=1) & np.isfinite(length)
+            & (np.abs(length - 1.0) <= UNIT_NORMAL_TOLERANCE))
+    return points[keep], normals[keep]

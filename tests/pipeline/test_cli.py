@@ -6,9 +6,12 @@ status 2, no traceback, and no result written.
 
 from __future__ import annotations
 
+import errno
 import os
 import re
+import resource
 import shutil
+import signal
 import subprocess
 import sys
 import types
@@ -20,7 +23,7 @@ import yaml
 from conftest import make_capture, tiny_rig, write_config, write_video
 
 from calib.formats import load_rig
-from pipeline import frames_io
+from pipeline import atomic, frames_io
 from pipeline.cli import SUBCOMMANDS, main
 from pipeline.graph import STAGES
 from pipeline.runner import MANIFEST, output_lock
@@ -331,3 +334,64 @@ def test_a_damaged_file_of_the_capture_is_a_one_line_error(tmp_path, capsys):
     mask = capture / "silhouettes" / "cam0" / "000001.png"
     mask.write_bytes(mask.read_bytes()[:-5])
     expect_error(capsys, run_argv(capture, tmp_path / "out"), f"{mask}: PNG file is truncated")
+
+
+@pytest.mark.parametrize("below", ["", "results"])
+def test_out_where_a_file_is(tiny_capture, tmp_path, capsys, below):
+    in_the_way = tmp_path / "notes.txt"
+    in_the_way.write_text("mine")
+    expect_error(capsys, run_argv(tiny_capture, in_the_way / below), f"{in_the_way} is a file, not a folder")
+    assert in_the_way.read_text() == "mine"
+
+
+def test_out_on_a_read_only_file_system(tiny_capture, tmp_path, capsys, monkeypatch):
+    read_only, make_folder = tmp_path / "mounted", Path.mkdir
+
+    def mkdir(path, *args, **kwargs):
+        if read_only in (path, *path.parents):
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
+        make_folder(path, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", mkdir)
+    expect_error(capsys, run_argv(tiny_capture, read_only / "out"), "Read-only file system",
+                 "on a file system that can be written")
+
+
+def test_a_full_disk_is_a_one_line_error_and_the_next_run_resumes(tiny_capture, tmp_path, capsys, monkeypatch):
+    out, write, calls = tmp_path / "out", atomic.write_bytes, []
+
+    def full_after_some_files(path, data):
+        calls.append(path)
+        if len(calls) > 12:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        write(path, data)
+
+    monkeypatch.setattr(atomic, "write_bytes", full_after_some_files)
+    expect_error(capsys, run_argv(tiny_capture, out), "No space left on device", "free space")
+    monkeypatch.setattr(atomic, "write_bytes", write)
+    assert run_cli(*run_argv(tiny_capture, out)) == 0
+
+
+def test_a_file_too_large_in_a_worker_process_is_a_one_line_error(tiny_capture, tmp_path):
+    """Files over 6 kB fail (ulimit -f): the reconstruction's clouds, written in the pool's processes."""
+    def small_files_only():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # an error from write(), not the signal's kill
+        resource.setrlimit(resource.RLIMIT_FSIZE, (6000, 6000))
+
+    command = [sys.executable, "-m", "pipeline", "run", str(tiny_capture), "--out", str(tmp_path / "out"), "-q",
+               "--workers", "2"]
+    result = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=300,
+                            preexec_fn=small_files_only)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr
+    last = result.stderr.strip().splitlines()[-1]
+    assert re.fullmatch(rf"error: {tmp_path / 'out' / 'reconstruction'}/\d{{6}}\.ply: File too large "
+                        r"\(expected files allowed to grow that large \(see ulimit -f\)\)", last), last
+
+
+@pytest.mark.parametrize("where", ["inside", "elsewhere"])
+def test_an_absolute_calibration_path_is_read(tmp_path, where):
+    capture = make_capture(tmp_path / "c")
+    calibration = (make_capture(tmp_path / "other") if where == "elsewhere" else capture) / "calibration"
+    write_config(capture, calibration={"format": "anipose", "path": str(calibration / "calibration.toml")})
+    assert run_cli(*run_argv(capture, tmp_path / "out", "--to", "calibration")) == 0

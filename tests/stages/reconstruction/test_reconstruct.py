@@ -3,7 +3,7 @@ import pytest
 from sphere_scene import CENTRE, RADIUS, VOLUME, render_spheres, ring_rig
 
 from calib.errors import InputError
-from stages.reconstruction import Observations, ReconstructionParams, reconstruct
+from stages.reconstruction import Observations, ReconstructionParams, reconstruct, usable_observations
 
 
 @pytest.fixture(scope="module")
@@ -186,3 +186,11 @@ def test_reconstruct_rejects_bad_inputs(rig, sphere_masks):
 def test_params_reject_bad_values(field, value):
     with pytest.raises(InputError, match=field):
         ReconstructionParams(**{field: value})
+
+
+def test_observations_without_a_unit_normal_are_dropped():
+    points = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [np.nan, 0.0, 1.0], [0.0, 1.0, 1.0]])
+    normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.6, 0.8, 0.0]])
+    kept_points, kept_normals = usable_observations(points, normals)
+    np.testing.assert_array_equal(kept_points, points[[0, 3]])
+    np.testing.assert_array_equal(kept_normals, normals[[0, 3]])
