@@ -35,7 +35,7 @@ from calib.camera import Rig
 from calib.errors import InputError
 from calib.formats import load_rig
 from calib.world import UNIT_SCALE, to_world, up_rotation
-from pipeline import frames_io
+from pipeline import frames_io, plain_yaml
 
 log = logging.getLogger(__name__)
 
@@ -108,14 +108,22 @@ class Capture:
     silhouette_media: Mapping[str, _CameraMedia]
 
     @classmethod
-    def open(cls, path: str | Path) -> Capture:
-        """Validate the capture directory at ``path`` and return it (raises :class:`InputError`)."""
+    def open(cls, path: str | Path, *, allow_outside_paths: bool = False) -> Capture:
+        """Validate the capture directory at ``path`` and return it (raises :class:`InputError`).
+
+        ``calibration.path`` must lead inside the capture (CAPTURE_FORMAT.md: relative to the capture
+        directory), so that a capture.yaml from elsewhere cannot make the pipeline open ``/etc/passwd``
+        or ``../../secret``; ``allow_outside_paths`` (``run --allow-outside-paths``) lifts that.
+        """
         root = Path(path)
         if not root.is_dir():
             raise InputError(f"{root}: no such capture directory (expected a folder with capture.yaml)")
         config = _read_config(root / "capture.yaml")
         calibration = config["calibration"]
         calibration_path = root / calibration["path"]
+        if not allow_outside_paths and not _lies_in(calibration_path, root):
+            raise InputError(f"{root / 'capture.yaml'}: calibration.path {calibration['path']!r} leads outside the "
+                             f"capture (expected a path inside {root}, or run --allow-outside-paths)")
         if not calibration_path.exists():
             raise InputError(f"{root / 'capture.yaml'}: calibration.path {calibration['path']!r} does not "
                              f"exist (expected a path relative to {root})")
@@ -286,14 +294,14 @@ def _read_config(path: Path) -> dict:
         raise InputError(f"{path}: missing (expected a capture.yaml describing the capture, "
                          "see CAPTURE_FORMAT.md)")
     try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+        raw = plain_yaml.load(path.read_text(encoding="utf-8"), str(path))
     except (yaml.YAMLError, UnicodeDecodeError) as error:
         first_line = str(error).splitlines()[0] if str(error) else type(error).__name__
         raise InputError(f"{path}: not valid YAML ({first_line}) (expected a mapping of keys)") from None
     if not isinstance(raw, dict):
         raise InputError(f"{path}: top level is {type(raw).__name__} "
                          "(expected a mapping with fps and calibration)")
-    _warn_unknown(raw, _TOP_LEVEL_KEYS, path, "")
+    _reject_unknown(raw, _TOP_LEVEL_KEYS, path, "")
 
     fps = raw.get("fps")
     if not _is_number(fps) or not fps > 0:
@@ -302,7 +310,7 @@ def _read_config(path: Path) -> dict:
     calibration = raw.get("calibration")
     if not isinstance(calibration, dict):
         raise InputError(f"{path}: calibration is {calibration!r} (expected a mapping with format and path)")
-    _warn_unknown(calibration, _CALIBRATION_KEYS, path, "calibration.")
+    _reject_unknown(calibration, _CALIBRATION_KEYS, path, "calibration.")
     calibration = {"units": "m", "up": "+z", **calibration}
     if calibration.get("format") not in CALIBRATION_FORMATS:
         raise InputError(f"{path}: calibration.format {calibration.get('format')!r} is unknown "
@@ -323,7 +331,7 @@ def _read_config(path: Path) -> dict:
     if subject is not None:
         if not isinstance(subject, dict):
             raise InputError(f"{path}: subject is {subject!r} (expected a mapping like {{height_m: 1.75}})")
-        _warn_unknown(subject, ("height_m",), path, "subject.")
+        _reject_unknown(subject, ("height_m",), path, "subject.")
         height = subject.get("height_m")
         if height is not None and (not _is_number(height) or not 0.5 < height < 2.6):
             raise InputError(f"{path}: subject.height_m is {height!r} "
@@ -337,7 +345,7 @@ def _read_config(path: Path) -> dict:
     if not isinstance(frames, dict):
         raise InputError(f"{path}: frames is {frames!r} "
                          "(expected a mapping like {start: 0, stop: null, step: 1})")
-    _warn_unknown(frames, ("start", "stop", "step"), path, "frames.")
+    _reject_unknown(frames, ("start", "stop", "step"), path, "frames.")
     frames = {"start": 0, "stop": None, "step": 1, **frames}
     for key, minimum in (("start", 0), ("step", 1), ("stop", 1)):
         value = frames[key]
@@ -356,11 +364,18 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def _warn_unknown(section: dict, known: tuple[str, ...], path: Path, prefix: str) -> None:
-    """Log keys we do not read: a typo there would otherwise be silently ignored."""
+def _reject_unknown(section: dict, known: tuple[str, ...], path: Path, prefix: str) -> None:
+    """Refuse keys we do not read: a typo (``volum:``) would otherwise be silently ignored."""
     for key in section:
         if key not in known:
-            log.warning("%s: ignoring unknown key %s%s (known keys: %s)", path, prefix, key, ", ".join(known))
+            raise InputError(f"{path}: unknown key {prefix + str(key)!r} "
+                             f"(expected one of {', '.join(prefix + name for name in known)})")
+
+
+def _lies_in(path: Path, root: Path) -> bool:
+    """Whether ``path`` (``..`` and links followed) is ``root`` or lies under it."""
+    path, root = path.resolve(), root.resolve()
+    return path == root or root in path.parents
 
 
 def _check_volume(volume: Any, path: Path) -> dict:

@@ -11,7 +11,7 @@ field, nested dataclasses as nested sections::
 
 Overrides are validated against the dataclass fields before any work starts: an unknown stage or
 key, or a value of the wrong type, is an :class:`InputError` naming where it came from and listing
-what is valid. Values are parsed with ``yaml.safe_load`` (``--set a.b=0.5`` gives a float,
+what is valid. Values are parsed as YAML without aliases (:mod:`pipeline.plain_yaml`; ``--set a.b=0.5`` gives a float,
 ``=true`` a bool, ``=[1, 2]`` a list; ``1e-6``, a string in YAML 1.1, is accepted for a float).
 """
 
@@ -27,6 +27,7 @@ from typing import Any
 import yaml
 
 from calib.errors import InputError
+from pipeline import plain_yaml
 
 
 def default_params(stages: Iterable[Any]) -> dict[str, Any]:
@@ -38,7 +39,7 @@ def read_config(path: str | Path) -> dict:
     """Read a ``--config`` YAML file: a mapping from stage name to that stage's parameters."""
     path = Path(path)
     try:
-        config = yaml.safe_load(path.read_text(encoding="utf-8"))
+        config = plain_yaml.load(path.read_text(encoding="utf-8"), str(path))
     except OSError as error:
         raise InputError(f"{path}: cannot read ({error.strerror}) "
                          "(expected a YAML file of parameters)") from None
@@ -63,7 +64,7 @@ def parse_assignments(assignments: Iterable[str]) -> dict:
             raise InputError(f"--set {text}: malformed "
                              "(expected stage.param=value, e.g. silhouettes.threshold=30)")
         try:
-            parsed = yaml.safe_load(value)
+            parsed = plain_yaml.load(value, f"--set {text}")
         except yaml.YAMLError:
             raise InputError(f"--set {text}: the value is not valid YAML (expected a number, "
                              "true/false, a string or a [list])") from None

@@ -704,10 +704,12 @@ def storage_error(error: OSError, output_root: Path) -> InputError | None:
     return InputError(f"{error.filename or output_root}: {error.strerror} (expected {expected})")
 
 
-def write_run_record(output_root: Path, capture: Capture, params: Mapping[str, Any]) -> None:
-    """Remember which capture and parameters this output folder is for (``stages <out>`` reads it)."""
+def write_run_record(output_root: Path, capture: Capture, params: Mapping[str, Any], *,
+                     allow_outside_paths: bool = False) -> None:
+    """Remember which capture (opened how) and parameters this output folder is for (``stages <out>``
+    reads it)."""
     frames_io.write_json(output_root / RUN_RECORD, {
-        "capture": str(capture.root.resolve()),
+        "capture": str(capture.root.resolve()), "allow_outside_paths": allow_outside_paths,
         "params": {name: params_to_dict(value) for name, value in params.items() if value is not None},
     })
 

@@ -38,6 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run per-frame work on Dask: a scheduler address, or local:N "
                              "for a local cluster of N processes")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--allow-outside-paths", action="store_true",
+                        help="let capture.yaml's calibration.path lead outside the capture directory "
+                             "(refused by default: a capture.yaml from elsewhere could name any file)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -55,10 +58,10 @@ def main(args: argparse.Namespace) -> int:
     try:
         # The workers start first: their start-up overlaps the checks of the capture.
         with make_executor(args.workers, args.scheduler, preload=graph.WORKER_MODULES) as workers:
-            capture = Capture.open(args.capture)
+            capture = Capture.open(args.capture, allow_outside_paths=args.allow_outside_paths)
             runner = Runner(stages, capture, params, args.out, workers, show_progress)  # refuses --out in the capture
             with output_lock(args.out):
-                write_run_record(args.out, capture, params)
+                write_run_record(args.out, capture, params, allow_outside_paths=args.allow_outside_paths)
                 outcomes = runner.run(selected, force=args.force)
     except OSError as error:  # a full or read-only disk, from this process or a worker: the user's to fix
         problem = storage_error(error, args.out)

@@ -21,7 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     record = read_run_record(args.out)
-    capture = Capture.open(record["capture"])
+    capture = Capture.open(record["capture"], allow_outside_paths=record.get("allow_outside_paths") is True)
     params = apply_overrides(default_params(graph.STAGES), record.get("params", {}),
                              source=f"{args.out / RUN_RECORD}:")
     statuses = graph_status(graph.STAGES, capture, params, args.out)

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import os
 import pickle
+import re
 import types
 
 import numpy as np
 import pytest
 from conftest import BACKGROUND_GREY, TINY_SIZE, frame_image, make_capture, tiny_rig, write_config
 
+from calib.errors import InputError
 from pipeline.capture import Capture, derive_volume
 
 
@@ -123,7 +125,14 @@ def test_fingerprints_follow_the_files(tiny_capture):
         part: before[part] for part in ("config", "calibration", "frames")}
 
 
-def test_unknown_keys_are_warned_about(tiny_capture, caplog):
-    write_config(tiny_capture, volum={"min": [0, 0, 0], "max": [1, 1, 1]})
-    Capture.open(tiny_capture)
-    assert "ignoring unknown key volum" in caplog.text
+@pytest.mark.parametrize(("changes", "key"), [
+    ({"volum": {"min": [0, 0, 0], "max": [1, 1, 1]}}, "'volum' (expected one of fps, calibration"),
+    ({"calibration": {"format": "anipose", "path": "calibration/calibration.toml", "unit": "mm"}},
+     "'calibration.unit' (expected one of calibration.format, calibration.path"),
+    ({"subject": {"height": 1.8}}, "'subject.height' (expected one of subject.height_m)"),
+    ({"frames": {"begin": 1}}, "'frames.begin' (expected one of frames.start, frames.stop, frames.step)"),
+])
+def test_unknown_keys_are_refused(tiny_capture, changes, key):
+    write_config(tiny_capture, **changes)  # a typo would otherwise be silently ignored
+    with pytest.raises(InputError, match=re.escape(f"capture.yaml: unknown key {key}")):
+        Capture.open(tiny_capture)

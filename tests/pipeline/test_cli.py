@@ -14,6 +14,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 import types
 from pathlib import Path
 
@@ -390,8 +391,34 @@ def test_a_file_too_large_in_a_worker_process_is_a_one_line_error(tiny_capture, 
 
 
 @pytest.mark.parametrize("where", ["inside", "elsewhere"])
-def test_an_absolute_calibration_path_is_read(tmp_path, where):
-    capture = make_capture(tmp_path / "c")
+def test_an_absolute_calibration_path_is_read(tmp_path, capsys, where):
+    """Inside the capture as it is; outside it only with --allow-outside-paths, which `stages` remembers."""
+    capture, out = make_capture(tmp_path / "c"), tmp_path / "out"
     calibration = (make_capture(tmp_path / "other") if where == "elsewhere" else capture) / "calibration"
     write_config(capture, calibration={"format": "anipose", "path": str(calibration / "calibration.toml")})
-    assert run_cli(*run_argv(capture, tmp_path / "out", "--to", "calibration")) == 0
+    flag = ("--allow-outside-paths",) if where == "elsewhere" else ()
+    assert run_cli(*run_argv(capture, out, "--to", "calibration", *flag)) == 0
+    assert run_cli("stages", out) == 0
+    assert re.search(r"calibration\s+up to date", capsys.readouterr().out)
+
+
+@pytest.mark.parametrize("path", ["../../../../../../etc/passwd", "/etc/passwd", "linked/calibration.toml"])
+def test_a_calibration_path_leading_outside_the_capture_is_refused(tmp_path, capsys, path):
+    capture = make_capture(tmp_path / "c")
+    (capture / "linked").symlink_to(make_capture(tmp_path / "other") / "calibration")
+    write_config(capture, calibration={"format": "anipose", "path": path})
+    expect_error(capsys, run_argv(capture, tmp_path / "out"), f"calibration.path {path!r} leads outside the capture",
+                 "--allow-outside-paths")
+
+
+def test_yaml_aliases_are_refused_before_they_expand(tiny_capture, tmp_path, capsys):
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{depth}: &a{depth} [{', '.join([f'*a{depth - 1}'] * 9)}]" for depth in range(1, 10)]
+    text = (tiny_capture / "capture.yaml").read_text() + "subject:\n  " + "\n  ".join(lines) + "\n"
+    (tiny_capture / "capture.yaml").write_text(text)  # 9^10 strings once expanded
+    started = time.perf_counter()
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "capture.yaml: line ", "alias *a0")
+    assert time.perf_counter() - started < 5
+    (tmp_path / "params.yaml").write_text("tracking: &t {}\nexport: *t\n")
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out", "--config", tmp_path / "params.yaml"),
+                 "params.yaml: line 2: alias *t")
