@@ -86,7 +86,9 @@ def read_calibration(folder: Path) -> tuple[Rig, dict]:
     """The calibration stage's results: the world-frame rig and the capture summary.
 
     ``summary`` has ``fps``, ``cameras``, ``image_sizes``, ``frames``, ``volume`` ((2, 3) as nested
-    lists, metres), ``volume_source``, ``height_m``, ``media``, ``silhouettes_given``, ``backgrounds``.
+    lists, metres), ``volume_source``, ``world_transform`` (``up``, ``rotation``, ``translation_m``,
+    ``scale``: calibration world to this one; with ``up: auto`` also what was found), ``height_m``,
+    ``media``, ``silhouettes_given``, ``backgrounds``.
     """
     return load_rig("anipose", folder / RIG_FILE), frames_io.read_json(folder / CAPTURE_FILE)
 
@@ -273,9 +275,9 @@ WORKER_MODULES = ("pipeline.frame_tasks",)
 FILES_CODE = ("pipeline.frames_io", "pipeline.atomic")
 
 STAGES: tuple[Stage, ...] = (
-    Stage("calibration", run_calibration,
-          capture_parts=("config", "calibration", "image_sizes", "frames"),
-          code=("calib", "pipeline.capture", *FILES_CODE)),
+    Stage("calibration", run_calibration,  # up: auto finds the floor in the media (pipeline.auto_frame)
+          capture_parts=("config", "calibration", "image_sizes", "frames", "images", "background", "silhouettes"),
+          code=("calib", "pipeline.capture", "pipeline.auto_frame", "stages.silhouettes", *FILES_CODE)),
     Stage("silhouettes", run_silhouettes, inputs=("calibration",), params_type=SilhouetteParams,
           capture_parts=("frames", "images", "background", "silhouettes"),
           code=("stages.silhouettes", "pipeline.frame_tasks", "pipeline.capture", "calib", *FILES_CODE)),
