@@ -17,6 +17,7 @@ Images are BGR ``(H, W, 3) uint8`` (OpenCV's order), masks ``(H, W) uint8`` in {
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -25,7 +26,7 @@ import re
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -34,8 +35,11 @@ import yaml
 from calib.camera import Rig
 from calib.errors import InputError
 from calib.formats import load_rig
-from calib.world import UNIT_SCALE, to_world, up_rotation
+from calib.world import UNIT_SCALE, WorldTransform, fixed_transform, up_rotation
 from pipeline import frames_io, plain_yaml
+
+if TYPE_CHECKING:
+    from pipeline.auto_frame import AutoFrame
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +86,10 @@ class Capture:
         Frames per second.
     rig : Rig
         Cameras in the world frame (metres, +z up), image sizes from the media.
+    world : WorldTransform
+        The map from the calibration's world to the rig's (``calibration.units`` and ``up``).
+    auto_frame : AutoFrame or None
+        What ``up: auto`` found (:mod:`pipeline.auto_frame`); None for a declared up axis.
     volume : (2, 3) float
         Working volume ``[min, max]``, metres, world frame; from ``capture.yaml`` or derived.
     volume_source : str
@@ -106,6 +114,8 @@ class Capture:
     camera_media: Mapping[str, _CameraMedia]
     background_paths: Mapping[str, Path]
     silhouette_media: Mapping[str, _CameraMedia]
+    world: WorldTransform
+    auto_frame: AutoFrame | None = None
 
     @classmethod
     def open(cls, path: str | Path, *, allow_outside_paths: bool = False) -> Capture:
@@ -146,8 +156,10 @@ class Capture:
                 raise InputError(
                     f"{camera_media[camera.name].path}: image size {sizes[camera.name]} differs from the "
                     f"calibration's {tuple(camera.size)} for camera {camera.name!r} (expected equal sizes)")
-        rig = Rig(tuple(camera.with_size(*sizes[camera.name]) for camera in rig))
-        rig = to_world(rig, units=calibration["units"], up=calibration["up"])
+        calibration_rig = Rig(tuple(camera.with_size(*sizes[camera.name]) for camera in rig))
+        auto = calibration["up"] == "auto"  # then the vertical and floor come after the frames are known
+        world = fixed_transform(units=calibration["units"], up="+z" if auto else calibration["up"])
+        rig = world.apply(calibration_rig)
 
         available = _available_frames(camera_media, media, root)
         frame_numbers = _select_frames(config["frames"], available, root / "capture.yaml")
@@ -161,6 +173,18 @@ class Capture:
             if size != sizes[name]:
                 raise InputError(f"{path}: image size {size} differs from camera {name!r}'s {sizes[name]} "
                                  "(expected the clean plate of that camera)")
+        subject = config["subject"] or {}
+        capture = cls(root=root, config=config, fps=float(config["fps"]), rig=rig, volume=np.zeros((2, 3)),
+                      volume_source="", height_m=subject.get("height_m"), frame_numbers=tuple(frame_numbers),
+                      media=media, camera_media=camera_media, background_paths=background_paths,
+                      silhouette_media=silhouette_media, world=world)
+        if auto:
+            from pipeline.auto_frame import find_world_frame  # here: it imports the silhouette stage
+
+            found = find_world_frame(capture, world.scale)
+            rig = found.transform.apply(calibration_rig)
+            capture = dataclasses.replace(capture, rig=rig, world=found.transform, auto_frame=found)
+            log.info("%s", found.describe())
 
         if config["volume"] is not None:
             volume = np.array([config["volume"]["min"], config["volume"]["max"]], dtype=np.float64)
@@ -173,11 +197,7 @@ class Capture:
                                  "area, or volume: in capture.yaml)") from None
             log.info("working volume derived from the calibration: min %s max %s",
                      np.round(volume[0], 2).tolist(), np.round(volume[1], 2).tolist())
-        subject = config["subject"] or {}
-        return cls(root=root, config=config, fps=float(config["fps"]), rig=rig, volume=volume,
-                   volume_source=volume_source, height_m=subject.get("height_m"),
-                   frame_numbers=tuple(frame_numbers), media=media, camera_media=camera_media,
-                   background_paths=background_paths, silhouette_media=silhouette_media)
+        return dataclasses.replace(capture, volume=volume, volume_source=volume_source)
 
     @property
     def has_images(self) -> bool:
@@ -322,10 +342,11 @@ def _read_config(path: Path) -> dict:
         raise InputError(f"{path}: calibration.units {calibration['units']!r} is unknown "
                          f"(expected one of {', '.join(UNIT_SCALE)})")
     try:
-        up_rotation(calibration["up"])
+        if calibration["up"] != "auto":
+            up_rotation(calibration["up"])
     except InputError:
         raise InputError(f"{path}: calibration.up {calibration['up']!r} is unknown "
-                         "(expected one of +z, -z, +y, -y, +x, -x)") from None
+                         "(expected one of +z, -z, +y, -y, +x, -x, auto)") from None
 
     subject = raw.get("subject")
     if subject is not None:
@@ -644,6 +665,8 @@ def capture_summary(capture: Capture) -> dict:
         "frames": list(capture.frame_numbers),
         "volume": capture.volume.tolist(),
         "volume_source": capture.volume_source,
+        "world_transform": {"up": capture.config["calibration"]["up"], **capture.world.to_dict(),
+                            **(capture.auto_frame.to_dict() if capture.auto_frame else {})},
         "height_m": capture.height_m,
         "media": capture.media,
         "silhouettes_given": capture.silhouettes_given,
