@@ -35,6 +35,7 @@ import yaml
 from calib.camera import Rig
 from calib.errors import InputError
 from calib.formats import load_rig
+from calib.sanity import check_cameras_see_volume, check_intrinsics, check_rig_size
 from calib.world import UNIT_SCALE, WorldTransform, fixed_transform, up_rotation
 from pipeline import frames_io, plain_yaml
 
@@ -160,6 +161,8 @@ class Capture:
         auto = calibration["up"] == "auto"  # then the vertical and floor come after the frames are known
         world = fixed_transform(units=calibration["units"], up="+z" if auto else calibration["up"])
         rig = world.apply(calibration_rig)
+        check_rig_size(rig, units=calibration["units"], where=str(calibration_path))
+        check_intrinsics(rig, where=str(calibration_path))
 
         available = _available_frames(camera_media, media, root)
         frame_numbers = _select_frames(config["frames"], available, root / "capture.yaml")
@@ -197,6 +200,8 @@ class Capture:
                                  "area, or volume: in capture.yaml)") from None
             log.info("working volume derived from the calibration: min %s max %s",
                      np.round(volume[0], 2).tolist(), np.round(volume[1], 2).tolist())
+        if volume_source == "capture.yaml":  # a derived volume is, by construction, what most cameras see
+            check_cameras_see_volume(capture.rig, volume, where=str(calibration_path))
         return dataclasses.replace(capture, volume=volume, volume_source=volume_source)
 
     @property
