@@ -53,6 +53,7 @@ import inspect
 import json
 import logging
 import math
+import os
 import re
 import shutil
 import sys
@@ -661,23 +662,49 @@ def fresh_stage_folder(folder: Path, key: str) -> None:
 
 @contextlib.contextmanager
 def output_lock(output_root: Path) -> Iterator[None]:
-    """Hold an exclusive lock on ``<out>/.lock`` for the duration of a run."""
+    """Hold an exclusive lock on ``<out>/.lock`` for the duration of a run.
+
+    Afterwards the lock file is removed, and so is the output folder when the block made it and left
+    nothing in it (a run refused at once leaves no trace). The file is removed while still locked: a
+    run that opened it meanwhile finds, once it gets the lock, that the path is no longer its file, and
+    is refused like any second run.
+    """
+    made = not output_root.exists()
     try:
         output_root.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
         in_the_way = next(path for path in (output_root, *output_root.parents) if path.exists())
         raise InputError(f"--out {output_root}: {in_the_way} is a file, not a folder (expected a folder for the "
                          "results, or a path where one can be made)") from None
-    with open(output_root / LOCK, "a") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise InputError(f"{output_root}: another run is using this output directory "
-                             "(expected one run at a time; wait for it or pick another --out)") from None
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+    path = output_root / LOCK
+    busy = InputError(f"{output_root}: another run is using this output directory "
+                      "(expected one run at a time; wait for it or pick another --out)")
+    try:
+        with open(path, "a") as handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise busy from None
+            if not _same_file(handle.fileno(), path):
+                raise busy
+            try:
+                yield
+            finally:
+                path.unlink(missing_ok=True)
+                fcntl.flock(handle, fcntl.LOCK_UN)
+    finally:
+        if made and output_root.is_dir() and not any(output_root.iterdir()):
+            output_root.rmdir()
+
+
+def _same_file(descriptor: int, path: Path) -> bool:
+    """Whether ``path`` still names the file open as ``descriptor``."""
+    try:
+        named = path.stat()
+    except FileNotFoundError:
+        return False
+    opened = os.fstat(descriptor)
+    return (named.st_dev, named.st_ino) == (opened.st_dev, opened.st_ino)
 
 
 #: errno of the OSErrors that are about the storage a run reads and writes, not about the pipeline, with
@@ -704,13 +731,19 @@ def storage_error(error: OSError, output_root: Path) -> InputError | None:
     return InputError(f"{error.filename or output_root}: {error.strerror} (expected {expected})")
 
 
-def write_run_record(output_root: Path, capture: Capture, params: Mapping[str, Any], *,
-                     allow_outside_paths: bool = False) -> None:
-    """Remember which capture (opened how) and parameters this output folder is for (``stages <out>``
-    reads it)."""
+def write_run_record(output_root: Path, capture: Capture, params: Mapping[str, Any], state: str, *,
+                     facts: Mapping[str, Any] | None = None, failure: Mapping[str, Any] | None = None) -> None:
+    """Record which capture and parameters this output folder is for (``stages <out>`` reads it), and
+    how the last run that changed it went.
+
+    ``state`` is "running" (a run is changing the folder, or was killed doing so), "finished" or
+    "failed", the last with ``failure``: ``{"error": the one-line error, "incomplete": [stages]}``.
+    ``facts`` are what else reopening the capture needs (``{"allow_outside_paths": true}``).
+    """
     frames_io.write_json(output_root / RUN_RECORD, {
-        "capture": str(capture.root.resolve()), "allow_outside_paths": allow_outside_paths,
+        "capture": str(capture.root.resolve()), **(facts or {}),
         "params": {name: params_to_dict(value) for name, value in params.items() if value is not None},
+        "state": state, **({"failure": dict(failure)} if failure else {}),
     })
 
 
@@ -736,8 +769,10 @@ class Runner:
     output_root: Path
     workers: Workers
     show_progress: bool = False
+    record_facts: Mapping[str, Any] = field(default_factory=dict)
     outcomes: list[StageOutcome] = field(default_factory=list)
     _warm_ups: dict[str, cf.Future] = field(default_factory=dict, init=False, repr=False)
+    _changing: bool = field(default=False, init=False, repr=False)
 
     def __post_init__(self) -> None:
         check_graph(self.stages)
@@ -755,22 +790,71 @@ class Runner:
         does not end the run: the file is deleted, its stage loses its manifest, and the run starts
         again with that stage selected too, which computes the file again as it resumes (each file is
         repaired once; a second failure is raised).
+
+        A run that fails after it began to change the folder leaves nothing that looks finished: every
+        stage downstream of one left incomplete loses its manifest too (:meth:`_invalidate`), and
+        ``run.json`` records the failure; a warning names those stages. Their files stay, so that the
+        next run resumes from them.
         """
         selected = set(selected) if selected is not None else {stage.name for stage in self.stages}
         forced = set(selected) if force else set()
         ran: dict[str, StageOutcome] = {}
         repaired: set[Path] = set()
-        while True:
-            try:
-                self._run_once(selected, forced)
-                break
-            except frames_io.DamagedFileError as error:
-                selected.add(self._repair(error, repaired))
-                ran.update({outcome.name: outcome for outcome in self.outcomes if outcome.action == "ran"})
-                forced -= set(ran)
+        self._changing = False
+        try:
+            while True:
+                try:
+                    self._run_once(selected, forced)
+                    break
+                except frames_io.DamagedFileError as error:
+                    selected.add(self._repair(error, repaired))
+                    ran.update({outcome.name: outcome for outcome in self.outcomes if outcome.action == "ran"})
+                    forced -= set(ran)
+        except BaseException as error:  # Ctrl-C too: what the run left must not look finished
+            if self._changing:
+                self._record_failure(error)
+            raise
+        if self._changing:
+            write_run_record(self.output_root, self.capture, self.params, "finished", facts=self.record_facts)
         self.outcomes = [ran.get(outcome.name, outcome) if outcome.action == "up to date" else outcome
                          for outcome in self.outcomes]
         return self.outcomes
+
+    def _begin_change(self) -> None:
+        """Called before the run first changes a stage folder: ``run.json`` says it is for this run now."""
+        if not self._changing:
+            write_run_record(self.output_root, self.capture, self.params, "running", facts=self.record_facts)
+            self._changing = True
+
+    def _record_failure(self, error: BaseException) -> None:
+        """Mark what a failed run left incomplete (:meth:`_invalidate`), in ``run.json`` and a warning."""
+        incomplete = self._invalidate()
+        message = str(error).splitlines()[0] if str(error).strip() else type(error).__name__
+        log.warning("the run failed; %s left incomplete (no manifest; their files are kept and the next run "
+                    "resumes from them; `python -m pipeline stages %s` lists them)",
+                    ", ".join(incomplete) or "no stage", self.output_root)
+        try:
+            write_run_record(self.output_root, self.capture, self.params, "failed", facts=self.record_facts,
+                             failure={"error": message, "incomplete": incomplete})
+        except OSError as failure:  # a full disk, say: the run's own error is the one to show
+            log.warning("%s: could not record the failure (%s)", self.output_root / RUN_RECORD, failure)
+
+    def _invalidate(self) -> list[str]:
+        """Take the manifest from every stage that has one while one of its upstreams has none (its result
+        was made from files the failed run replaced or left unfinished); return the stages of the folder
+        that are incomplete (a marker, no manifest), in order."""
+        complete: dict[str, bool] = {}
+        incomplete = []
+        for stage in self.stages:
+            folder = self.output_root / stage.name
+            has_manifest = (folder / MANIFEST).is_file()
+            if has_manifest and not all(complete.get(name, False) for name in stage.inputs):
+                (folder / MANIFEST).unlink()
+                has_manifest = False
+            complete[stage.name] = has_manifest
+            if not has_manifest and written_by_runner(folder):
+                incomplete.append(stage.name)
+        return incomplete
 
     def _run_once(self, selected: Collection[str], forced: Collection[str]) -> None:
         """One pass of :meth:`run` over the stages, the ``forced`` ones rerun even if up to date."""
@@ -797,6 +881,7 @@ class Runner:
                       if (self.output_root / stage.name).resolve() in path.parents), None)
         if owner is None or not written_by_runner(self.output_root / owner) or path in repaired:
             raise error
+        self._begin_change()
         repaired.add(path)
         log.warning("%s: %s; deleted, the %s stage computes it again", error.path, error.problem, owner)
         path.unlink(missing_ok=True)
@@ -860,6 +945,7 @@ class Runner:
                              f"{upstream}, which are not complete (expected a finished {upstream} stage; "
                              "run it first)")
         manifest = read_manifest(folder)
+        changes = None
         if manifest is not None and not force:
             reasons = stale_reasons(manifest, expected)
             changes = None if reasons else output_changes(folder, manifest)
@@ -867,11 +953,12 @@ class Runner:
                 log.info("%s: up to date", stage.name)
                 return StageOutcome(stage.name, "up to date", reason="")
             log.info("%s: stale (%s)", stage.name, "; ".join(reasons) or str(changes))
-            if changes and changes.changed:  # deleted, so that the resume below computes them again
-                log.warning("%s: %d files differ from what the stage wrote (%s); deleted, computed again",
-                            stage.name, len(changes.changed), _listing(changes.changed))
-                for name in changes.changed:
-                    (folder / name).unlink()
+        self._begin_change()
+        if changes and changes.changed:  # deleted, so that the resume below computes them again
+            log.warning("%s: %d files differ from what the stage wrote (%s); deleted, computed again",
+                        stage.name, len(changes.changed), _listing(changes.changed))
+            for name in changes.changed:
+                (folder / name).unlink()
 
         resumable = (not force and written_by_runner(folder)
                      and (folder / MARKER).read_text(encoding="utf-8").strip() == expected.key)
@@ -887,6 +974,7 @@ class Runner:
 
     def _run_streaming_stage(self, stage: Stage, upstream: cf.Future) -> StageOutcome:
         folder = self.output_root / stage.name
+        self._begin_change()
         fresh_stage_folder(folder, "")  # its key depends on the upstream's outputs: known at the end
         frames, seconds = self._execute(stage, upstream)
         upstream.result()  # its manifest is written: this stage's inputs are known now

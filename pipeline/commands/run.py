@@ -18,7 +18,7 @@ from pipeline import graph
 from pipeline.capture import Capture
 from pipeline.executors import make_executor
 from pipeline.params import apply_overrides, default_params, parse_assignments, read_config
-from pipeline.runner import Runner, format_summary, output_lock, select_stages, storage_error, write_run_record
+from pipeline.runner import Runner, format_summary, output_lock, select_stages, storage_error
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,9 +59,9 @@ def main(args: argparse.Namespace) -> int:
         # The workers start first: their start-up overlaps the checks of the capture.
         with make_executor(args.workers, args.scheduler, preload=graph.WORKER_MODULES) as workers:
             capture = Capture.open(args.capture, allow_outside_paths=args.allow_outside_paths)
-            runner = Runner(stages, capture, params, args.out, workers, show_progress)  # refuses --out in the capture
+            runner = Runner(stages, capture, params, args.out, workers, show_progress,  # refuses --out in the capture
+                            record_facts={"allow_outside_paths": args.allow_outside_paths})
             with output_lock(args.out):
-                write_run_record(args.out, capture, params, allow_outside_paths=args.allow_outside_paths)
                 outcomes = runner.run(selected, force=args.force)
     except OSError as error:  # a full or read-only disk, from this process or a worker: the user's to fix
         problem = storage_error(error, args.out)

@@ -29,4 +29,9 @@ def main(args: argparse.Namespace) -> int:
     for status in statuses:
         line = f"{status.name.ljust(width)}  {status.state}"
         print(f"{line}: {status.reason}" if status.reason else line)
+    failure = record.get("failure")
+    if record.get("state") == "failed" and isinstance(failure, dict):
+        print(f"the last run failed: {failure.get('error')}")
+    elif record.get("state") == "running":
+        print("the last run has not finished (it is running, or it was interrupted: the next run resumes)")
     return 0

@@ -422,3 +422,23 @@ def test_yaml_aliases_are_refused_before_they_expand(tiny_capture, tmp_path, cap
     (tmp_path / "params.yaml").write_text("tracking: &t {}\nexport: *t\n")
     expect_error(capsys, run_argv(tiny_capture, tmp_path / "out", "--config", tmp_path / "params.yaml"),
                  "params.yaml: line 2: alias *t")
+
+
+def test_a_failed_rerun_marks_what_it_left_incomplete(tiny_capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert run_cli(*run_argv(tiny_capture, out)) == 0
+    (tiny_capture / "images" / "cam1" / "000002.png").write_bytes(b"not a png")  # read only by the stage
+    expect_error(capsys, run_argv(tiny_capture, out), "000002.png: not a readable image")
+    assert [path.parent.name for path in out.rglob(MANIFEST)] == ["calibration"]
+    assert (out / "export" / "joints.csv").exists()  # kept for a resume, but without a manifest
+    assert not (out / ".lock").exists()
+    assert run_cli("stages", out) == 0
+    status = capsys.readouterr().out
+    assert re.search(r"export\s+incomplete", status) and "the last run failed: " in status
+    assert "000002.png: not a readable image" in status.splitlines()[-1]
+
+
+def test_a_fresh_output_folder_is_gone_after_a_run_refused_at_once(tiny_capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    expect_error(capsys, run_argv(tiny_capture, out, "--only", "tracking"), "needs the results of calibration")
+    assert not out.exists()

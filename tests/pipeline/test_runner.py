@@ -23,8 +23,10 @@ from pipeline.capture import Capture
 from pipeline.executors import make_executor
 from pipeline.params import apply_overrides, default_params
 from pipeline.runner import (
+    LOCK,
     MANIFEST,
     MARKER,
+    RUN_RECORD,
     Runner,
     Stage,
     code_inputs,
@@ -332,6 +334,45 @@ def test_a_run_function_counts_with_the_helpers_and_constants_of_its_module_it_u
     assert "background_image" not in {function.__name__ for function in tracking.functions}
     assert {"read_tracking", "tracking_path"} <= {function.__name__ for function in tracking.functions}
     assert any(name == "stages.tracking/data/poses.npz" for name, _ in tracking.files)
+
+
+def test_a_failed_rerun_leaves_nothing_that_looks_finished(setup, monkeypatch, caplog):
+    capture, out, run, work = setup
+    run()
+    assert frames_io.read_json(out / RUN_RECORD)["state"] == "finished"
+    monkeypatch.setenv(FAIL_AT, "2")
+    with pytest.raises(RuntimeError, match="simulated crash at frame 2"):
+        run({"per_frame": {"scale": 3.0}})
+    assert not (out / "per_frame" / MANIFEST).exists()
+    assert not (out / "summary" / MANIFEST).exists()  # made from the per_frame files the run replaced
+    assert (out / "source" / MANIFEST).exists() and (out / "summary" / "total.json").exists()  # kept
+    record = frames_io.read_json(out / RUN_RECORD)
+    assert record["state"] == "failed" and record["params"]["per_frame"] == {"scale": 3.0}
+    assert record["failure"] == {"error": "simulated crash at frame 2", "incomplete": ["per_frame", "summary"]}
+    assert "the run failed; per_frame, summary left incomplete" in caplog.text
+    statuses = {s.name: s.state for s in graph_status(STAGES, capture, default_params(STAGES), out)}
+    assert statuses == {"source": "up to date", "per_frame": "incomplete", "summary": "incomplete"}
+    monkeypatch.delenv(FAIL_AT)
+    assert run({"per_frame": {"scale": 3.0}}) == {"source": "up to date", "per_frame": "ran", "summary": "ran"}
+    assert work() == ["per_frame 2", "per_frame 3", "summary"]
+    assert frames_io.read_json(out / RUN_RECORD)["state"] == "finished"
+
+
+def test_a_run_refused_before_any_change_leaves_no_trace(setup):
+    _, out, run, _ = setup
+    with pytest.raises(InputError, match="needs the results of source"):
+        run(selected=["per_frame"])
+    assert not out.exists()  # no folder, no lock file, no run.json
+
+
+def test_the_lock_file_goes_with_the_run(tmp_path):
+    out = tmp_path / "out"
+    (out / "kept").mkdir(parents=True)
+    with output_lock(out):
+        assert (out / LOCK).exists()
+    assert not (out / LOCK).exists() and (out / "kept").is_dir()
+    with output_lock(out):  # and the folder can be locked again
+        pass
 
 
 def test_force_reruns_selected_stages(setup):
