@@ -248,7 +248,7 @@ def library_poses(body: BodyModel, library: np.ndarray) -> np.ndarray:
 
 
 def initialise(y: np.ndarray, n: np.ndarray, body: BodyModel, volume: np.ndarray, candidates: np.ndarray,
-               *, estimate_height: bool, estimate_lengths: bool = False, params: InitParams = InitParams(),
+               *, estimate_height: bool, params: InitParams = InitParams(),
                em: EMParams | None = None, rng: np.random.Generator | None = None) -> InitResult:
     """Find the pose (and height) from one frame's points y (I, 3) and normals n (I, 3).
 
@@ -262,12 +262,6 @@ def initialise(y: np.ndarray, n: np.ndarray, body: BodyModel, volume: np.ndarray
         Library poses for this body (`load_pose_library`).
     estimate_height : bool
         Also estimate the body's height (from the cloud's top, then by EM).
-    estimate_lengths : bool
-        Also estimate the body's length factors (its free `length_groups`, the girth among them) in the
-        final fit to all the data. The height is estimated with them: with the build fixed, the overall
-        size is the only way to fit a stouter body, and it came out too tall (foreign leaning, a capsule
-        body: 1.73 m against 1.62 m for its skeleton in the synthetic captures' convention; see
-        `TrackerParams.scale_frames`).
     """
     rng = np.random.default_rng(0) if rng is None else rng
     em = EMParams() if em is None else em
@@ -299,8 +293,7 @@ def initialise(y: np.ndarray, n: np.ndarray, body: BodyModel, volume: np.ndarray
         fits = sorted(fits, key=lambda r: -r.log_likelihood[-1])[: max(kept, len(fits) // _KEEP_DIVISOR)]
         if len(fits) > kept:
             fits = [fit(ys, ns, r.body, r.pose, volume, short, mixture=r.mixture, start=r.estep) for r in fits]
-    final = replace(em, max_iterations=params.iterations, estimate_scale=estimate_height,
-                    estimate_lengths=estimate_lengths and bool(body.length_groups))
+    final = replace(em, max_iterations=params.iterations, estimate_scale=estimate_height)
     ranked = [fit(y, n, r.body, r.pose, volume, final, mixture=replace(r.mixture))
               for r in sorted(fits, key=lambda r: -r.log_likelihood[-1])]
     result = ranked[0]

@@ -5,11 +5,12 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
 "robust tracking"). What the paper leaves open is handled here:
 
 - first frame and after a loss: automatic initialisation from the data (`init.initialise`);
-- unknown height: estimated by the initialisation (the cloud's top, then EM with the length and girth
-  factors free too) and refined by the tracked frames among the first `scale_frames`; the
-  segment-length and girth factors named by `estimate_lengths` (groups of the body file's `lengths`)
-  are estimated with the pose over those frames (prior towards the body file's proportions); both are
-  running means of the per-frame estimates, frozen after `scale_frames` frames;
+- unknown height: estimated by the initialisation (the cloud's top, then EM; averaged over the
+  initialisations of the first `scale_frames` frames); the segment-length and girth factors named by
+  `estimate_lengths` (groups of the body file's `lengths`) are estimated with the pose over those frames
+  (prior towards the body file's proportions), then frozen. The tracked frames do not refine the
+  height: their EM, with the girth and lengths free as well, drifted it upward on stout bodies
+  (capsules: 1.84 -> 1.89 m for a 1.75 m subject);
 - a frame far worse than usual even after more EM iterations is also fitted from the last pose
   without velocity (`restart_drop`), the better fit kept;
 - failure detection, by absolute checks that a bad start cannot make the norm: an outlier fraction
@@ -109,14 +110,8 @@ class TrackerParams:
     max_predicted_frames : int
         After this many frames without a fit, the subject is lost and the next data re-initialise.
     scale_frames : int
-        Frames over which the height (when unknown) and the length factors keep being estimated, each
-        frame's estimate entering a running mean (of ln s and ln ℓ). An unknown height is estimated by
-        the initialisation and by every tracked frame among these, with the length and girth factors
-        free as well: the initialisation used to fit the height alone and the tracked frames to keep
-        it, and a stout body (the build fixed) came out too tall, which the later length estimates
-        could not undo (foreign leaning, a capsule body whose skeleton our synthetic captures call 1.62
-        m: 1.73 m, MPJPE 46.5 mm; with the lengths free in the initialisation 1.71 m, 40.1 mm; refined
-        by the tracked frames as well 1.70 m, 36.5 mm; tracking rerun on the run's reconstructions).
+        Frames over which the height (when unknown: by the initialisations among them) and the length
+        factors keep being estimated.
     init_headings, init_refine : int
         Initialisation: headings per library pose, hypotheses refined by EM.
     normal_noise_deg : float
@@ -303,9 +298,8 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
         return _initialise(state, y, n, sized, params, volume, em)
     prediction = sized.clip(state.pose + state.velocity)
     learning = state.height_weight < params.scale_frames
-    sizing = learning and params.height_m is None
     mixture = Mixture(Sigma=state.Sigma + params.sigma_m**2 * np.eye(len(state.Sigma)), pi=state.pi)
-    frame_em = replace(em, estimate_lengths=learning and bool(params.estimate_lengths), estimate_scale=sizing)
+    frame_em = replace(em, estimate_lengths=learning and bool(params.estimate_lengths))
     tracked = fit(y, n, sized, prediction, volume, frame_em, mixture=mixture)
     per_obs = tracked.log_likelihood[-1] / len(y)
     if np.isfinite(state.likelihood_level) and per_obs < state.likelihood_level - params.refit_drop:
@@ -337,11 +331,9 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
         if result.log_likelihood > tracked.log_likelihood[-1] + margin:
             return result, new_state
     height, lengths, weight = state.height_m, state.length_factors, state.height_weight
-    if learning:  # running means of the per-frame estimates of ln ℓ (and of ln s)
+    if learning:  # running mean of the per-frame estimates of ln ℓ
         weight += 1
         lengths = lengths * (tracked.body.length_factors / lengths) ** (1.0 / weight)
-        if sizing:
-            height = height * (tracked.height_m / height) ** (1.0 / weight)
     level = per_obs if not np.isfinite(state.likelihood_level) else (
         (1 - _LEVEL_RATE) * state.likelihood_level + _LEVEL_RATE * per_obs)
     # A doubtful fit's motion is not carried on: the next frame starts from it at rest.
@@ -438,8 +430,7 @@ def _recover_limbs(y, n, result, volume, em, params) -> FitResult:
 def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, TrackerState]:
     """Initialise from the data alone (`init.initialise`) and start a fresh track."""
     estimate = params.height_m is None and state.height_weight < params.scale_frames
-    init = initialise(y, n, body, volume, load_pose_library(body), estimate_height=estimate,
-                      estimate_lengths=estimate and bool(params.estimate_lengths), em=em,
+    init = initialise(y, n, body, volume, load_pose_library(body), estimate_height=estimate, em=em,
                       params=InitParams(headings=params.init_headings, refine=params.init_refine))
     fitted = init.fit
     for _ in range(2):  # a limb moved by the first pass can leave its mirror (or itself) still misplaced

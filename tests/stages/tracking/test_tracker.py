@@ -130,12 +130,10 @@ def test_only_the_named_length_groups_are_estimated(body):
     assert none.length_factors.shape == (0,)
 
 
-def test_unknown_height_is_refined_over_the_scale_frames_then_frozen(body):
-    """The initialisation estimates the height, the tracked frames among the first `scale_frames` refine
-    it (a running mean, with the lengths), and after them it stays."""
+def test_unknown_height_comes_from_the_initialisation_and_tracked_frames_keep_it(body):
     rng = np.random.default_rng(24)
-    truth = _walk(body.scaled(1.62), 5)
-    params = TrackerParams(height_m=None, init_headings=6, init_refine=2, scale_frames=3)
+    truth = _walk(body.scaled(1.62), 4)
+    params = TrackerParams(height_m=None, init_headings=6, init_refine=2)
     heights, statuses = [], []
     state = None
     for pose in truth:
@@ -144,19 +142,7 @@ def test_unknown_height_is_refined_over_the_scale_frames_then_frozen(body):
         statuses.append(result.status)
     assert statuses[0] == "initialised" and set(statuses[1:]) == {"tracked"}
     assert abs(heights[0] - 1.62) < 0.05
-    assert heights[1] != heights[0] and heights[2] != heights[1]  # frames 1 and 2 are scale frames
-    assert heights[3:] == [heights[2]] * 2
-    assert abs(heights[-1] - 1.62) < 0.02
-    assert state.height_weight == 3
-
-
-def test_a_known_height_is_kept(body):
-    rng = np.random.default_rng(25)
-    truth = _walk(body.scaled(1.75), 3)
-    state = None
-    for pose in truth:
-        result, state = track_frame(state, _obs(body, pose, rng), body, PARAMS, VOLUME)
-        assert state.height_m == 1.75 and result.height_m == 1.75
+    assert heights[1:] == [heights[0]] * 3
 
 
 @pytest.mark.parametrize("restart_drop", [0.3, np.inf])

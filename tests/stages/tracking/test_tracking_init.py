@@ -59,23 +59,6 @@ def test_initialisation_finds_bends_and_kicks(degrees):
     assert error.mean() < 0.02  # metres
 
 
-@pytest.mark.parametrize("lengths", [False, True])
-def test_initialisation_estimates_the_build_with_the_height(lengths):
-    """A stout body (girth 1.3): with `estimate_lengths` the final fit finds the girth with the height,
-    without it the length factors stay the file's."""
-    body = load_body("default").with_length_groups(("upperarm", "girth"))
-    girth = 1.3
-    stout = body.scaled(1.62).with_lengths(np.array([1.0, girth]))
-    rng = np.random.default_rng(31)
-    truth = _pose(stout, 2.0, {})
-    y, n = sample_ellipsoids(stout, truth, 1000, rng, outlier_fraction=0.2)
-    result = initialise(y, n, body, VOLUME, load_pose_library(body), estimate_height=True, estimate_lengths=lengths,
-                        params=InitParams(headings=6, refine=4))
-    assert result.height_m == pytest.approx(1.62, abs=0.02)
-    expected = [1.0, girth] if lengths else [1.0, 1.0]
-    np.testing.assert_allclose(result.fit.body.length_factors, expected, atol=0.04)
-
-
 def test_limbs_and_their_mirrors():
     body = load_body("default")
     limbs = {limb.name: limb for limb in body_limbs(body)}
