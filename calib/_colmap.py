@@ -7,6 +7,8 @@ distortion is OpenCV's, so the lens models below map onto ``(k1, k2, p1, p2, k3)
 
 from __future__ import annotations
 
+import math
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -36,6 +38,11 @@ _MODELS = {
 }
 # FULL_OPENCV's rational terms k4, k5, k6 (parameters 9..11) must be zero for OpenCV's 5-term model.
 _FULL_OPENCV_RATIONAL = slice(9, 12)
+# Number of parameters of each supported model in COLMAP's files.
+_PARAMETER_COUNTS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8, "FULL_OPENCV": 12}
+# What a line of cameras.txt and the first line of an image in images.txt hold.
+_CAMERA_LINE = "CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]"
+_IMAGE_LINE = "IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, then a line of POINTS2D[] as (X, Y, POINT3D_ID)"
 
 
 def _intrinsics(model: str, params: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -87,9 +94,79 @@ def _read_reconstruction(path: Path) -> pycolmap.Reconstruction:
                 (Path(copy) / f"points3D.{extension}").write_bytes(empty_points)
                 read(copy)
     except (ValueError, RuntimeError, IndexError, MemoryError) as error:
-        message = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
-        raise InputError(f"{path}: not a readable COLMAP {extension} model ({message})") from None
+        problem = _text_model_problem(path) if extension == "txt" else None
+        if problem:
+            raise InputError(problem) from None
+        raise InputError(f"{path}: not a readable COLMAP {extension} model (pycolmap refused it: "
+                         f"{_pycolmap_reason(error)}; expected a model as COLMAP writes it)") from None
     return reconstruction
+
+
+def _pycolmap_reason(error: Exception) -> str:
+    """pycolmap's message without the C++ source location and check expression it starts with."""
+    message = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
+    message = re.sub(r"^\[[^\]]*\]\s*", "", message)
+    if message.startswith("Check failed:"):
+        return "a check of its reader failed"
+    return message
+
+
+def _text_model_problem(path: Path) -> str | None:
+    """The first line of ``cameras.txt`` or ``images.txt`` that is not what COLMAP writes, as the
+    one-line error naming the file and line, or None when both files look right (pycolmap's reason is
+    then all there is)."""
+    cameras: set[int] = set()
+    for number, words in _data_lines(path / "cameras.txt"):
+        where = f"{path / 'cameras.txt'}: line {number}"
+        if len(words) < 4 or not _integers(words[0], words[2], words[3]):
+            return f"{where}: {' '.join(words)!r}: no whole CAMERA_ID, WIDTH and HEIGHT (expected {_CAMERA_LINE})"
+        if words[1] not in _PARAMETER_COUNTS:
+            return (f"{where}: camera model {words[1]!r} is not supported "
+                    f"(expected one of {', '.join(_PARAMETER_COUNTS)})")
+        count = _PARAMETER_COUNTS[words[1]]
+        if len(words) - 4 != count or not _floats(*words[4:]):
+            return f"{where}: {words[1]} takes {count} numeric parameters, got {words[4:]} (expected {_CAMERA_LINE})"
+        cameras.add(int(words[0]))
+    lines = iter(_raw_lines(path / "images.txt"))
+    for number, line in lines:
+        words = line.split()
+        if not words or words[0].startswith("#"):
+            continue
+        where = f"{path / 'images.txt'}: line {number}"
+        if len(words) < 10 or not (_integers(words[0], words[8]) and _floats(*words[1:8])):
+            return f"{where}: {line.strip()!r}: not ten fields with a numeric pose (expected {_IMAGE_LINE})"
+        if int(words[8]) not in cameras:
+            return f"{where}: camera {words[8]} is not in cameras.txt (expected one of {sorted(cameras)})"
+        points = next(lines, (number + 1, ""))
+        values = points[1].split()
+        if len(values) % 3 or not _floats(*values):
+            return f"{path / 'images.txt'}: line {points[0]}: not (X, Y, POINT3D_ID) triples (expected {_IMAGE_LINE})"
+    return None
+
+
+def _raw_lines(path: Path) -> list[tuple[int, str]]:
+    """``(line number, text)`` of every line of ``path`` (none when it cannot be read as text)."""
+    try:
+        return list(enumerate(path.read_text(encoding="utf-8").splitlines(), start=1))
+    except (OSError, UnicodeDecodeError):
+        return []
+
+
+def _data_lines(path: Path) -> list[tuple[int, list[str]]]:
+    """``(line number, words)`` of the lines of ``path`` that are neither empty nor comments."""
+    return [(number, line.split()) for number, line in _raw_lines(path)
+            if line.split() and not line.lstrip().startswith("#")]
+
+
+def _integers(*words: str) -> bool:
+    return all(re.fullmatch(r"[+-]?\d+", word) for word in words)
+
+
+def _floats(*words: str) -> bool:
+    try:
+        return all(math.isfinite(float(word)) for word in words)
+    except ValueError:
+        return False
 
 
 def load(path: Path) -> Rig:

@@ -1,5 +1,6 @@
 """Calibration files as other tools write them (hand-written text), and the corners of each format."""
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -175,11 +176,32 @@ def test_stored_size_disagreeing_with_the_media_is_an_error(rig12, tmp_path, fmt
         load_rig(fmt, tmp_path, image_sizes={"cam_4": (width // 2, height // 2)})
 
 
-def test_colmap_invalid_parameters_name_the_directory(tmp_path):
-    (tmp_path / "cameras.txt").write_text("1 PINHOLE 640 480 800 800\n")  # cx, cy missing
-    (tmp_path / "images.txt").write_text("1 1 0 0 0 0 0 4 1 a.jpg\n\n")
-    with pytest.raises(InputError, match=f"{tmp_path.name}: not a readable COLMAP txt model"):
+@pytest.mark.parametrize(("cameras", "images", "where", "problem"), [
+    ("1 PINHOLE 640 480 800 800\n", "1 1 0 0 0 0 0 4 1 a.jpg\n\n", "cameras.txt: line 1",
+     "PINHOLE takes 4 numeric parameters, got ['800', '800']"),  # cx, cy missing
+    ("# a comment\n1 PINHOLE 640 480 800 800 320 240\n", "\n1 1 0 0 0 0 0 4 7 a.jpg\n\n", "images.txt: line 2",
+     "camera 7 is not in cameras.txt"),
+    ("1 PINHOLE 640 480 800 800 320 240\n", "1 1 0 0 0 0 0 4 1 a.jpg\n1 2\n", "images.txt: line 2",
+     "not (X, Y, POINT3D_ID) triples"),
+])
+def test_colmap_text_errors_name_the_file_and_line(tmp_path, cameras, images, where, problem):
+    """Not pycolmap's C++ check ("[reconstruction_io_text.cc:148] Check failed: camera.VerifyParams()")."""
+    (tmp_path / "cameras.txt").write_text(cameras)
+    (tmp_path / "images.txt").write_text(images)
+    with pytest.raises(InputError, match=re.escape(f"{tmp_path / where}: {problem}")) as error:
         load_rig("colmap", tmp_path)
+    assert "Check failed" not in str(error.value) and ".cc:" not in str(error.value)
+
+
+def test_a_damaged_binary_colmap_model_is_named_without_pycolmaps_check(rig12, tmp_path):
+    save_rig(rig12, "colmap", tmp_path / "text")
+    binary = tmp_path / "binary"
+    binary.mkdir()
+    _colmap._read_reconstruction(tmp_path / "text").write_binary(str(binary))
+    (binary / "cameras.bin").write_bytes((binary / "cameras.bin").read_bytes()[:20])
+    with pytest.raises(InputError, match=f"{binary}: not a readable COLMAP bin model") as error:
+        load_rig("colmap", binary)
+    assert "Check failed" not in str(error.value) and ".cc:" not in str(error.value)
 
 
 def test_anipose_file_without_camera_tables_is_an_error(tmp_path):
