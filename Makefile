@@ -16,7 +16,7 @@ setup:
 # SEQ names a folder of data_samples/ and nothing else.
 check-seq:
 	@case "$(SEQ)" in ""|*/*|*..*) echo "make: SEQ must be the name of a folder in data_samples/ (got '$(SEQ)')"; exit 2;; esac
-	@test -d "data_samples/$(SEQ)" || { echo "make: no sample 'data_samples/$(SEQ)'; available: $$(ls data_samples | tr '\n' ' ')"; exit 2; }
+	@test -d "data_samples/$(SEQ)" || { echo "make: no sample 'data_samples/$(SEQ)'; available: $$(find data_samples -mindepth 1 -maxdepth 1 -type d -printf '%f\n' | sort | paste -sd ' ' -)"; exit 2; }
 
 run: setup check-seq
 	$(PY) -m pipeline run data_samples/$(SEQ) --out runs/$(SEQ) --workers $(WORKERS) $(ARGS)

@@ -323,6 +323,9 @@ def _read_config(path: Path) -> dict:
     except (yaml.YAMLError, UnicodeDecodeError) as error:
         first_line = str(error).splitlines()[0] if str(error) else type(error).__name__
         raise InputError(f"{path}: not valid YAML ({first_line}) (expected a mapping of keys)") from None
+    if raw is None:
+        raise InputError(f"{path}: empty (expected a mapping with at least fps and calibration: {{format, path}}, "
+                         "see CAPTURE_FORMAT.md)")
     if not isinstance(raw, dict):
         raise InputError(f"{path}: top level is {type(raw).__name__} "
                          "(expected a mapping with fps and calibration)")

@@ -12,7 +12,8 @@ is the subcommand's one-line help.
 
 Errors: a user mistake anywhere is raised as :class:`calib.errors.InputError`; :func:`main` prints it
 as one line ``error: <message>`` on stderr and returns 2, without a traceback. Anything else is a bug
-and keeps its traceback.
+and keeps its traceback. Error messages and log messages pass through :func:`pipeline.terminal.printable`:
+they quote names read from files, which must not drive the terminal.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import sys
 from collections.abc import Sequence
 
 from calib.errors import InputError
+from pipeline.terminal import PrintableFormatter, printable
 
 #: Subcommand name -> import path of its module (see the module docstring). Add yours here.
 SUBCOMMANDS: dict[str, str] = {
@@ -76,12 +78,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     chosen = next((word for word in argv if not word.startswith("-")), None)
     parser = build_parser(chosen if chosen in SUBCOMMANDS else None)
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr, force=True)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(PrintableFormatter("%(levelname)s %(name)s: %(message)s"))
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, handlers=[handler], force=True)
     try:
         return args._module.main(args)
     except InputError as error:
-        print(f"error: {error}", file=sys.stderr)
+        print(f"error: {printable(str(error))}", file=sys.stderr)  # it may quote names read from files
         return USAGE_ERROR
     except BrokenPipeError:  # the reader went away (`... | head`): not an error of ours, no traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's own flush at exit must not fail

@@ -20,6 +20,7 @@ import numpy as np
 from calib.errors import InputError
 from pipeline import frames_io
 from pipeline.export_io import JOINTS_FILE, read_joints_csv
+from pipeline.terminal import printable
 from stages.export.metrics import evaluate_joints, mask_iou
 
 #: Where the evaluation writes, inside the run's output directory.
@@ -35,8 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     summary = evaluate_run(args.out_dir, truth=args.truth)
-    print(format_metrics(summary))
-    print(f"written: {Path(args.out_dir) / EVAL_DIR / METRICS_FILE}")
+    print("\n".join(printable(line) for line in format_metrics(summary).splitlines()))  # camera names from files
+    print(printable(f"written: {Path(args.out_dir) / EVAL_DIR / METRICS_FILE}"))
     return 0
 
 

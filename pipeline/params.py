@@ -5,9 +5,9 @@ defaults are the defaults. The configuration mirrors them: one section per stage
 field, nested dataclasses as nested sections::
 
     silhouettes:
-      threshold: 30
+      strong_threshold: 10
     tracking:
-      em: {max_iterations: 50}
+      max_iterations: 20
 
 Overrides are validated against the dataclass fields before any work starts: an unknown stage or
 key, or a value of the wrong type, is an :class:`InputError` naming where it came from and listing
@@ -62,7 +62,7 @@ def parse_assignments(assignments: Iterable[str]) -> dict:
         path = key.strip().split(".")
         if not equals or len(path) < 2 or not all(path):
             raise InputError(f"--set {text}: malformed "
-                             "(expected stage.param=value, e.g. silhouettes.threshold=30)")
+                             "(expected stage.param=value, e.g. silhouettes.strong_threshold=10)")
         try:
             parsed = plain_yaml.load(value, f"--set {text}")
         except yaml.YAMLError:

@@ -2,7 +2,7 @@
 
 Examples:
   python -m pipeline run data_samples/tiny --out runs/tiny
-  python -m pipeline run data_samples/tiny --out runs/tiny --only silhouettes --set silhouettes.threshold=30
+  python -m pipeline run data_samples/tiny --out runs/tiny --only silhouettes --set silhouettes.strong_threshold=10
   python -m pipeline run data_samples/tiny --out runs/tiny --from tracking --workers 2
   python -m pipeline run data_samples/tiny --out runs/tiny --scheduler local:2
 """

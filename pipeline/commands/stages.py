@@ -13,6 +13,7 @@ from pipeline import graph
 from pipeline.capture import Capture
 from pipeline.params import apply_overrides, default_params
 from pipeline.runner import RUN_RECORD, graph_status, read_run_record
+from pipeline.terminal import printable
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -28,10 +29,10 @@ def main(args: argparse.Namespace) -> int:
     width = max(len(status.name) for status in statuses)
     for status in statuses:
         line = f"{status.name.ljust(width)}  {status.state}"
-        print(f"{line}: {status.reason}" if status.reason else line)
+        print(printable(f"{line}: {status.reason}") if status.reason else line)  # reasons name files
     failure = record.get("failure")
     if record.get("state") == "failed" and isinstance(failure, dict):
-        print(f"the last run failed: {failure.get('error')}")
+        print(printable(f"the last run failed: {failure.get('error')}"))
     elif record.get("state") == "running":
         print("the last run has not finished (it is running, or it was interrupted: the next run resumes)")
     return 0

@@ -14,6 +14,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import textwrap
 import time
 import types
 from pathlib import Path
@@ -23,6 +24,7 @@ import pytest
 import yaml
 from conftest import make_capture, tiny_rig, write_config, write_video
 
+from calib.errors import InputError
 from calib.formats import load_rig
 from pipeline import atomic, frames_io
 from pipeline.cli import SUBCOMMANDS, main
@@ -442,3 +444,45 @@ def test_a_fresh_output_folder_is_gone_after_a_run_refused_at_once(tiny_capture,
     out = tmp_path / "out"
     expect_error(capsys, run_argv(tiny_capture, out, "--only", "tracking"), "needs the results of calibration")
     assert not out.exists()
+
+
+def test_camera_names_from_files_are_echoed_escaped(tmp_path, capsys):
+    capture = make_capture(tmp_path / "c")
+    toml = capture / "calibration" / "calibration.toml"
+    toml.write_text(toml.read_text().replace('name = "cam1"', 'name = "cam1\\u001b]0;owned\\u0007\\u001b[2J"'))
+    assert run_cli(*run_argv(capture, tmp_path / "out")) == 2
+    err = capsys.readouterr().err
+    assert "\x1b" not in err and "\x07" not in err
+    assert "cam1\\x1b]0;owned\\x07\\x1b[2J" in err.splitlines()[-1]
+
+
+def test_an_empty_capture_yaml_says_what_it_must_hold(tiny_capture, tmp_path, capsys):
+    (tiny_capture / "capture.yaml").write_text("# nothing yet\n")
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"),
+                 "capture.yaml: empty (expected a mapping with at least fps and calibration")
+
+
+def test_the_examples_given_to_users_name_real_parameters():
+    """run --help, the --set error and the params module's docstring show parameters that exist."""
+    import pipeline.commands.run as run_command
+    from pipeline import params as params_module
+    from pipeline.params import apply_overrides, default_params, parse_assignments
+
+    examples = re.findall(r"--set (\S+=\S+)", run_command.__doc__)
+    with pytest.raises(InputError) as malformed:
+        parse_assignments(["threshold"])
+    examples += re.findall(r"e\.g\. (\S+=[^)\s]+)", str(malformed.value))
+    assert len(examples) == 2
+    apply_overrides(default_params(STAGES), parse_assignments(examples), source="example")
+    block = params_module.__doc__.split("::", 1)[1].split("\n\n")[1]
+    apply_overrides(default_params(STAGES), yaml.safe_load(textwrap.dedent(block)), source="docstring")
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="no make")
+def test_make_lists_only_the_sample_folders():
+    result = subprocess.run(["make", "-s", "check-seq", "SEQ=nonexistent"], cwd=REPO, capture_output=True,
+                            text=True, timeout=60)
+    assert result.returncode == 2
+    listed = result.stdout.split("available: ")[1].split()
+    assert listed == sorted(path.name for path in (REPO / "data_samples").iterdir() if path.is_dir())
+    assert "README.md" not in listed
