@@ -291,6 +291,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
           code=("stages.export", "stages.joints", "stages.tracking.tracker", "pipeline.export_io", REPORT_MODULE,
-                "pipeline.report_assets", "pipeline.evaluate", "pipeline.capture", "calib", *FILES_CODE),
+                "pipeline.report_assets", "pipeline.evaluate", "pipeline.terminal", "pipeline.capture", "calib",
+                *FILES_CODE),
           warm_up=warm_up_export),
 )
