@@ -8,6 +8,7 @@ captures is measured by ``python -m pipeline bench --suite foreign``.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -22,20 +23,22 @@ MPJPE_TOLERANCE_MM = 32.0
 #: The foreign capture the cut is taken from, and the cut's length.
 WALK = Path(__file__).resolve().parents[3] / "shared" / "foreign" / "walk"
 FRAMES = 20
-#: What the cut shares with the original, by symlink (capture.yaml is rewritten).
-LINKED = ("calibration", "videos", "background", "groundtruth")
+#: What the cut shares with the original, by symlink; the calibration is copied (a calibration.path that leads
+#: outside the capture, a link included, is refused without --allow-outside-paths), capture.yaml rewritten.
+LINKED = ("videos", "background", "groundtruth")
 
 
 @pytest.fixture
 def walk_cut(tmp_path) -> Path:
-    """A capture folder showing the first :data:`FRAMES` frames of ``walk``: its files by symlink, its
-    capture.yaml with a ``frames`` range added."""
+    """A capture folder showing the first :data:`FRAMES` frames of ``walk``: its media by symlink, its
+    calibration copied, its capture.yaml with a ``frames`` range added."""
     if not (WALK / "capture.yaml").is_file():
         pytest.skip(f"no foreign capture {WALK} (the shared folder of captures made by another program)")
     cut = tmp_path / "walk20"
     cut.mkdir()
     for name in LINKED:
         (cut / name).symlink_to(WALK / name)
+    shutil.copytree(WALK / "calibration", cut / "calibration")
     config = yaml.safe_load((WALK / "capture.yaml").read_text())
     config["frames"] = {"start": 0, "stop": FRAMES, "step": 1}
     (cut / "capture.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
