@@ -444,23 +444,50 @@ def _limbs(body: BodyModel) -> list[Limb]:
     return limbs
 
 
+def segment_shares(body: BodyModel, mixture: Mixture) -> np.ndarray:
+    """Fraction of the data each segment of `body` explains (S,): the sum of its ellipsoids' priors π_p.
+
+    After a fit the priors are the mean posteriors (the M-step's π_p = (1/I) Σ_i t_ip), so I times a
+    share is the number of observations the segment explains.
+    """
+    return np.bincount(body.ellipsoid_segment, weights=mixture.pi[:-1], minlength=len(body.segment_names))
+
+
 def misplaced_limbs(body: BodyModel, result: FitResult, n_observations: int, *,
                     share_ratio: float = LIMB_SHARE_RATIO,
                     min_observations: float = LIMB_MIN_OBSERVATIONS) -> list[Limb]:
     """Limbs of a fit with a segment explaining far fewer data than its mirror segment.
 
-    The data a segment explains are I Σ π_p over its ellipsoids (the fit's priors are the mean
-    posteriors). The test is absolute (a share against the mirror's share in the same frame), so a bad
-    start cannot make itself the norm.
+    The data a segment explains are I Σ π_p over its ellipsoids (`segment_shares`). The test is
+    absolute (a share against the mirror's share in the same frame), so a bad start cannot make
+    itself the norm.
     """
-    counts = n_observations * result.mixture.pi[:-1]
-    per_segment = np.bincount(body.ellipsoid_segment, weights=counts, minlength=len(body.segment_names))
-    suspects = []
-    for limb in body_limbs(body):
-        own, mirror = per_segment[limb.segments], per_segment[limb.mirror_segments]
-        if np.any((mirror >= min_observations) & (own < share_ratio * mirror)):
-            suspects.append(limb)
-    return suspects
+    per_segment = n_observations * segment_shares(body, result.mixture)
+    return [limb for limb in body_limbs(body)
+            if _starved(per_segment[limb.segments], per_segment[limb.mirror_segments], share_ratio, min_observations)]
+
+
+def deserted_limbs(body: BodyModel, result: FitResult, usual_shares: np.ndarray, n_observations: int, *,
+                   share_ratio: float = LIMB_SHARE_RATIO,
+                   min_observations: float = LIMB_MIN_OBSERVATIONS) -> list[Limb]:
+    """Limbs of a fit with a segment explaining far fewer data than it usually does.
+
+    `usual_shares` (S,) are the segments' shares of the data over the recent tracked frames (a running
+    mean of `segment_shares`). A forearm that EM folded onto its upper arm, or turned away from its data,
+    still explains some data, often as many as its mirror (which `misplaced_limbs` compares with), but
+    far fewer than it did a few frames before; so does a limb that has just become hidden, for which
+    the re-initialisation finds nothing better and the fit stays. A share that stays low becomes the
+    usual share within a few tens of frames, which bounds how long a limb is tried again.
+    """
+    per_segment = n_observations * segment_shares(body, result.mixture)
+    usual = n_observations * np.asarray(usual_shares)
+    return [limb for limb in body_limbs(body)
+            if _starved(per_segment[limb.segments], usual[limb.segments], share_ratio, min_observations)]
+
+
+def _starved(own: np.ndarray, reference: np.ndarray, share_ratio: float, min_observations: float) -> bool:
+    """Whether a segment explains fewer data than `share_ratio` times a reference of at least `min_observations`."""
+    return bool(np.any((reference >= min_observations) & (own < share_ratio * reference)))
 
 
 def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Limb, volume: np.ndarray,

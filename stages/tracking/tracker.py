@@ -19,7 +19,9 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
   when both fail the checks, the better one is the estimate, flagged `doubtful`, and a doubtful
   initialisation makes the next frame initialise too (there is no track to go on from);
 - a limb that explains far fewer data than its mirror limb (an arm put on the wrong side of the
-  body) is re-initialised locally after every fit (`init.reinitialise_limb`);
+  body), or than it did over the recent tracked frames (a forearm folded onto its upper arm or
+  turned away from its data, which may still explain as many data as its mirror), is re-initialised
+  locally after every fit (`init.reinitialise_limb`), and kept only on a clear likelihood gain;
 - frames with no or too few observations: the pose is predicted (velocity decaying) and flagged
   "predicted", then "lost" when the gap lasts; tracking re-initialises when data return.
 Nothing here produces NaN: unusable rows of the input are dropped and every output is finite.
@@ -38,10 +40,12 @@ from stages.tracking.init import (
     LIMB_MIN_OBSERVATIONS,
     LIMB_SHARE_RATIO,
     InitParams,
+    deserted_limbs,
     initialise,
     load_pose_library,
     misplaced_limbs,
     reinitialise_limb,
+    segment_shares,
 )
 
 STATUSES = ("tracked", "initialised", "predicted", "lost")
@@ -124,8 +128,9 @@ class TrackerParams:
         Upper bound on Σ's standard deviations, metres (`EMParams.max_sigma_m`).
     limb_share_ratio, limb_min_observations : float, int
         After every fit, a limb with a segment explaining fewer data than `limb_share_ratio` times
-        what its mirror segment explains (when that is at least `limb_min_observations`) is
-        re-initialised locally (`init.misplaced_limbs`, `init.reinitialise_limb`); 0 disables it.
+        what its mirror segment explains, or than its running level over the tracked frames (when
+        that reference is at least `limb_min_observations`), is re-initialised locally
+        (`init.misplaced_limbs`, `init.deserted_limbs`, `init.reinitialise_limb`); 0 disables it.
     """
 
     height_m: float | None = None
@@ -220,6 +225,9 @@ class TrackerState:
         The next frame with data must re-initialise.
     since_initialisation : int
         Frames tracked since a re-initialisation was last tried (`TrackerParams.reinit_every`).
+    segment_shares : (S,) float or None
+        Running level of each segment's share of the data over the tracked frames (`init.segment_shares`,
+        the same exponential average as the likelihood level); None until a tracked frame sets it.
     """
 
     pose: np.ndarray
@@ -233,13 +241,15 @@ class TrackerState:
     frames_without_fit: int
     lost: bool
     since_initialisation: int = 0
+    segment_shares: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
         level = self.likelihood_level if np.isfinite(self.likelihood_level) else None
         return {**asdict(self), "pose": self.pose.tolist(), "velocity": self.velocity.tolist(),
                 "length_factors": self.length_factors.tolist(), "Sigma": self.Sigma.tolist(),
-                "pi": self.pi.tolist(), "likelihood_level": level}
+                "pi": self.pi.tolist(), "likelihood_level": level,
+                "segment_shares": None if self.segment_shares is None else self.segment_shares.tolist()}
 
     @staticmethod
     def from_dict(data: dict) -> TrackerState:
@@ -252,7 +262,9 @@ class TrackerState:
                             likelihood_level=np.nan if data["likelihood_level"] is None
                             else float(data["likelihood_level"]),
                             frames_without_fit=int(data["frames_without_fit"]), lost=bool(data["lost"]),
-                            since_initialisation=int(data.get("since_initialisation", 0)))
+                            since_initialisation=int(data.get("since_initialisation", 0)),
+                            segment_shares=None if data.get("segment_shares") is None
+                            else np.asarray(data["segment_shares"], dtype=float))
 
 
 # Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
@@ -319,7 +331,7 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
             if still.log_likelihood[-1] > tracked.log_likelihood[-1]:
                 tracked = replace(still, iterations=tracked.iterations + still.iterations)
             per_obs = tracked.log_likelihood[-1] / len(y)
-    tracked = _recover_limbs(y, n, tracked, volume, frame_em, params)
+    tracked = _recover_limbs(y, n, tracked, volume, frame_em, params, state.segment_shares)
     per_obs = tracked.log_likelihood[-1] / len(y)
     doubtful = _failed(tracked, params)
     periodic = 0 < params.reinit_every <= state.since_initialisation + 1
@@ -336,13 +348,19 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
         lengths = lengths * (tracked.body.length_factors / lengths) ** (1.0 / weight)
     level = per_obs if not np.isfinite(state.likelihood_level) else (
         (1 - _LEVEL_RATE) * state.likelihood_level + _LEVEL_RATE * per_obs)
+    shares = segment_shares(tracked.body, tracked.mixture)
+    if doubtful:
+        shares = state.segment_shares
+    elif state.segment_shares is not None:
+        shares = (1 - _LEVEL_RATE) * state.segment_shares + _LEVEL_RATE * shares
     # A doubtful fit's motion is not carried on: the next frame starts from it at rest.
     moving = state.frames_without_fit == 0 and not doubtful
     velocity = tracked.pose - state.pose if moving else np.zeros_like(state.velocity)
     new_state = TrackerState(pose=tracked.pose, velocity=velocity, height_m=height, length_factors=lengths,
                              height_weight=weight, Sigma=tracked.mixture.Sigma, pi=tracked.mixture.pi,
                              likelihood_level=level, frames_without_fit=0, lost=False,
-                             since_initialisation=0 if tried else state.since_initialisation + 1)
+                             since_initialisation=0 if tried else state.since_initialisation + 1,
+                             segment_shares=shares)
     result = FrameResult(pose=tracked.pose, joints=tracked.body.joint_positions(tracked.pose),
                          log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
                          outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m,
@@ -408,21 +426,29 @@ def _predict(state: TrackerState, body: BodyModel, params: TrackerParams) -> tup
     new_state = TrackerState(pose=pose, velocity=velocity, height_m=state.height_m,
                              length_factors=state.length_factors, height_weight=state.height_weight,
                              Sigma=state.Sigma, pi=state.pi, likelihood_level=state.likelihood_level,
-                             frames_without_fit=gap, lost=lost)
+                             frames_without_fit=gap, lost=lost, segment_shares=state.segment_shares)
     result = FrameResult(pose=pose, joints=body.joint_positions(pose), log_likelihood=0.0, iterations=0,
                          outlier_fraction=1.0, status="lost" if lost else "predicted", height_m=state.height_m)
     return result, new_state
 
 
-def _recover_limbs(y, n, result, volume, em, params) -> FitResult:
-    """The fit with each limb that explains far fewer data than its mirror re-initialised locally.
+def _recover_limbs(y, n, result, volume, em, params, usual_shares=None) -> FitResult:
+    """The fit with each limb that explains far fewer data than its mirror, or than it usually does
+    (`usual_shares`, the running level of `init.segment_shares`; None: no history), re-initialised locally.
 
     A limb EM put on the wrong side of the body or folded away from its data gets almost no
     observations, and the local minimum holds it there for many frames; trying the library's angles
     for that limb alone (`init.reinitialise_limb`) finds it again, and the likelihood decides.
     """
-    for limb in misplaced_limbs(result.body, result, len(y), share_ratio=params.limb_share_ratio,
-                                min_observations=params.limb_min_observations):
+    limbs = misplaced_limbs(result.body, result, len(y), share_ratio=params.limb_share_ratio,
+                            min_observations=params.limb_min_observations)
+    if usual_shares is not None:
+        names = {limb.name for limb in limbs}
+        limbs += [limb for limb in deserted_limbs(result.body, result, usual_shares, len(y),
+                                                  share_ratio=params.limb_share_ratio,
+                                                  min_observations=params.limb_min_observations)
+                  if limb.name not in names]
+    for limb in limbs:
         result = reinitialise_limb(y, n, result, limb, volume, em, load_pose_library(result.body))
     return result
 
@@ -451,7 +477,7 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
     new_state = replace(state, pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
                         height_weight=weight, Sigma=fitted.mixture.Sigma, pi=fitted.mixture.pi,
                         likelihood_level=state.likelihood_level if doubtful else np.nan,
-                        frames_without_fit=0, lost=doubtful, since_initialisation=0)
+                        frames_without_fit=0, lost=doubtful, since_initialisation=0, segment_shares=None)
     result = FrameResult(pose=fitted.pose, joints=joints, log_likelihood=fitted.log_likelihood[-1],
                          iterations=fitted.iterations, outlier_fraction=fitted.outlier_fraction,
                          status="initialised", height_m=init.height_m, doubtful=doubtful)

@@ -94,6 +94,22 @@ def test_state_round_trips_through_json(body):
     assert result.status in STATUSES and json.loads(json.dumps(result.to_dict()))["status"] == result.status
 
 
+def test_segment_shares_are_learnt_over_tracked_frames_and_round_trip(body):
+    """An initialisation leaves no usual shares (its fit may hold a limb still wrong); tracked frames set
+    and average them, and they survive the JSON state of a resumed run."""
+    rng = np.random.default_rng(24)
+    poses = _walk(body, 3)
+    result, state = track_frame(None, _obs(body, poses[0], rng), body, PARAMS, VOLUME)
+    assert result.status == "initialised" and state.segment_shares is None
+    for pose in poses[1:]:
+        result, state = track_frame(state, _obs(body, pose, rng), body, PARAMS, VOLUME)
+        assert result.status == "tracked"
+    shares = state.segment_shares
+    assert shares.shape == (len(body.segment_names),) and np.all(shares > 0) and shares.sum() < 1.0
+    again = TrackerState.from_dict(json.loads(json.dumps(state.to_dict(), allow_nan=False)))
+    np.testing.assert_array_equal(again.segment_shares, shares)
+
+
 def test_mismatched_points_and_normals_are_rejected(body):
     obs = SimpleNamespace(points=np.zeros((5, 3)), normals=np.zeros((4, 3)))
     with pytest.raises(ValueError, match="normals"):

@@ -10,11 +10,13 @@ from stages.tracking.em import EMParams, fit
 from stages.tracking.init import (
     InitParams,
     body_limbs,
+    deserted_limbs,
     generic_poses,
     initialise,
     load_pose_library,
     misplaced_limbs,
     reinitialise_limb,
+    segment_shares,
 )
 
 
@@ -117,3 +119,31 @@ def test_a_limb_is_recovered_from_noisy_data_at_angles_off_the_hypothesis_grid(a
     recovered = reinitialise_limb(y, n, stuck, suspects[0], VOLUME, em, load_pose_library(body))
     error = np.linalg.norm(recovered.body.joint_positions(recovered.pose) - body.joint_positions(truth), axis=1)
     assert error.max() < 0.03  # metres, every joint
+
+
+def test_limbs_that_lost_their_data_are_found_by_their_usual_share_when_the_mirror_is_no_reference():
+    """Both forearms folded onto their upper arms: each explains as little as its mirror, so the mirror
+    test sees nothing, but each explains far less than it did at the right pose (its usual share);
+    re-initialising those limbs brings them back, and a fit at its usual shares flags nothing."""
+    body = load_body("default", height_m=1.75)
+    rng = np.random.default_rng(44)
+    truth = _pose(body, 0.5, {"l_upperarm.flex": 70, "l_forearm.flex": 30, "r_upperarm.flex": 70,
+                              "r_forearm.flex": 30})
+    y, n = sample_ellipsoids(body, truth, 1000, rng, outlier_fraction=0.1)
+    em = EMParams(max_iterations=15, normal_noise_rad=np.radians(10), min_outlier_prior=0.05)
+    good = fit(y, n, body, truth, VOLUME, em)
+    usual = segment_shares(body, good.mixture)
+    assert usual.sum() == pytest.approx(1.0 - good.mixture.pi[-1])
+    assert deserted_limbs(body, good, usual, len(y)) == []
+    folded = truth.copy()
+    folded[[body.dof_names.index("l_forearm.flex"), body.dof_names.index("r_forearm.flex")]] = np.radians(150)
+    stuck = fit(y, n, body, folded, VOLUME, em)
+    assert misplaced_limbs(body, stuck, len(y)) == []
+    suspects = deserted_limbs(body, stuck, usual, len(y))
+    assert [limb.name for limb in suspects] == ["l_upperarm", "r_upperarm"]
+    recovered = stuck
+    for limb in suspects:
+        recovered = reinitialise_limb(y, n, recovered, limb, VOLUME, em, load_pose_library(body))
+    error = np.linalg.norm(recovered.body.joint_positions(recovered.pose) - body.joint_positions(truth), axis=1)
+    assert error.max() < 0.03  # metres, every joint
+    assert deserted_limbs(body, recovered, usual, len(y)) == []
