@@ -11,9 +11,9 @@ direction or the brightness. As in that paper, distortions are measured in units
 clean plate instead of a training sequence, the noise is estimated from each frame:
 
 - the camera's exposure and white balance may drift from the plate's (flicker, automatic white balance,
-  a codec shifting levels): each channel's exposure ratio g_k is the median of I_k / B_k over the image
-  (the person covers less than half of it), and the background model is G B with G = diag(g); α and the
-  distortions below are taken against G B;
+  a codec shifting levels): each channel has its exposure ratio g_k, fitted on the half of the image
+  that is surely background (see :func:`_noise`), and the background model is G B with G = diag(g); α and
+  the distortions below are taken against G B;
 - the noise level σ comes from the lower quartile of ‖I − GB‖ over the image, and grows where the
   background is textured, because a sub-pixel shift or compression changes a textured pixel by about its
   gradient times the shift: σ_p² = σ² + (κ ‖∇B‖)² / 3.
@@ -73,9 +73,6 @@ COARSE_MARGIN = 3
 # level shifts stay well inside; outside, the median is not the background's (a person filling the view)
 # and is not trusted.
 EXPOSURE_RATIO_RANGE = (0.7, 1.4)
-# Channel levels below this do not enter the exposure ratios (their ratio is mostly noise), unless too few
-# pixels of the sample are brighter (a dark room): then every pixel does.
-EXPOSURE_MIN_LEVEL = 16
 # Matting (full-resolution pixels): the person's colour next to the outline is the mean of the mask's
 # pixels at least CORE_DEPTH_PX inside it (lens blur and compression mix the outermost ones) within
 # MATTE_RADIUS_PX, and the outline is measured on pixels up to MATTE_RADIUS_PX from it, on both sides.
@@ -207,6 +204,7 @@ class BackgroundModel:
     texture_variance: np.ndarray  # (h, w) float32 (κ ‖∇B‖)² / 3, per-channel noise variance from texture
     # Colours below are stored channels first, as :func:`_dot` wants them (a copy saved per frame).
     sample_B: np.ndarray  # (3, h / SAMPLE_STRIDE, w / SAMPLE_STRIDE) float32 every SAMPLE_STRIDE-th of B_sharp
+    sample_divisor: np.ndarray  # (h / SAMPLE_STRIDE, w / SAMPLE_STRIDE) float32 B·B + BACKGROUND_ENERGY_FLOOR there
     coarse_B: np.ndarray  # (3, h / COARSE_FACTOR, w / COARSE_FACTOR) float32 B_sharp averaged over blocks
     coarse_texture_variance: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR) float32 the same for the texture
 
@@ -235,6 +233,7 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
         B2=cv2.multiply(B, B, dtype=cv2.CV_32F),
         texture_variance=texture_variance,
         sample_B=sample_B,
+        sample_divisor=_dot(sample_B, sample_B) + np.float32(BACKGROUND_ENERGY_FLOOR),
         coarse_B=_channels_first(_block_mean(B_sharp, COARSE_FACTOR)),
         coarse_texture_variance=_block_mean(texture_variance, COARSE_FACTOR),
     )
@@ -606,27 +605,30 @@ class _Noise:
 def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     """The frame's exposure ratios and noise level, from a sample ``I`` (every SAMPLE_STRIDE-th pixel).
 
-    g_k is the median of I_k / B_k over the pixels bright enough in channel k (the person covers less than
-    half of the image); σ² the lower quartile of ‖I − GB‖² over χ²₃'s, both clipped to plausible ranges
-    (see the constants).
+    First one ratio for all channels, g = the median of α = I·B / B·B (the person covers less than half of
+    the image); the half of the sample closest to gB is then surely background, and on it each channel's
+    ratio is the least-squares g_k = Σ I_k B_k / Σ B_k². Medians of per-channel ratios would be pulled by the
+    person's colour, each channel its own way, and tint the model. σ² is the lower quartile of ‖I − GB‖²
+    over χ²₃'s. Both are clipped to plausible ranges (see the constants).
     """
     I = _channels_first(I)
     B = model.sample_B
-    gains = tuple(_exposure_ratio(I[k], B[k]) for k in range(3))
-    noise = _Noise(gains, 0.0)
-    D = I - noise.exposure() * B
+    alpha = _dot(I, B) / model.sample_divisor
+    g = np.float32(_clip_ratio(_quantile(alpha, 0.5)))
+    D = I - g * B
+    distance2 = _dot(D, D)
+    background = distance2 <= _quantile(distance2, 0.5)
+    I_bg, B_bg = I[:, background], B[:, background]  # (3, n / 2)
+    energy = np.einsum("kn,kn->k", B_bg, B_bg)
+    gains = tuple(_clip_ratio(float(IB / BB)) if BB > 0 else float(g)
+                  for IB, BB in zip(np.einsum("kn,kn->k", I_bg, B_bg), energy, strict=True))
+    D = I - _Noise(gains, 0.0).exposure() * B
     quartile = _quantile(_dot(D, D), 0.25)
     return _Noise(gains, min(max(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2), NOISE_SIGMA_MAX**2))
 
 
-def _exposure_ratio(I: np.ndarray, B: np.ndarray) -> float:
-    """One channel's exposure ratio, the median of I / B (float32 arrays of a channel), clipped to range."""
-    bright = B >= EXPOSURE_MIN_LEVEL
-    if np.count_nonzero(bright) < bright.size // 4:
-        bright = B > 0
-    if not bright.any():
-        return 1.0
-    ratio = _quantile(I[bright] / B[bright], 0.5)
+def _clip_ratio(ratio: float) -> float:
+    """An exposure ratio within :data:`EXPOSURE_RATIO_RANGE`."""
     return min(max(ratio, EXPOSURE_RATIO_RANGE[0]), EXPOSURE_RATIO_RANGE[1])
 
 
