@@ -37,14 +37,19 @@ TRACKER_FRAMES = 100
 
 
 def prefix_view(capture: Path, view: Path, stop: int) -> Path:
-    """A capture directory ``view`` showing the first ``stop`` frames of ``capture``: same files (symlinks),
-    capture.yaml with ``frames.stop`` set. Rebuilt on every call (cheap), so it always follows ``capture``."""
+    """A capture directory ``view`` showing the first ``stop`` frames of ``capture``: the same media (symlinks),
+    a copy of its calibration (a calibration reached through a link leads outside the capture, which a run
+    refuses), capture.yaml with ``frames.stop`` set. Rebuilt on every call (cheap), so it always follows
+    ``capture``."""
     shutil.rmtree(view, ignore_errors=True)
     view.mkdir(parents=True)
-    for entry in Path(capture).iterdir():
-        if entry.name != "capture.yaml":
-            (view / entry.name).symlink_to(entry.resolve())
     config = yaml.safe_load((Path(capture) / "capture.yaml").read_text())
+    calibration = Path(config["calibration"]["path"]).parts[0]  # the capture's entry that holds it
+    for entry in Path(capture).iterdir():
+        if entry.name == calibration:
+            (shutil.copytree if entry.is_dir() else shutil.copy2)(entry, view / entry.name)
+        elif entry.name != "capture.yaml":
+            (view / entry.name).symlink_to(entry.resolve())
     config["frames"] = {**config.get("frames", {}), "start": 0, "stop": int(stop), "step": 1}
     (view / "capture.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
     return view

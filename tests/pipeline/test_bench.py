@@ -165,9 +165,15 @@ def test_offset_free_angles_ignore_a_joint_placed_elsewhere_in_the_body():
 def test_prefix_view_shows_the_first_frames_of_the_same_files(tmp_path):
     capture = tmp_path / "capture"
     (capture / "videos").mkdir(parents=True)
-    (capture / "capture.yaml").write_text(yaml.safe_dump({"fps": 28.0, "frames": {"start": 0, "step": 1}}))
+    (capture / "calib" / "colmap").mkdir(parents=True)
+    (capture / "calib" / "colmap" / "cameras.txt").write_text("# cameras\n")
+    (capture / "capture.yaml").write_text(yaml.safe_dump({"fps": 28.0, "frames": {"start": 0, "step": 1},
+                                                          "calibration": {"path": "calib/colmap"}}))
     view = speed.prefix_view(capture, tmp_path / "view", 56)
     assert (view / "videos").is_symlink() and (view / "videos").resolve() == (capture / "videos").resolve()
+    # The calibration is a copy: a run refuses a calibration reached through a link out of the capture.
+    assert not (view / "calib").is_symlink()
+    assert (view / "calib" / "colmap" / "cameras.txt").read_text() == "# cameras\n"
     assert yaml.safe_load((view / "capture.yaml").read_text())["frames"] == {"start": 0, "step": 1, "stop": 56}
     assert speed.prefix_view(capture, tmp_path / "view", 10).is_dir()  # rebuilt, not refused
 
