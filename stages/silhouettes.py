@@ -203,8 +203,9 @@ class BackgroundModel:
     B2: np.ndarray  # (h, w, 3) float32 the squares B_k² (a frame's G B · G B is their sum weighted by g_k²)
     texture_variance: np.ndarray  # (h, w) float32 (κ ‖∇B‖)² / 3, per-channel noise variance from texture
     # Colours below are stored channels first, as :func:`_dot` wants them (a copy saved per frame).
-    sample_B: np.ndarray  # (3, h / SAMPLE_STRIDE, w / SAMPLE_STRIDE) float32 every SAMPLE_STRIDE-th of B_sharp
-    sample_divisor: np.ndarray  # (h / SAMPLE_STRIDE, w / SAMPLE_STRIDE) float32 B·B + BACKGROUND_ENERGY_FLOOR there
+    sample_B: np.ndarray  # (3, m) float32 every SAMPLE_STRIDE-th pixel of B_sharp along both axes, flattened
+    sample_B2: np.ndarray  # (3, m) float32 their squares B_k²
+    sample_divisor: np.ndarray  # (m,) float32 B·B + BACKGROUND_ENERGY_FLOOR there
     coarse_B: np.ndarray  # (3, h / COARSE_FACTOR, w / COARSE_FACTOR) float32 B_sharp averaged over blocks
     coarse_texture_variance: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR) float32 the same for the texture
 
@@ -222,7 +223,7 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
     squared_gradient = cv2.transform(cv2.multiply(spread, spread, dtype=cv2.CV_32F), _CHANNEL_SUM) / 4.0
     jitter = params.background_jitter_px
     texture_variance = squared_gradient * np.float32(jitter * jitter / 3.0)
-    sample_B = _channels_first(B_sharp[::SAMPLE_STRIDE, ::SAMPLE_STRIDE])  # the frame's sample is unblurred
+    sample_B = _channels_first(B_sharp[::SAMPLE_STRIDE, ::SAMPLE_STRIDE]).reshape(3, -1)  # the frame's is unblurred
     return BackgroundModel(
         shape=background.shape,
         downsample=params.downsample,
@@ -233,6 +234,7 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
         B2=cv2.multiply(B, B, dtype=cv2.CV_32F),
         texture_variance=texture_variance,
         sample_B=sample_B,
+        sample_B2=sample_B * sample_B,
         sample_divisor=_dot(sample_B, sample_B) + np.float32(BACKGROUND_ENERGY_FLOOR),
         coarse_B=_channels_first(_block_mean(B_sharp, COARSE_FACTOR)),
         coarse_texture_variance=_block_mean(texture_variance, COARSE_FACTOR),
@@ -611,18 +613,18 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     person's colour, each channel its own way, and tint the model. σ² is the lower quartile of ‖I − GB‖²
     over χ²₃'s. Both are clipped to plausible ranges (see the constants).
     """
-    I = _channels_first(I)
+    I = _channels_first(I).reshape(3, -1)  # (3, m)
     B = model.sample_B
-    alpha = _dot(I, B) / model.sample_divisor
+    products = I * B  # (3, m) I_k B_k
+    alpha = (products[0] + products[1] + products[2]) / model.sample_divisor
     g = np.float32(_clip_ratio(_quantile(alpha, 0.5)))
     D = I - g * B
     distance2 = _dot(D, D)
-    background = distance2 <= _quantile(distance2, 0.5)
-    I_bg, B_bg = I[:, background], B[:, background]  # (3, n / 2)
-    energy = np.einsum("kn,kn->k", B_bg, B_bg)
+    background = (distance2 <= np.float32(_quantile(distance2, 0.5))).astype(np.float32)  # (m,) 1 or 0
+    # Sums over the background half as products with its 0/1 indicator: a fraction of boolean indexing's cost.
     gains = tuple(_clip_ratio(float(IB / BB)) if BB > 0 else float(g)
-                  for IB, BB in zip(np.einsum("kn,kn->k", I_bg, B_bg), energy, strict=True))
-    D = I - _Noise(gains, 0.0).exposure() * B
+                  for IB, BB in zip(products @ background, model.sample_B2 @ background, strict=True))
+    D = I - np.array(gains, np.float32)[:, None] * B
     quartile = _quantile(_dot(D, D), 0.25)
     return _Noise(gains, min(max(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2), NOISE_SIGMA_MAX**2))
 
