@@ -49,6 +49,7 @@ import numpy as np
 
 from calib.camera import Camera
 from calib.errors import InputError
+from stages.checks import check_int, check_number
 
 # Added to B·B before dividing, so a pure black background pixel gives α = 0 rather than a division
 # by zero (8-bit squared units: far below the B·B = 3 of the darkest non-black pixel).
@@ -163,8 +164,12 @@ class SilhouetteParams:
     max_hole_fraction: float = 0.01
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.downsample, int) and self.downsample >= 1):
-            raise InputError(f"silhouettes.downsample: expected an integer >= 1, got {self.downsample!r}")
+        check_int("silhouettes.downsample", self.downsample, 1)
+        for name in ("opening_px", "closing_px"):
+            check_int(f"silhouettes.{name}", getattr(self, name), 0)
+        for name in ("strong_threshold", "weak_threshold", "shadow_min", "shadow_max", "background_jitter_px",
+                     "min_component_fraction", "min_component_area_fraction", "max_hole_fraction"):
+            check_number(f"silhouettes.{name}", getattr(self, name))  # finite: NaN passes the checks below
         if not 0 < self.shadow_min < self.shadow_max <= 1:
             raise InputError(
                 "silhouettes.shadow_min/shadow_max: expected 0 < shadow_min < shadow_max <= 1, "
@@ -173,10 +178,10 @@ class SilhouetteParams:
         if self.shadows not in SHADOW_TESTS:
             raise InputError(f"silhouettes.shadows: expected one of {', '.join(SHADOW_TESTS)}, got {self.shadows!r}")
         kernel = self.blur_kernel_px
-        if not (isinstance(kernel, int) and kernel >= 1 and kernel % 2):
+        if not (isinstance(kernel, int) and not isinstance(kernel, bool) and kernel >= 1 and kernel % 2):
             raise InputError(f"silhouettes.blur_kernel_px: expected an odd integer >= 1, got {kernel!r}")
         for name in ("weak_threshold", "background_jitter_px", "min_component_fraction",
-                     "min_component_area_fraction", "max_hole_fraction", "opening_px", "closing_px"):
+                     "min_component_area_fraction", "max_hole_fraction"):
             if getattr(self, name) < 0:
                 raise InputError(f"silhouettes.{name}: expected a value >= 0, got {getattr(self, name)}")
         if not self.strong_threshold >= self.weak_threshold:

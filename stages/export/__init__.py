@@ -13,6 +13,8 @@ text or arrays and never open files. ``pipeline.export_io`` writes what they pro
 
 from dataclasses import dataclass
 
+from stages.checks import check_bool
+
 
 @dataclass(frozen=True)
 class ExportParams:
@@ -29,3 +31,7 @@ class ExportParams:
 
     report: bool = True
     overlay_videos: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("report", "overlay_videos"):
+            check_bool(f"export.{name}", getattr(self, name))

@@ -19,6 +19,7 @@ import numpy as np
 
 from calib.camera import Rig
 from calib.errors import InputError
+from stages.checks import check_int, check_number
 from stages.reconstruction.visual_hull import hull_surface_points
 from stages.reconstruction.visual_shape import rim_points
 
@@ -70,23 +71,12 @@ class ReconstructionParams:
                 f"reconstruction.rim_placement: expected one of {', '.join(RIM_PLACEMENTS)}, "
                 f"got {self.rim_placement!r}"
             )
-        if not (isinstance(self.n_observations, int) and 50 <= self.n_observations <= 5000):
-            raise InputError(
-                "reconstruction.n_observations: expected an integer from 50 to 5000, "
-                f"got {self.n_observations!r}"
-            )
-        if not (isinstance(self.tolerated_views, int) and self.tolerated_views >= 0):
-            raise InputError(
-                f"reconstruction.tolerated_views: expected an integer >= 0, got {self.tolerated_views!r}"
-            )
-        if not (isinstance(self.samples_per_ray, int) and self.samples_per_ray >= 2):
-            raise InputError(
-                f"reconstruction.samples_per_ray: expected an integer >= 2, got {self.samples_per_ray!r}"
-            )
-        if self.contour_smoothing_px < 0:
-            raise InputError(
-                f"reconstruction.contour_smoothing_px: expected a value >= 0, got {self.contour_smoothing_px}"
-            )
+        check_int("reconstruction.n_observations", self.n_observations, 50, 5000)
+        check_int("reconstruction.tolerated_views", self.tolerated_views, 0)
+        check_int("reconstruction.samples_per_ray", self.samples_per_ray, 2)
+        check_number("reconstruction.contour_smoothing_px", self.contour_smoothing_px, 0.0)
+        for name in ("voxel_size_m", "coarse_voxel_size_m"):
+            check_number(f"reconstruction.{name}", getattr(self, name))  # finite: NaN passes the check below
         if not 0 < self.voxel_size_m <= self.coarse_voxel_size_m:
             raise InputError(
                 "reconstruction.voxel_size_m/coarse_voxel_size_m: expected 0 < voxel_size_m <= "

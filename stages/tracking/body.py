@@ -389,6 +389,19 @@ def load_body(name: str = "default", *, height_m: float | None = None) -> BodyMo
     return body if height_m is None else body.scaled(height_m)
 
 
+@functools.cache
+def shipped_length_groups() -> frozenset[str]:
+    """Names of the length groups of the bodies shipped in `bodies/` (their files' `lengths` keys).
+
+    What `TrackerParams.estimate_lengths` may name, checked when the parameters are made, before any
+    work: the body itself is only loaded as tracking starts, after the reconstruction. A body built
+    elsewhere (`body_from_dict`) is checked again by `BodyModel.with_length_groups`.
+    """
+    files = resources.files("stages.tracking") / "bodies"
+    return frozenset(name for path in files.iterdir() if path.name.endswith(".yaml")
+                     for name in (yaml.safe_load(path.read_text()).get("lengths") or {}))
+
+
 def body_from_dict(spec: dict, *, source: str = "body") -> BodyModel:
     """Build a BodyModel from the YAML structure described in `bodies/default.yaml`."""
     try:

@@ -33,8 +33,10 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
-from stages.tracking.body import BodyModel
-from stages.tracking.distances import residual_size
+from calib.errors import InputError
+from stages.checks import check_choice, check_int, check_number
+from stages.tracking.body import BodyModel, shipped_length_groups
+from stages.tracking.distances import DISTANCES, residual_size
 from stages.tracking.em import EMParams, FitResult, Mixture, fit, volume_size
 from stages.tracking.init import (
     LIMB_MIN_OBSERVATIONS,
@@ -84,7 +86,8 @@ class TrackerParams:
         and stays within 0.94-1.02 elsewhere. The hip width, estimated the same way, was pushed out by
         stout thighs (1.10-1.26 on capsule bodies; suite 26.0 -> 29.1 mm).
     sigma_m : float
-        Prediction error (metres): every frame's EM starts from the previous frame's Σ + σ² I.
+        Prediction error (metres, > 0): every frame's EM starts from the previous frame's Σ + σ² I, the
+        first from σ² I.
     min_observations : int
         Fewer observations than this: the frame is predicted, not fitted.
     max_outlier_fraction : float
@@ -99,16 +102,19 @@ class TrackerParams:
         place differ by hundredths, a fit in a different, better optimum by tenths.
     failure_sigma_m : float
         A fit whose Σ has a standard deviation above this (metres) is a failure: the ellipsoids are
-        off the body surface by a few centimetres, not by a spread close to the `max_sigma_m` ceiling.
+        off the body surface by a few centimetres, not by a spread close to the `max_sigma_m` ceiling
+        (which it must be below: Σ never grows past that ceiling, so the check would never fail).
     refit_drop, refit_iterations : float, int
         A fit whose log-likelihood per observation is `refit_drop` nats below the running level gets up
-        to `refit_iterations` more EM iterations with a strict stopping rule before it is judged.
+        to `refit_iterations` (at least 1) more EM iterations with a strict stopping rule before it is
+        judged; inf never refits.
     restart_drop : float
         When such a fit is still `restart_drop` nats below the level, EM also runs from the last pose
-        (no velocity) and the better fit is kept: a motion that stops or turns makes the constant-velocity
-        prediction overshoot into another optimum. On the speed capture's chambered kick this took the
-        worst frame from 70.7 to 28.1 mm (the knee had folded sideways, 339 mm off, at 0.35 nats per
-        observation less than EM from the last pose); on the unseen suite the mean stayed at 28.7 mm.
+        (no velocity) and the better fit is kept (inf never restarts): a motion that stops or turns
+        makes the constant-velocity prediction overshoot into another optimum. On the speed capture's
+        chambered kick this took the worst frame from 70.7 to 28.1 mm (the knee had folded sideways,
+        339 mm off, at 0.35 nats per observation less than EM from the last pose); on the unseen suite
+        the mean stayed at 28.7 mm.
     velocity_decay : float
         Factor on the velocity for each predicted frame (a gap's motion slows down).
     max_predicted_frames : int
@@ -123,7 +129,8 @@ class TrackerParams:
         "normals" distance each pair's covariance grows by how far that tilt slides the ellipsoid point
         of eq. (4) (`EMParams.normal_noise_rad`); 0 is the paper's model.
     min_outlier_prior : float
-        Lower bound on the outlier class's prior π_{P+1} (`EMParams.min_outlier_prior`); 0 is the paper's.
+        Lower bound on the outlier class's prior π_{P+1} (`EMParams.min_outlier_prior`); 0 is the paper's,
+        0.5 the most (the outlier class may not own most of the data).
     max_sigma_m : float
         Upper bound on Σ's standard deviations, metres (`EMParams.max_sigma_m`).
     limb_share_ratio, limb_min_observations : float, int
@@ -158,6 +165,54 @@ class TrackerParams:
     max_sigma_m: float = 0.06
     limb_share_ratio: float = LIMB_SHARE_RATIO
     limb_min_observations: int = LIMB_MIN_OBSERVATIONS
+
+    def __post_init__(self) -> None:
+        """Refuse, before any work, a value the tracker would fail on or silently misuse.
+
+        Every field is checked for its type (an integer count, a finite number), its range and its
+        relations to the others: a negative iteration count or prediction error ran and exported poses
+        up to a metre off, a NaN width or zero headings ended in a traceback, an unknown distance
+        stopped the run in its middle.
+        """
+        if self.height_m is not None:
+            check_number("tracking.height_m", self.height_m, 0.5, 2.6, above=True)
+        check_choice("tracking.distance", self.distance, DISTANCES)
+        for name, minimum in _INTEGER_MINIMA.items():
+            check_int(f"tracking.{name}", getattr(self, name), minimum)
+        for name, (minimum, maximum, above) in _NUMBER_RANGES.items():
+            check_number(f"tracking.{name}", getattr(self, name), minimum, maximum, above=above,
+                         infinite=name in _MAY_BE_INFINITE)
+        _check_length_groups(self.estimate_lengths)
+        if not self.failure_sigma_m < self.max_sigma_m:
+            raise InputError(f"tracking.failure_sigma_m: expected a value below max_sigma_m ({self.max_sigma_m}), "
+                             f"since Σ never grows past that ceiling, got {self.failure_sigma_m}")
+
+
+# Smallest valid value of each integer field of TrackerParams.
+_INTEGER_MINIMA = {"max_iterations": 1, "min_observations": 1, "reinit_every": 0, "refit_iterations": 1,
+                   "max_predicted_frames": 0, "scale_frames": 0, "init_headings": 1, "init_refine": 1,
+                   "limb_min_observations": 0}
+# (minimum, maximum, strictly above the minimum) of each float field of TrackerParams. Σ starts from
+# sigma_m² I, so a zero sigma_m is a singular covariance; a fraction or a prior are at most 1 (the
+# outlier prior at most one half: the outlier class may not own most of the data).
+_NUMBER_RANGES = {"tolerance": (0.0, np.inf, False), "displacement_m": (0.0, np.inf, False),
+                  "sigma_m": (0.0, np.inf, True), "max_outlier_fraction": (0.0, 1.0, True),
+                  "failure_sigma_m": (0.0, np.inf, True), "reinit_margin": (0.0, np.inf, False),
+                  "refit_drop": (0.0, np.inf, False), "restart_drop": (0.0, np.inf, False),
+                  "velocity_decay": (0.0, 1.0, False), "normal_noise_deg": (0.0, 90.0, False),
+                  "min_outlier_prior": (0.0, 0.5, False), "max_sigma_m": (0.0, np.inf, True),
+                  "limb_share_ratio": (0.0, 1.0, False)}
+# Thresholds that inf turns off (never refit, never restart).
+_MAY_BE_INFINITE = ("refit_drop", "restart_drop")
+
+
+def _check_length_groups(names) -> None:
+    """`estimate_lengths`: a tuple of distinct names of the shipped bodies' length groups."""
+    known = sorted(shipped_length_groups())
+    if not (isinstance(names, tuple) and all(isinstance(name, str) and name in known for name in names)
+            and len(set(names)) == len(names)):
+        raise InputError(f"tracking.estimate_lengths: expected a list of distinct length groups among "
+                         f"{', '.join(known)}, got {list(names) if isinstance(names, tuple) else names!r}")
 
 
 @dataclass(frozen=True)
