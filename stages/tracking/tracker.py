@@ -16,8 +16,8 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
 - failure detection, by absolute checks that a bad start cannot make the norm: an outlier fraction
   above `max_outlier_fraction` or a Σ wider than `failure_sigma_m` triggers a re-initialisation,
   and the better of the two fits (by likelihood) is kept; a frame that was fitted is never dropped:
-  when both fail the checks, the better one is the estimate, flagged `doubtful`, and a doubtful
-  initialisation makes the next frame initialise too (there is no track to go on from);
+  when both fail the checks, the better one is the estimate, flagged `doubtful`; after a doubtful
+  initialisation the next frame tracks from it and weighs a fresh initialisation against that fit;
 - a limb that explains far fewer data than its mirror limb (an arm put on the wrong side of the
   body), or than it did over the recent tracked frames (a forearm folded onto its upper arm or
   turned away from its data, which may still explain as many data as its mirror), is re-initialised
@@ -283,6 +283,10 @@ class TrackerState:
     segment_shares : (S,) float or None
         Running level of each segment's share of the data over the tracked frames (`init.segment_shares`,
         the same exponential average as the likelihood level); None until a tracked frame sets it.
+    recheck : bool
+        The last frame was an initialisation that failed the checks: the next frame tracks from it but
+        also weighs a fresh initialisation against that fit, whether or not the fit passes the checks (a
+        pose fitted to clutter can hold the next frame's data in a wrong optimum that passes them).
     """
 
     pose: np.ndarray
@@ -297,6 +301,7 @@ class TrackerState:
     lost: bool
     since_initialisation: int = 0
     segment_shares: np.ndarray | None = None
+    recheck: bool = False
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
@@ -319,7 +324,8 @@ class TrackerState:
                             frames_without_fit=int(data["frames_without_fit"]), lost=bool(data["lost"]),
                             since_initialisation=int(data.get("since_initialisation", 0)),
                             segment_shares=None if data.get("segment_shares") is None
-                            else np.asarray(data["segment_shares"], dtype=float))
+                            else np.asarray(data["segment_shares"], dtype=float),
+                            recheck=bool(data.get("recheck", False)))
 
 
 # Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
@@ -390,11 +396,12 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     per_obs = tracked.log_likelihood[-1] / len(y)
     doubtful = _failed(tracked, params)
     periodic = 0 < params.reinit_every <= state.since_initialisation + 1
-    tried = doubtful or periodic
+    tried = doubtful or periodic or state.recheck
     if tried:
         result, new_state = _initialise(state, y, n, sized, params, volume, em)
-        # A fit that passed the checks is replaced only on clear evidence (`reinit_margin`).
-        margin = 0.0 if doubtful else params.reinit_margin * len(y)
+        # A fit that passed the checks from an estimate that did too is replaced only on clear evidence
+        # (`reinit_margin`).
+        margin = 0.0 if doubtful or state.recheck else params.reinit_margin * len(y)
         if result.log_likelihood > tracked.log_likelihood[-1] + margin:
             return result, new_state
     height, lengths, weight = state.height_m, state.length_factors, state.height_weight
@@ -525,14 +532,18 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
     if estimate:
         weight += 1
         height = init.height_m if weight == 1 else height + (init.height_m - height) / weight
-    # A doubtful initialisation is no track to go on from (the data may be all clutter): the next frame
-    # initialises afresh. The likelihood level is left to the tracked frames: an initialisation's fit
-    # (a coarse search, sometimes with a limb still wrong) set it so low that the next frames' slips
-    # went unnoticed (bundled leaning: a wrist 450 mm off on frames 2-3).
+    # A doubtful initialisation is still the best pose the data gave: the next frame tracks from it (at
+    # rest) and tries a fresh initialisation against that fit, keeping the likelier (`recheck`). Starting every such frame from scratch threw the track away: on imperfect data the
+    # initialisations of consecutive frames landed in different poses (foreign leaning: 45 mm, then 79,
+    # then 456 mm, where tracking from the first would have explained the data far better). The likelihood
+    # level is left to the tracked frames: an initialisation's fit (a coarse search, sometimes with a limb
+    # still wrong) set it so low that the next frames' slips went unnoticed (bundled leaning: a wrist
+    # 450 mm off on frames 2-3).
     new_state = replace(state, pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
                         height_weight=weight, Sigma=fitted.mixture.Sigma, pi=fitted.mixture.pi,
                         likelihood_level=state.likelihood_level if doubtful else np.nan,
-                        frames_without_fit=0, lost=doubtful, since_initialisation=0, segment_shares=None)
+                        frames_without_fit=0, lost=False, since_initialisation=0, segment_shares=None,
+                        recheck=doubtful)
     result = FrameResult(pose=fitted.pose, joints=joints, log_likelihood=fitted.log_likelihood[-1],
                          iterations=fitted.iterations, outlier_fraction=fitted.outlier_fraction,
                          status="initialised", height_m=init.height_m, doubtful=doubtful)

@@ -179,3 +179,19 @@ def test_a_stop_after_fast_motion_is_tracked_from_the_last_pose(body, restart_dr
         assert result.status == "tracked" and error < 0.02
     else:  # without the restart, only a full re-initialisation (or nothing) rescues such a frame
         assert result.status == "initialised" or error > 0.02
+
+
+def test_a_doubtful_initialisation_is_tracked_from_and_weighed_against_a_fresh_one(body):
+    """When every fit fails the checks (here a failure spread no fit can meet), the next frame still starts
+    from the last estimate rather than from nothing, and keeps whichever of that fit and a fresh
+    initialisation explains its data better."""
+    rng = np.random.default_rng(25)
+    strict = TrackerParams(height_m=1.75, init_headings=6, init_refine=2, failure_sigma_m=1e-4)
+    poses = _walk(body.scaled(1.75), 2)
+    first, state = track_frame(None, _obs(body, poses[0], rng), body, strict, VOLUME)
+    assert first.status == "initialised" and first.doubtful and not state.lost
+    observations = _obs(body, poses[1], rng)
+    result, _ = track_frame(state, observations, body, strict, VOLUME)
+    fresh, _ = track_frame(None, observations, body, strict, VOLUME)
+    assert result.log_likelihood >= fresh.log_likelihood - 1e-6
+    assert np.linalg.norm(result.joints - body.joint_positions(poses[1]), axis=1).mean() < 0.02
