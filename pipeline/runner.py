@@ -27,7 +27,10 @@ the key; per-frame outputs are written atomically (temp file + ``os.replace``), 
 frame file is a finished frame once it passes the content check its format carries
 (:func:`pipeline.frames_io.file_problem`). On the next run, if the marker holds the same key, the
 folder is kept and the stage only computes the frames whose files are missing or damaged (files that
-differ from an old manifest's hashes are deleted first); otherwise the folder is emptied first. So a
+differ from an old manifest's hashes are deleted first); otherwise the folder is emptied first. A
+streaming stage running alongside its upstream (the tracking beside the reconstruction) cannot know its
+key yet, since that names the upstream's output digest: its marker holds :func:`streamed_key`, made
+with the upstream's cache key instead, and a run that finds it resumes there too. So a
 run never trusts a stale, damaged or half-written result; and a damaged file a stage still comes to
 read (:class:`~pipeline.frames_io.DamagedFileError`) is deleted and computed again (:meth:`Runner.run`).
 
@@ -459,6 +462,20 @@ def expected_record(stage: Stage, capture: Capture, params: Any, output_root: Pa
     return Expected(record, _hash(canonical_json(record)), tuple(missing))
 
 
+def streamed_key(stage: Stage, capture: Capture, params: Any, output_root: Path, upstream_key: str) -> str:
+    """The key a streaming stage's marker holds while it runs alongside its last input stage.
+
+    Its cache key names that upstream's output digest, which is known only once the upstream has
+    finished; the upstream's own cache key stands for it meanwhile (the same key makes the same files,
+    which is what the cache rests on). A run killed while both ran then finds this key in the marker and
+    keeps the frames already computed (:meth:`Runner.run_stage`), instead of a tracking folder emptied
+    for want of a key to compare.
+    """
+    record = expected_record(stage, capture, params, output_root).record
+    inputs = {**record["inputs"], f"stage:{stage.inputs[-1]}": f"key:{upstream_key}"}
+    return _hash(canonical_json({**record, "inputs": inputs}))
+
+
 def read_manifest(folder: Path) -> dict | None:
     """The stage's manifest, or ``None`` when missing or unreadable (a logged cache miss)."""
     path = folder / MANIFEST
@@ -644,7 +661,7 @@ def written_by_runner(folder: Path) -> bool:
 
 
 def fresh_stage_folder(folder: Path, key: str) -> None:
-    """Make ``folder`` empty but for the marker holding ``key`` (``""`` when not known yet).
+    """Make ``folder`` empty but for the marker holding ``key``.
 
     An existing folder is deleted only when it holds a marker: the runner writes one in every stage
     folder it makes, before any result, so a folder without one (or a file, or a link) is not the
@@ -926,17 +943,17 @@ class Runner:
         return upstream.name in forced or status.state != "up to date"
 
     def _run_streaming(self, upstream: Stage, stage: Stage, forced: Collection[str]) -> list[StageOutcome]:
+        upstream_key = expected_record(upstream, self.capture, self.params[upstream.name], self.output_root).key
+        key = streamed_key(stage, self.capture, self.params[stage.name], self.output_root, upstream_key)
         with cf.ThreadPoolExecutor(1, thread_name_prefix=upstream.name) as background:
             running = background.submit(self.run_stage, upstream, force=upstream.name in forced)
-            outcome = self.run_stage(stage, upstream=running)
+            outcome = self._run_streaming_stage(stage, running, key, force=stage.name in forced)
         return [running.result(), outcome]
 
-    def run_stage(self, stage: Stage, *, force: bool = False, upstream: cf.Future | None = None) -> StageOutcome:
-        """Run one stage unless up to date. With ``upstream``, the future of its running input stage,
-        it streams (:attr:`Stage.streams`): it starts afresh at once and its record is made when both
-        have finished."""
-        if upstream is not None:
-            return self._run_streaming_stage(stage, upstream)
+    def run_stage(self, stage: Stage, *, force: bool = False) -> StageOutcome:
+        """Run one stage unless up to date, resuming from the frames an interrupted run left when its
+        marker holds the key computed now (or, for a streaming stage, the key it ran under alongside
+        its upstream, :func:`streamed_key`, when that upstream has finished since)."""
         folder = self.output_root / stage.name
         expected = expected_record(stage, self.capture, self.params[stage.name], self.output_root)
         if expected.missing:
@@ -960,22 +977,36 @@ class Runner:
             for name in changes.changed:
                 (folder / name).unlink()
 
-        resumable = (not force and written_by_runner(folder)
-                     and (folder / MARKER).read_text(encoding="utf-8").strip() == expected.key)
-        if resumable:
+        self._resume_or_start_afresh(stage, (expected.key, *self._streamed_keys(stage)), expected.key, force)
+        frames, seconds = self._execute(stage)
+        return self._finish(stage, expected, frames, seconds)
+
+    def _streamed_keys(self, stage: Stage) -> tuple[str, ...]:
+        """The key a streaming ``stage`` ran under alongside its finished upstream (:func:`streamed_key`)."""
+        manifest = read_manifest(self.output_root / stage.inputs[-1]) if stage.streams else None
+        if manifest is None:
+            return ()
+        return (streamed_key(stage, self.capture, self.params[stage.name], self.output_root, manifest["cache_key"]),)
+
+    def _resume_or_start_afresh(self, stage: Stage, resumable_keys: Sequence[str], key: str, force: bool) -> None:
+        """Keep the stage folder's finished frames when its marker holds one of ``resumable_keys`` (and the
+        run is not forced); else empty it, with a marker holding ``key``."""
+        folder = self.output_root / stage.name
+        if not force and written_by_runner(folder) and (
+                folder / MARKER).read_text(encoding="utf-8").strip() in resumable_keys:
             (folder / MANIFEST).unlink(missing_ok=True)
             removed = atomic.remove_temp_files(folder)
             log.info("%s: resuming (%d leftover temporary files removed)", stage.name, removed)
         else:
-            fresh_stage_folder(folder, expected.key)
+            fresh_stage_folder(folder, key)
 
-        frames, seconds = self._execute(stage)
-        return self._finish(stage, expected, frames, seconds)
-
-    def _run_streaming_stage(self, stage: Stage, upstream: cf.Future) -> StageOutcome:
+    def _run_streaming_stage(self, stage: Stage, upstream: cf.Future, key: str, *, force: bool) -> StageOutcome:
+        """Run ``stage`` alongside ``upstream``, the future of its running input stage: under ``key`` (its
+        :func:`streamed_key`), resuming what a run under the same key left; its record is made when both
+        have finished."""
         folder = self.output_root / stage.name
         self._begin_change()
-        fresh_stage_folder(folder, "")  # its key depends on the upstream's outputs: known at the end
+        self._resume_or_start_afresh(stage, (key,), key, force)
         frames, seconds = self._execute(stage, upstream)
         upstream.result()  # its manifest is written: this stage's inputs are known now
         expected = expected_record(stage, self.capture, self.params[stage.name], self.output_root)

@@ -519,3 +519,75 @@ def test_a_failed_warm_up_is_logged_and_its_stage_still_runs(setup, caplog):
     assert run(stages=stages)["summary"] == "ran"
     assert "summary: warm-up failed (RuntimeError: no compiled code today)" in caplog.text
     assert frames_io.read_json(out / "summary" / "total.json") == {"total": 12.0}
+
+
+FOLLOWER_FAIL_AT = "FAKE_FOLLOWER_FAIL_AT"  # environment: frame at which the resuming follower raises
+
+
+def run_resuming_follower(ctx) -> int:
+    """A follower that, like the tracker, resumes after the last frame it finished."""
+    outputs_of = lambda frame: [ctx.out_dir / frames_io.frame_name(frame, ".json")]  # noqa: E731
+    pending = ctx.pending_frames(outputs_of)
+    for frame in pending:
+        value = frames_io.read_record(ctx.ready(ctx.input_dir("per_frame") / frames_io.frame_name(frame, ".json")))
+        if str(frame) == os.environ.get(FOLLOWER_FAIL_AT):
+            raise KeyboardInterrupt
+        _log(f"follower {frame}")
+        frames_io.write_record(outputs_of(frame)[0], {"twice": 2 * value["v"]})
+    return len(pending)
+
+
+RESUMING = (*STAGES[:2], Stage("follower", run_resuming_follower, inputs=("per_frame",), streams=True))
+
+
+def test_a_streaming_stage_killed_with_its_upstream_resumes_alongside_it(setup, monkeypatch):
+    """Issue #13 item 8: both stopped at frame 2 (the upstream's crash); the rerun streams again and
+    keeps the follower's frames 0 and 1 instead of emptying its folder."""
+    capture, out, run, work = setup
+    frames = capture.frame_numbers
+    monkeypatch.setenv(FAIL_AT, str(frames[2]))
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        run(stages=RESUMING)
+    assert [entry for entry in work() if entry.startswith("follower")] == [f"follower {f}" for f in frames[:2]]
+    monkeypatch.delenv(FAIL_AT)
+    assert run(stages=RESUMING) == {"source": "up to date", "per_frame": "ran", "follower": "ran"}
+    assert sorted(work()) == sorted(f"{stage} {f}" for f in frames[2:] for stage in ("per_frame", "follower"))
+    assert run(stages=RESUMING) == {"source": "up to date", "per_frame": "up to date", "follower": "up to date"}
+
+
+def test_a_streaming_stage_killed_after_its_upstream_finished_resumes_on_its_own(setup, monkeypatch):
+    capture, out, run, work = setup
+    frames = capture.frame_numbers
+    monkeypatch.setenv(FOLLOWER_FAIL_AT, str(frames[2]))
+    with pytest.raises(KeyboardInterrupt):
+        run(stages=RESUMING)
+    assert (out / "per_frame" / MANIFEST).exists() and not (out / "follower" / MANIFEST).exists()
+    monkeypatch.delenv(FOLLOWER_FAIL_AT)
+    assert run(stages=RESUMING) == {"source": "up to date", "per_frame": "up to date", "follower": "ran"}
+    assert work() == [f"follower {f}" for f in frames[2:]]
+    assert [frames_io.read_record(out / "follower" / frames_io.frame_name(f, ".json"))["twice"]
+            for f in frames] == [4.0 * f for f in frames]
+
+
+@pytest.mark.parametrize("change", [{"per_frame": {"scale": 3.0}}, {"source": {"value": 2.0}}])
+def test_a_streaming_stage_killed_starts_over_when_its_upstream_changed(setup, monkeypatch, change):
+    capture, out, run, work = setup
+    monkeypatch.setenv(FOLLOWER_FAIL_AT, str(capture.frame_numbers[2]))
+    with pytest.raises(KeyboardInterrupt):
+        run(stages=RESUMING)
+    monkeypatch.delenv(FOLLOWER_FAIL_AT)
+    run(change, stages=RESUMING)
+    assert [entry for entry in work() if entry.startswith("follower")] == [
+        f"follower {f}" for f in capture.frame_numbers]
+
+
+def test_a_forced_streaming_stage_starts_over(setup, monkeypatch):
+    capture, out, run, work = setup
+    monkeypatch.setenv(FOLLOWER_FAIL_AT, str(capture.frame_numbers[2]))
+    with pytest.raises(KeyboardInterrupt):
+        run(stages=RESUMING)
+    monkeypatch.delenv(FOLLOWER_FAIL_AT)
+    (out / "per_frame" / MANIFEST).unlink()  # so that the forced rerun streams
+    run(stages=RESUMING, force=True)
+    assert [entry for entry in work() if entry.startswith("follower")] == [
+        f"follower {f}" for f in capture.frame_numbers]
