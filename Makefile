@@ -8,7 +8,7 @@ STAGE ?=
 WORKERS ?= 2
 ARGS ?=
 
-.PHONY: setup run stage test bench lint clean check-seq
+.PHONY: setup run stage test bench reliability lint clean check-seq
 
 setup:
 	@bash scripts/bootstrap.sh
@@ -33,6 +33,10 @@ test:
 
 bench: setup
 	$(PY) -m pipeline bench --out runs/bench $(ARGS)
+
+# Issue #13's battery (bad inputs, kills, corruptions, concurrency) on the tiny sample; exit 1 on a failure.
+reliability: setup
+	$(PY) scripts/reliability.py $(ARGS)
 
 lint: setup
 	.venv/bin/ruff check .
