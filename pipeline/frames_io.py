@@ -86,6 +86,8 @@ def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None) -> n
     data = Path(path).read_bytes()
     if data.startswith(PNG_SIGNATURE) and (problem := png_problem(data)):
         raise DamagedFileError(path, problem)
+    if not data:
+        raise InputError(f"{path}: empty file (expected a PNG mask, 0 = background, 255 = person)")
     mask = _unfiltered_one_bit_png(data)
     if mask is None:
         grey = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)

@@ -163,6 +163,16 @@ def test_a_damaged_mask_is_noticed(tmp_path):
         frames_io.read_mask(path)
 
 
+def test_an_empty_or_unreadable_mask_file_is_one_line_not_an_opencv_error(tmp_path):
+    path = tmp_path / "m.png"
+    path.write_bytes(b"")
+    with pytest.raises(InputError, match="m.png: empty file"):
+        frames_io.read_mask(path)
+    path.write_bytes(b"not an image")
+    with pytest.raises(InputError, match="m.png: not a readable mask image"):
+        frames_io.read_mask(path)
+
+
 def test_a_mask_of_the_wrong_size_is_refused(tmp_path):
     frames_io.write_mask(tmp_path / "m.png", np.zeros((48, 64), np.uint8))
     assert frames_io.read_mask(tmp_path / "m.png", (64, 48)).shape == (48, 64)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import json
+import logging
 import os
 import time
 from dataclasses import dataclass
@@ -337,6 +338,7 @@ def test_a_run_function_counts_with_the_helpers_and_constants_of_its_module_it_u
 
 
 def test_a_failed_rerun_leaves_nothing_that_looks_finished(setup, monkeypatch, caplog):
+    caplog.set_level(logging.DEBUG, logger="pipeline.runner")  # the terminal shows only the run's error
     capture, out, run, work = setup
     run()
     assert frames_io.read_json(out / RUN_RECORD)["state"] == "finished"
