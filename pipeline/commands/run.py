@@ -17,6 +17,7 @@ from calib.errors import InputError
 from pipeline import graph
 from pipeline.capture import Capture
 from pipeline.executors import make_executor
+from pipeline.export_io import read_joints_csv
 from pipeline.params import apply_overrides, default_params, parse_assignments, read_config
 from pipeline.runner import Runner, format_summary, output_lock, select_stages, storage_error
 
@@ -41,6 +42,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--allow-outside-paths", action="store_true",
                         help="let capture.yaml's calibration.path lead outside the capture directory "
                              "(refused by default: a capture.yaml from elsewhere could name any file)")
+
+
+#: Exit status of a run that finished but whose result is not usable (:func:`unusable_result`); a user
+#: mistake is 2.
+UNUSABLE_RESULT = 3
+#: A run estimating fewer than this share of the capture's frames has no usable result.
+MIN_ESTIMATED_FRACTION = 0.5
+#: What the export stage must have written for the run to count as usable.
+EXPORTED_FILES = ("joints.csv", "motion.bvh", "joints.c3d")
+
+
+def unusable_result(export_dir: Path, frames: int) -> str | None:
+    """Why a finished run's export in ``export_dir`` is not usable, in one line, or None when it is.
+
+    Usable: every file of :data:`EXPORTED_FILES` written, and at least :data:`MIN_ESTIMATED_FRACTION` of
+    the capture's ``frames`` estimated. A motion with most frames missing says "success" while it has
+    lost the subject (out of view, silhouettes that disagree, a working volume that cuts them off).
+    """
+    missing = [name for name in EXPORTED_FILES if not (export_dir / name).is_file()]
+    if missing:
+        return f"{export_dir}: no {', '.join(missing)} written (expected every export of a finished run)"
+    estimated = len(read_joints_csv(export_dir / "joints.csv")[0])
+    if estimated < MIN_ESTIMATED_FRACTION * frames:
+        return (f"{export_dir / 'joints.csv'}: only {estimated} of {frames} frames estimated (expected at least "
+                f"half; `python -m pipeline stages` and the report say where the subject was lost)")
+    return None
 
 
 def main(args: argparse.Namespace) -> int:
@@ -69,4 +96,10 @@ def main(args: argparse.Namespace) -> int:
             raise
         raise problem from None
     print(format_summary(outcomes))
+    if not any(outcome.name == "export" and outcome.action != "not selected" for outcome in outcomes):
+        return 0  # no export asked for: nothing to judge
+    problem = unusable_result(Path(args.out) / "export", len(capture.frame_numbers))
+    if problem is not None:
+        print(f"error: {problem}", file=sys.stderr)
+        return UNUSABLE_RESULT
     return 0

@@ -486,3 +486,19 @@ def test_make_lists_only_the_sample_folders():
     listed = result.stdout.split("available: ")[1].split()
     assert listed == sorted(path.name for path in (REPO / "data_samples").iterdir() if path.is_dir())
     assert "README.md" not in listed
+
+
+def test_a_run_whose_result_is_not_usable_exits_3_with_one_line(tmp_path):
+    from pipeline.commands.run import UNUSABLE_RESULT, unusable_result
+
+    export = tmp_path / "export"
+    export.mkdir()
+    lines = ["frame,joint,x,y,z"] + [f"{frame},pelvis,0,0,1" for frame in range(4)]
+    (export / "joints.csv").write_text("\n".join(lines) + "\n")
+    assert "no motion.bvh, joints.c3d written" in unusable_result(export, 4)
+    (export / "motion.bvh").write_text("HIERARCHY\n")
+    (export / "joints.c3d").write_bytes(b"c3d")
+    assert unusable_result(export, 8) is None  # half of the frames is enough
+    problem = unusable_result(export, 10)
+    assert "joints.csv: only 4 of 10 frames estimated" in problem and "\n" not in problem
+    assert UNUSABLE_RESULT == 3
