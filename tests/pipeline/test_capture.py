@@ -12,7 +12,7 @@ import pytest
 from conftest import BACKGROUND_GREY, TINY_SIZE, frame_image, make_capture, tiny_rig, write_config
 
 from calib.errors import InputError
-from pipeline.capture import Capture, derive_volume
+from pipeline.capture import DERIVED_VOLUME_FLOOR_MARGIN_M, Capture, derive_volume
 
 
 def test_image_capture_metadata(tiny_capture):
@@ -96,7 +96,7 @@ def test_volume_from_capture_yaml(tmp_path):
 def test_derived_volume_covers_what_most_cameras_see():
     rig = tiny_rig(8, radius_m=4.0)  # a ring of 8 cameras looking at (0, 0, 1)
     volume = derive_volume(rig)
-    assert volume[0, 2] == 0.0 and volume[1, 2] == 2.3
+    assert volume[0, 2] == -DERIVED_VOLUME_FLOOR_MARGIN_M < 0.0 and volume[1, 2] == 2.3  # the soles are in it
     assert np.all(volume[0, :2] < -0.5) and np.all(volume[1, :2] > 0.5)  # the centre is inside
     assert np.all(volume[0, :2] > -4.0) and np.all(volume[1, :2] < 4.0)  # the cameras are outside
     np.testing.assert_allclose(volume[0, :2], -volume[1, :2], atol=0.1)  # symmetric ring, symmetric box
