@@ -53,17 +53,14 @@ FRAME_FILE = re.compile(r"^(\d{6,})(\.[A-Za-z]+)$")
 DERIVED_VOLUME_HEIGHT_M = 2.3
 #: How far the derived volume reaches below the floor, metres. Reconstructed points outside the volume are
 #: dropped, and the soles' points lie at or a little below z = 0 (a visual hull's lowest points; a floor
-#: found by ``up: auto`` within a few centimetres): a volume starting at z = 0 cut them off, and the feet
-#: with them (taekwondo without a volume lost 22 of 112 frames).
+#: found by ``up: auto`` within a few centimetres): a volume starting at z = 0 cut them off.
 DERIVED_VOLUME_FLOOR_MARGIN_M = 0.15
 #: Grid of floor positions tested when deriving the volume (cells per side).
 DERIVED_VOLUME_GRID = 161
 #: Heights (fractions of the volume height) at which a floor position must be in view: the feet and the
-#: middle of the body. The top of the volume (raised arms) as well left out the rim of the floor that the
-#: cameras, tilted down at the subject, see whole but for the space above 2 m, where the subject still walks
-#: and kicks: without a volume, bundled taekwondo lost 19 % of its frames (63.4 mm), foreign walk 7 % (46.3
-#: mm); with these two heights every frame is estimated (16.7 and 22.9 mm, against 16.6 and 22.3 mm with the
-#: volumes their capture.yaml gives).
+#: middle of the body. Requiring the top of the volume (raised arms) as well left out the rim of the floor
+#: that the cameras, tilted down at the subject, see whole but for the space above 2 m, where the subject
+#: still walks and kicks, and cut the subject off there.
 DERIVED_VOLUME_HEIGHTS = (0.0, 0.5)
 #: Seeking is slower than decoding a few frames; skip ahead by decoding up to this many frames.
 MAX_FRAMES_DECODED_TO_SKIP = 8

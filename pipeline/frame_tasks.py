@@ -88,7 +88,7 @@ def _background_model(path: str, mtime_ns: int, size: int, params: SilhouettePar
 
 
 def cached_floor_geometry(rig: Rig, volume: np.ndarray, params: SilhouetteParams) -> FloorGeometry:
-    """The rig's floor geometry for the shadow test, made once per worker (about 0.1 s for six cameras).
+    """The rig's floor geometry for the shadow test, made once per worker (tens of ms per camera).
 
     Keyed by the cameras' numbers, the volume and the working resolution: a worker that meets another
     capture, or a recalibrated one, makes it again.

@@ -22,8 +22,8 @@ The evidence is ‖I − GB‖ / σ_p, except on shadows, where only the chromat
 pixel looks like a shadow when it is darker than the background by as much as a shadow darkens
 (α between ``shadow_min`` and ``shadow_max``) with its colour direction unchanged. Colour alone cannot
 tell a shadow from dark clothing in front of a background of the same hue (navy trousers on a blue mat, a
-grey shirt on a lighter grey wall), and taking every such pixel for a shadow cut a tenth of the person
-away. Geometry can: a person's shadow lies on the floor and darkens it alike from every side, so a
+grey shirt on a lighter grey wall), and taking every such pixel for a shadow cuts the person away there.
+Geometry can: a person's shadow lies on the floor and darkens it alike from every side, so a
 shadow-like pixel is a shadow only when the other cameras see the floor point behind it darkened too
 (:func:`floor_shadows`; all the views of a frame are segmented together, :func:`extract_silhouettes`).
 Pixels above ``strong_threshold`` seed the person; connected regions above
@@ -352,7 +352,6 @@ class FloorGeometry:
     """
 
     working_shapes: tuple[tuple[int, int], ...]  # (h, w) of each camera's working-resolution frame
-    block_columns: tuple[int, ...]  # blocks per row of each camera's frame
     # seen_at[c][b] (blocks of c,) int32: the flat working pixel of camera b that sees the floor point
     # behind each block of camera c; -1 where that ray misses the floor or the footprint, or b does not
     # see the point. None for b = c.
@@ -373,11 +372,10 @@ def floor_geometry(cameras: Sequence[Camera], volume: np.ndarray, params: Silhou
     """
     footprint = np.asarray(volume, dtype=float)[:, :2]
     ds = params.downsample
-    shapes = tuple((max(1, round(camera.size[1] / ds)), max(1, round(camera.size[0] / ds))) for camera in cameras)
-    columns, seen_at = [], []
+    shapes = tuple(_working_shape(camera.size, ds) for camera in cameras)
+    seen_at = []
     for index, (camera, (height, width)) in enumerate(zip(cameras, shapes, strict=True)):
-        block_rows, block_cols = np.divmod(np.arange(-(-height // FLOOR_BLOCK) * -(-width // FLOOR_BLOCK)),
-                                           -(-width // FLOOR_BLOCK))
+        block_rows, block_cols = np.divmod(np.arange(_blocks(height) * _blocks(width)), _blocks(width))
         centre = (FLOOR_BLOCK - 1) / 2
         uv = np.column_stack([(block_cols * FLOOR_BLOCK + centre + 0.5) * ds - 0.5,
                               (block_rows * FLOOR_BLOCK + centre + 0.5) * ds - 0.5])
@@ -392,9 +390,13 @@ def floor_geometry(cameras: Sequence[Camera], volume: np.ndarray, params: Silhou
             pixels = np.full(len(uv), -1, np.int32)
             pixels[on_floor] = _working_pixel(other_camera, other_shape, ds, X)
             seen.append(pixels)
-        columns.append(-(-width // FLOOR_BLOCK))
         seen_at.append(tuple(seen))
-    return FloorGeometry(shapes, tuple(columns), tuple(seen_at))
+    return FloorGeometry(shapes, tuple(seen_at))
+
+
+def _blocks(length: int) -> int:
+    """How many FLOOR_BLOCK-pixel blocks cover ``length`` working pixels (a partial last block counts)."""
+    return -(-length // FLOOR_BLOCK)
 
 
 def _floor_points(camera: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -438,17 +440,18 @@ def floor_shadows(views: Sequence[Evidence], floor: FloorGeometry, params: Silho
     if shapes != floor.working_shapes:
         raise InputError(f"floor_shadows: views of working sizes {shapes}, but a floor geometry made for "
                          f"{floor.working_shapes}; expected the same cameras in the same order")
-    looks = [_floor_look(view, params) for view in views]
+    darkenings = [view.darkening() for view in views]
+    looks = [_floor_look(view, darkening, params) for view, darkening in zip(views, darkenings, strict=True)]
     shadows = []
-    for index, view in enumerate(views):
+    for index, (view, darkening) in enumerate(zip(views, darkenings, strict=True)):
         shadow = np.zeros(view.shadow_like.shape, bool)
         rows, cols = np.nonzero(view.shadow_like)
         if len(rows) == 0:
             shadows.append(shadow)
             continue
-        blocks = (((rows + view.region[0].start) // FLOOR_BLOCK) * floor.block_columns[index]
+        blocks = (((rows + view.region[0].start) // FLOOR_BLOCK) * _blocks(view.I_sharp.shape[1])
                   + (cols + view.region[1].start) // FLOOR_BLOCK)
-        needed = SHADOW_AGREEMENT * view.darkening()[rows, cols]  # (n,)
+        needed = SHADOW_AGREEMENT * darkening[rows, cols]  # (n,)
         votes_for = np.zeros(len(rows), np.int32)
         votes_against = np.zeros(len(rows), np.int32)
         for other, look in enumerate(looks):
@@ -472,18 +475,18 @@ class _FloorLook:
     visible: np.ndarray  # (h w + 1,) bool the floor is seen: not behind foreground that is not shadow-like
 
 
-def _floor_look(view: Evidence, params: SilhouetteParams) -> _FloorLook:
-    """The view's :class:`_FloorLook`. Outside its region nothing differs from the background: the floor is
-    seen there, undarkened."""
+def _floor_look(view: Evidence, darkening: np.ndarray, params: SilhouetteParams) -> _FloorLook:
+    """The view's :class:`_FloorLook`, from its ``darkening`` (:meth:`Evidence.darkening`). Outside its
+    region nothing differs from the background: the floor is seen there, undarkened."""
     height, width = view.I_sharp.shape[:2]
-    darkening = np.zeros(height * width + 1, np.float32)
+    seen_darkening = np.zeros(height * width + 1, np.float32)
     visible = np.ones(height * width + 1, bool)
     visible[-1] = False
     if view.region is not None:
         hidden = (view.difference2 > np.float32(params.weak_threshold**2)) & ~view.shadow_like
-        darkening[:-1].reshape(height, width)[view.region] = cv2.blur(view.darkening(), (3, 3))
+        seen_darkening[:-1].reshape(height, width)[view.region] = cv2.blur(darkening, (3, 3))
         visible[:-1].reshape(height, width)[view.region] = ~hidden
-    return _FloorLook(darkening, visible)
+    return _FloorLook(seen_darkening, visible)
 
 
 def silhouette_from_evidence(view: Evidence, shadow: np.ndarray | None, params: SilhouetteParams) -> np.ndarray:
@@ -518,7 +521,7 @@ def silhouette_from_evidence(view: Evidence, shadow: np.ndarray | None, params: 
     exposed = cv2.multiply(background.B_sharp[frame_box], view.noise.gains, dtype=cv2.CV_32F)  # G B in the box
     matte = _matte(mask[box], view.I_sharp[frame_box], exposed, view.alpha[box], ds)
     if ds > 1:
-        score = _full_resolution_score(matte, image, background.image, view.noise.gains, (y0 * ds, x0 * ds), ds)
+        score = _full_resolution_score(matte, image, background.image, view.noise, (y0 * ds, x0 * ds), ds)
     else:
         score = matte.score
     inside = silhouette[y0 * ds : y1 * ds, x0 * ds : x1 * ds]  # a view, clipped at the image's edges
@@ -573,9 +576,13 @@ def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
     """The uint8 image averaged over factor x factor blocks (OpenCV's fixed-point code: fast on uint8)."""
     if factor == 1:
         return image
-    height, width = image.shape[:2]
-    size = (max(1, round(width / factor)), max(1, round(height / factor)))
-    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    height, width = _working_shape(image.shape[1::-1], factor)
+    return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def _working_shape(size: tuple[int, int], factor: int) -> tuple[int, int]:
+    """(h, w) of the working-resolution frame of a ``size`` (width, height) image downsampled by ``factor``."""
+    return max(1, round(size[1] / factor)), max(1, round(size[0] / factor))
 
 
 def _block_mean(image: np.ndarray, factor: int) -> np.ndarray:
@@ -815,8 +822,8 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _full_resolution_score(
-    matte: _Matte, image: np.ndarray, background: np.ndarray, gains: tuple[float, float, float],
-    origin: tuple[int, int], downsample: int,
+    matte: _Matte, image: np.ndarray, background: np.ndarray, noise: _Noise, origin: tuple[int, int],
+    downsample: int,
 ) -> np.ndarray:
     """(h ds, w ds) float32 outline score of the box at full resolution, from its working-resolution matte.
 
@@ -824,7 +831,8 @@ def _full_resolution_score(
     working pixel (0 < φ < 1; ``matte.rows`` and ``matte.cols``), against that pixel's F and λ: the
     outline then follows the full-resolution edge rather than its average over ``downsample`` x
     ``downsample`` blocks. ``image`` and ``background`` (H, W, 3) uint8 are whole (flat
-    gathers from them are the fastest), the box starting at full-resolution pixel ``origin`` (row, column).
+    gathers from them are the fastest), the box starting at full-resolution pixel ``origin`` (row, column);
+    the background is exposed by the frame's ``noise`` gains, as in the matte.
     """
     height, width = matte.score.shape
     ds = downsample
@@ -836,8 +844,7 @@ def _full_resolution_score(
     index = (np.minimum(rows + origin[0], image.shape[0] - 1) * image.shape[1]
              + np.minimum(cols + origin[1], image.shape[1] - 1))  # (m, ds²) flat indices in the image
     at = _channel_index(index, 3)
-    exposure = np.array(gains, np.float32)[:, None, None]
-    lam_B = background.ravel().take(at) * (exposure * matte.lam[:, None])  # (3, m, ds²) λGB
+    lam_B = background.ravel().take(at) * (noise.exposure() * matte.lam[:, None])  # (3, m, ds²) λGB
     phi, _ = _share(image.ravel().take(at), matte.F[:, :, None], lam_B)
     score.ravel()[rows * (width * ds) + cols] = phi - 0.5
     return score

@@ -535,11 +535,10 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
     # A doubtful initialisation is still the best pose the data gave: the next frame tracks from it (at
     # rest) and tries a fresh initialisation against that fit, keeping the likelier (`recheck`). Starting
     # every such frame from scratch threw the track away: on imperfect data the initialisations of
-    # consecutive frames landed in different poses (foreign leaning: 45 mm, then 79, then 456 mm, where
-    # tracking from the first would have explained the data far better). The likelihood level is left to
-    # the tracked frames: an initialisation's fit (a coarse search, sometimes with a limb still wrong) set
-    # it so low that the next frames' slips went unnoticed (bundled leaning: a wrist 450 mm off on frames
-    # 2-3).
+    # consecutive frames landed in different poses, where tracking from the first would have explained the
+    # data far better. The likelihood level is left to the tracked frames: an initialisation's fit (a
+    # coarse search, sometimes with a limb still wrong) set it so low that the next frames' slips went
+    # unnoticed (bundled leaning: a wrist 450 mm off on frames 2-3).
     new_state = replace(state, pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
                         height_weight=weight, Sigma=fitted.mixture.Sigma, pi=fitted.mixture.pi,
                         likelihood_level=state.likelihood_level if doubtful else np.nan,
