@@ -104,9 +104,8 @@ def rig_vertical(rig: Rig) -> tuple[np.ndarray, str]:
     horizontal. The vertical is the direction most nearly perpendicular to them all, the eigenvector of
     the smallest eigenvalue of ``sum x_i x_i^T``, signed so that it agrees with the images' up axes
     ``-R[1]``. It does not depend on how far the cameras pitch; the mean of the images' up axes does
-    (it tilts towards the side with more, or more steeply pitched, cameras: 2.8 to 3.5 degrees on
-    the rigs of ../shared/foreign against 0.3 to 0.8 from the x axes), and so does the normal of the
-    plane through the camera centres (cameras at different heights: 5 to 6 degrees there). When the
+    (it tilts towards the side with more, or more steeply pitched, cameras), and so does the normal of
+    the plane through the camera centres (cameras at different heights). When the
     cameras all face the same way the x axes fix the vertical only up to a turn about their common
     direction; the mean up axis, made perpendicular to that direction, fixes it then.
     """

@@ -32,7 +32,7 @@ import numpy as np
 from calib.camera import Rig
 from calib.errors import InputError
 from calib.world import WorldTransform, level_rotation, rig_vertical
-from stages.silhouettes import SilhouetteParams, extract_silhouette, median_background
+from stages.silhouettes import SilhouetteParams, extract_silhouette
 
 if TYPE_CHECKING:
     from pipeline.capture import Capture
@@ -41,9 +41,8 @@ log = logging.getLogger(__name__)
 
 #: Frames whose hulls are measured: the median over them ignores a few frames of a jump.
 FLOOR_FRAMES = 5
-#: Frames of the temporal median background when no clean plate is given (as the silhouette stage).
-BACKGROUND_FRAMES = 25
-#: The silhouettes of the floor search: every shadow-like pixel is background (no floor to test them on yet).
+#: The silhouettes of the floor search have no shadow test (there is no floor to test shadows on yet): a
+#: shadow counts as the person, which errs towards a floor a little low, never one that cuts off the feet.
 FLOOR_SILHOUETTES = SilhouetteParams(shadows="none")
 #: The search box around the aim point: the subject stands at most this far below it (metres) ...
 SEARCH_BELOW_M = 3.0
@@ -202,28 +201,21 @@ def frame_floor(rig: Rig, masks: Sequence[np.ndarray], coarse: np.ndarray, coars
     return floor_level(X.reshape(*shape, 3)[0, 0, :, 2], cells)
 
 
-def _spread(frames: Sequence[int], count: int) -> list[int]:
-    """At most ``count`` of ``frames``, evenly spread from the first to the last (sorted, no repeats)."""
-    picks = np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int)
-    return sorted({frames[int(i)] for i in picks})
-
-
 def _masks(capture: Capture, frames: list[int]) -> dict[int, list[np.ndarray]]:
-    """Silhouettes of ``frames`` in every camera: the given ones, else from the clean plate or median."""
+    """Silhouettes of ``frames`` in every camera: the given ones, else against the camera's background as
+    the silhouette stage makes it (its clean plate, or the median of frames spread over the capture)."""
+    from pipeline.graph import background_image  # here: the graph imports the capture, which imports this module
+
     masks: dict[int, list[np.ndarray]] = {frame: [] for frame in frames}
     for camera in capture.rig.names:
         if capture.silhouettes_given:
-            for frame in frames:
-                masks[frame].append(capture.read_silhouette(camera, frame))
-            continue
-        plate = capture.background(camera)
-        wanted = sorted(set(frames) | (set() if plate is not None else
-                                       set(_spread(capture.frame_numbers, BACKGROUND_FRAMES))))
-        images = dict(capture.iter_images(camera, wanted))
-        background = plate if plate is not None else median_background(images.values(),
-                                                                       max_frames=BACKGROUND_FRAMES)
-        for frame in frames:
-            masks[frame].append(extract_silhouette(images[frame], background, FLOOR_SILHOUETTES))
+            masks_of_camera = [capture.read_silhouette(camera, frame) for frame in frames]
+        else:
+            background = background_image(capture, camera)
+            masks_of_camera = [extract_silhouette(image, background, FLOOR_SILHOUETTES)
+                               for _, image in capture.iter_images(camera, frames)]
+        for frame, mask in zip(frames, masks_of_camera, strict=True):
+            masks[frame].append(mask)
     return masks
 
 
@@ -231,6 +223,8 @@ def find_world_frame(capture: Capture, scale: float) -> AutoFrame:
     """The transform into a frame with +z up and the floor at z = 0 for ``capture``, whose rig is in the
     calibration's axes scaled to metres (``scale`` metres per calibration unit): ``transform.apply`` takes
     the calibration's rig in its own units."""
+    from pipeline.graph import spread_frames  # here: see _masks
+
     rig = capture.rig
     vertical, method = rig_vertical(rig)
     A = level_rotation(vertical, rig[0].R[0])
@@ -242,7 +236,7 @@ def find_world_frame(capture: Capture, scale: float) -> AutoFrame:
     high = np.array([aim[0] + radius, aim[1] + radius, aim[2] + SEARCH_ABOVE_M])
     coarse, _ = _grid(low, high, np.full(3, COARSE_VOXEL_M))
     coarse_indices = view_indices(levelled, coarse)
-    frames = _spread(capture.frame_numbers, FLOOR_FRAMES)
+    frames = spread_frames(capture.frame_numbers, FLOOR_FRAMES)
     masks = _masks(capture, frames)
     found = {frame: frame_floor(levelled, masks[frame], coarse, coarse_indices) for frame in frames}
     levels = {frame: level for frame, level in found.items() if level is not None}

@@ -62,7 +62,7 @@ from stages.joints import JOINT_NAMES
 from stages.reconstruction import Observations, ReconstructionParams
 from stages.silhouettes import SilhouetteParams, median_background
 from stages.tracking.body import load_body
-from stages.tracking.tracker import FrameResult, TrackerParams, TrackerState, track_frame
+from stages.tracking.tracker import STATUSES, FrameResult, TrackerParams, TrackerState, track_frame
 
 log = logging.getLogger(__name__)
 
@@ -167,8 +167,6 @@ def run_reconstruction(ctx: StageContext) -> int:
 
 #: Statuses of tracked frames that are exported (the others were only predicted).
 EXPORTED_STATUSES = ("tracked", "initialised")
-#: Every status a tracking record may have (FrameResult.status).
-TRACKING_STATUSES = (*EXPORTED_STATUSES, "predicted", "lost")
 
 
 def tracking_path(out_dir: Path, frame: int) -> Path:
@@ -190,7 +188,7 @@ def read_tracking(folder: Path, frame: int) -> tuple[FrameResult, TrackerState]:
     except (KeyError, TypeError, ValueError) as error:
         raise frames_io.DamagedFileError(path, f"not a tracking record ({type(error).__name__}: {error})") from None
     if (record.get("frame") != frame or estimate.joints.shape != (len(JOINT_NAMES), 3)
-            or estimate.status not in TRACKING_STATUSES):
+            or estimate.status not in STATUSES):
         raise frames_io.DamagedFileError(path, f"not the tracking record of frame {frame} "
                                          "(its frame number, joints or status differ)")
     return estimate, state

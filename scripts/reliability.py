@@ -350,8 +350,8 @@ def replay_kill(capture: Path, out: Path, delay: float, joints: bytes) -> Outcom
     time.sleep(delay)
     if process.poll() is None:
         os.killpg(process.pid, signal.SIGKILL)
-    else:
-        outcome.name += " (had finished)"
+    else:  # nothing was interrupted: the case would pass without testing a resume
+        outcome.problems.append("the run had finished before the kill")
     process.wait()
     check_finished(outcome, pipeline_run(full_argv(capture, out)), out, joints)
     return outcome
@@ -404,8 +404,11 @@ def replay_concurrency(capture: Path, out: Path, joints: bytes) -> Outcome:
     command = [sys.executable, "-m", "pipeline", "run", *full_argv(capture, out)]
     processes = [subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
                  for _ in range(2)]
-    results = [subprocess.CompletedProcess(command, process.wait(TIMEOUT_S), *process.communicate())
+    # communicate, not wait, reads the pipes while waiting: a full pipe would otherwise block the child.
+    results = [subprocess.CompletedProcess(command, None, *process.communicate(timeout=TIMEOUT_S))
                for process in processes]
+    for result, process in zip(results, processes, strict=True):
+        result.returncode = process.returncode
     outcome.tracebacks = sum(traceback_in(result) for result in results)
     if outcome.tracebacks:
         outcome.problems.append("traceback")
@@ -433,14 +436,18 @@ def replay(root: Path, seed: int, quick: bool) -> list[Outcome]:
         outcomes = list(pool.map(lambda case: replay_bad_input(case, root / "bad"), cases))
     capture = fresh_capture(root / "good")
     finished = root / "good" / "finished"
+    started = time.perf_counter()
     first = pipeline_run(full_argv(capture, finished))
+    duration = time.perf_counter() - started
     if first.returncode != 0:
         raise SystemExit(f"reliability: the uninterrupted run of the tiny sample failed: {first.stderr.strip()}")
     joints = (finished / "export" / "joints.csv").read_bytes()
     damages = corruptions(finished, rng)
     if quick:
         return outcomes + [replay_corruption(capture, finished, root / "corrupt-0", damages[0], rng)]
-    outcomes += [replay_kill(capture, root / f"kill-{index}", rng.uniform(0.8, 6.0), joints) for index in range(5)]
+    # Kill within the run, wherever its time goes on this machine: a tenth to nine tenths of an uninterrupted one.
+    outcomes += [replay_kill(capture, root / f"kill-{index}", rng.uniform(0.1, 0.9) * duration, joints)
+                 for index in range(5)]
     outcomes += [replay_corruption(capture, finished, root / f"corrupt-{index}", case, rng)
                  for index, case in enumerate(damages)]
     return outcomes + [replay_concurrency(capture, root / "concurrent", joints)]

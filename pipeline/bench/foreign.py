@@ -5,9 +5,9 @@ and noise the silhouette stage and the tracker were developed against; a capture
 shows what of the accuracy is owed to that familiarity. The folder lives outside the repository (it is shared,
 not bundled), so the suite is skipped with one line when it is absent.
 
-Each capture ``<root>/<name>/`` (a subfolder with a capture.yaml) is run as the unseen suite runs its captures:
-:func:`~pipeline.bench.runs.run_pipeline` into ``<out>/foreign/<name>/`` (the runner's cache skips stages that
-are up to date) and :func:`pipeline.evaluate.evaluate_run` against ``<capture>/groundtruth/joints.csv``, which
+Each capture ``<root>/<name>/`` (a subfolder with a capture.yaml) is run afresh by
+:func:`~pipeline.bench.runs.run_pipeline` into ``<out>/foreign/<name>/`` and scored by
+:func:`pipeline.evaluate.evaluate_run` against ``<capture>/groundtruth/joints.csv``, which
 also scores the silhouettes against ``groundtruth/masks/``. From the tracking stage it adds what says *how* the
 track went, not only how far off it ended: the count of each frame status and the share of frames
 re-initialised after the first (a track that keeps restarting can still score a fair MPJPE). Every run is
@@ -34,6 +34,7 @@ from pipeline.bench.unseen import score_row
 from pipeline.capture import Capture
 from pipeline.evaluate import evaluate_run
 from pipeline.graph import tracking_path
+from stages.tracking.tracker import STATUSES
 
 #: Where the foreign captures are: beside the repository, shared by every checkout.
 FOREIGN_ROOT = REPO.parent / "shared" / "foreign"
@@ -41,8 +42,6 @@ FOREIGN_ROOT = REPO.parent / "shared" / "foreign"
 REFERENCE = REPO / "data_samples" / "taekwondo"
 #: Frames of each capture in a quick run (a smoke test of the suite, not a measurement).
 QUICK_FRAMES = 20
-#: The tracker's frame statuses (``stages.tracking.tracker.FrameResult.status``).
-STATUSES = ("tracked", "initialised", "predicted", "lost")
 
 
 def find_captures(root: Path) -> list[Path]:
@@ -132,7 +131,8 @@ def run_capture(name: str, capture: Path, run_dir: Path, *, workers: int) -> dic
 
 def selected(capture: Path, folder: Path, *, quick: bool) -> tuple[str, Path]:
     """The run's name and the capture it processes: the capture itself, or in a quick run a view of its
-    first :data:`QUICK_FRAMES` frames (own name, so that it never invalidates the full run's cache)."""
+    first :data:`QUICK_FRAMES` frames (named apart, so that its rows and run folders are not taken for the
+    full run's)."""
     if not quick:
         return capture.name, capture
     name = f"{capture.name}-quick"

@@ -17,7 +17,7 @@ from calib.errors import InputError
 from pipeline import graph
 from pipeline.capture import Capture
 from pipeline.executors import make_executor
-from pipeline.export_io import read_joints_csv
+from pipeline.export_io import BVH_FILE, C3D_FILE, JOINTS_FILE, read_joints_csv
 from pipeline.params import apply_overrides, default_params, parse_assignments, read_config
 from pipeline.runner import Runner, format_summary, output_lock, select_stages, storage_error
 
@@ -50,7 +50,7 @@ UNUSABLE_RESULT = 3
 #: A run estimating fewer than this share of the capture's frames has no usable result.
 MIN_ESTIMATED_FRACTION = 0.5
 #: What the export stage must have written for the run to count as usable.
-EXPORTED_FILES = ("joints.csv", "motion.bvh", "joints.c3d")
+EXPORTED_FILES = (JOINTS_FILE, BVH_FILE, C3D_FILE)
 
 
 def unusable_result(export_dir: Path, frames: int) -> str | None:
@@ -63,9 +63,9 @@ def unusable_result(export_dir: Path, frames: int) -> str | None:
     missing = [name for name in EXPORTED_FILES if not (export_dir / name).is_file()]
     if missing:
         return f"{export_dir}: no {', '.join(missing)} written (expected every export of a finished run)"
-    estimated = len(read_joints_csv(export_dir / "joints.csv")[0])
+    estimated = len(read_joints_csv(export_dir / JOINTS_FILE)[0])
     if estimated < MIN_ESTIMATED_FRACTION * frames:
-        return (f"{export_dir / 'joints.csv'}: only {estimated} of {frames} frames estimated (expected at least "
+        return (f"{export_dir / JOINTS_FILE}: only {estimated} of {frames} frames estimated (expected at least "
                 f"half; `python -m pipeline stages` and the report say where the subject was lost)")
     return None
 
