@@ -946,8 +946,13 @@ class Runner:
     def _run_streaming(self, upstream: Stage, stage: Stage, forced: Collection[str]) -> list[StageOutcome]:
         upstream_key = expected_record(upstream, self.capture, self.params[upstream.name], self.output_root).key
         key = streamed_key(stage, self.capture, self.params[stage.name], self.output_root, upstream_key)
+        prepared = self._prepare(upstream, force=upstream.name in forced)  # before the follower looks at its folder
         with cf.ThreadPoolExecutor(1, thread_name_prefix=upstream.name) as background:
-            running = background.submit(self.run_stage, upstream, force=upstream.name in forced)
+            if isinstance(prepared, StageOutcome):
+                running = cf.Future()
+                running.set_result(prepared)
+            else:
+                running = background.submit(self._run_prepared, upstream, prepared)
             outcome = self._run_streaming_stage(stage, running, key, force=stage.name in forced)
         return [running.result(), outcome]
 
@@ -955,6 +960,15 @@ class Runner:
         """Run one stage unless up to date, resuming from the frames an interrupted run left when its
         marker holds the key computed now (or, for a streaming stage, the key it ran under alongside
         its upstream, :func:`streamed_key`, when that upstream has finished since)."""
+        prepared = self._prepare(stage, force=force)
+        return prepared if isinstance(prepared, StageOutcome) else self._run_prepared(stage, prepared)
+
+    def _prepare(self, stage: Stage, *, force: bool) -> StageOutcome | Expected:
+        """The outcome of a stage that is up to date; else its folder made ready to run in (resumed or
+        emptied) and the record it is to run under.
+
+        A streaming follower starts only after this, so it never reads the files of an earlier run
+        that its upstream is about to delete."""
         folder = self.output_root / stage.name
         expected = expected_record(stage, self.capture, self.params[stage.name], self.output_root)
         if expected.missing:
@@ -979,6 +993,10 @@ class Runner:
                 (folder / name).unlink()
 
         self._resume_or_start_afresh(stage, (expected.key, *self._streamed_keys(stage)), expected.key, force)
+        return expected
+
+    def _run_prepared(self, stage: Stage, expected: Expected) -> StageOutcome:
+        """Run a stage whose folder :meth:`_prepare` made ready, and record it under ``expected``."""
         frames, seconds = self._execute(stage)
         return self._finish(stage, expected, frames, seconds)
 
