@@ -60,6 +60,7 @@ from pipeline.runner import Stage, StageContext
 from stages.export import ExportParams
 from stages.joints import JOINT_NAMES
 from stages.reconstruction import Observations, ReconstructionParams
+from stages.reconstruction.views import VOLUME_FACES, faces_reached
 from stages.silhouettes import SilhouetteParams, median_background
 from stages.tracking.body import load_body
 from stages.tracking.tracker import STATUSES, FrameResult, TrackerParams, TrackerState, track_frame
@@ -211,16 +212,34 @@ def run_tracking(ctx: StageContext) -> int:
     done = frames.index(pending[0]) if pending else len(frames)  # frames after a missing one are redone
     state = read_tracking(ctx.out_dir, frames[done - 1])[1] if done else None
     observations_dir = ctx.input_dir("reconstruction")
+    faces = np.zeros((len(frames), len(VOLUME_FACES)), dtype=bool)
     with ctx.progress(len(frames), initial=done) as bar:
-        for frame in frames[done:]:
+        for index, frame in enumerate(frames[done:], start=done):
             points, normals = frames_io.read_ply(ctx.ready(observations_path(observations_dir, frame)))
+            faces[index] = faces_reached(points, ctx.capture.volume, VOLUME_CONTACT_M)
             result, state = track_frame(state, Observations(points, normals), body, params, ctx.capture.volume)
             if result.status in ("predicted", "lost"):
                 log.warning("frame %d: pose %s, not exported (%d observations)", frame, result.status, len(points))
             frames_io.write_record(tracking_path(ctx.out_dir, frame),
                                    {"frame": frame, "result": result.to_dict(), "state": state.to_dict()})
             bar.update(1)
+    _warn_volume_contact(faces[done:], frames[done:], ctx.capture.volume)
     return len(frames) - done
+
+
+#: Observations this close to a face of the working volume (metres) mean the subject was cut there: a
+#: clipped hull's points lie on the face itself, within a voxel and the rim placement.
+VOLUME_CONTACT_M = 0.02
+
+
+def _warn_volume_contact(faces: np.ndarray, frames: Sequence[int], volume: np.ndarray) -> None:
+    """One warning per face of the volume that the subject reached, with how often and where first."""
+    for column, (axis, bound, name) in enumerate(VOLUME_FACES):
+        hits = np.flatnonzero(faces[:, column])
+        if len(hits):
+            log.warning("the subject reaches the working volume's %s face (%s = %.2f m) in %d of %d frames "
+                        "(first: frame %d): what lies beyond it is cut off; widen `volume:` in capture.yaml",
+                        name, "xyz"[axis], volume[bound, axis], len(hits), len(frames), frames[hits[0]])
 
 
 #: The report's module: it imports matplotlib (a quarter of a second), so it is imported only for a report.

@@ -128,3 +128,23 @@ def box_interval(
 def in_volume(X: np.ndarray, volume: np.ndarray) -> np.ndarray:
     """(N,) bool: which points ``X`` (N, 3) lie in the box ``volume`` (2, 3)."""
     return np.all((X >= volume[0]) & (X <= volume[1]), axis=1)
+
+
+#: The working volume's faces in the order of :func:`faces_reached`'s columns: (axis, which bound, name).
+VOLUME_FACES = ((0, 0, "-x"), (0, 1, "+x"), (1, 0, "-y"), (1, 1, "+y"), (2, 0, "floor side (-z)"), (2, 1, "top (+z)"))
+
+
+def faces_reached(X: np.ndarray, volume: np.ndarray, margin_m: float) -> np.ndarray:
+    """(6,) bool: which faces of the box ``volume`` (2, 3) the points ``X`` (N, 3) come within ``margin_m`` of.
+
+    The volume bounds the carving: a subject who reaches beyond a face is cut flat there, and his
+    surface points then lie on that face. The bottom face counts only when it is above the floor
+    (z = 0), where feet standing on the floor are expected to reach it.
+    """
+    if not len(X):
+        return np.zeros(len(VOLUME_FACES), dtype=bool)
+    low, high = X.min(axis=0), X.max(axis=0)
+    reached = np.array([low[axis] <= volume[0, axis] + margin_m if bound == 0 else
+                        high[axis] >= volume[1, axis] - margin_m for axis, bound, _ in VOLUME_FACES])
+    reached[4] &= volume[0, 2] > 0.0
+    return reached

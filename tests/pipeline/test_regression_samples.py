@@ -25,9 +25,10 @@ def run_pipeline(capture: Path, out: Path) -> None:
     assert main(["run", str(capture), "--out", str(out), "--workers", "1", "-q"]) == 0
 
 
-def test_tiny_sample_end_to_end(tmp_path):
+def test_tiny_sample_end_to_end(tmp_path, capfd):
     out = tmp_path / "out"
     run_pipeline(SAMPLES / "tiny", out)
+    assert "reaches the working volume" not in capfd.readouterr().err  # the subject stays well inside it
     frames, names, joints = read_joints_csv(out / "export" / "joints.csv")
     assert names == JOINT_NAMES and np.all(np.isfinite(joints))
     for name in ("motion.bvh", "angles.csv", "joints.c3d", "report.html"):
@@ -36,6 +37,17 @@ def test_tiny_sample_end_to_end(tmp_path):
     # Measured 44 mm at 160x120 pixels and 4 cameras (coarse silhouettes, a few centimetres per pixel).
     assert metrics["fraction_estimated"] == 1.0
     assert metrics["mpjpe_mm"] < 120.0
+
+
+def test_a_volume_that_cuts_the_subject_is_named_in_a_warning(tmp_path, capfd):
+    capture = tmp_path / "tiny"
+    shutil.copytree(SAMPLES / "tiny", capture)
+    config = yaml.safe_load((capture / "capture.yaml").read_text())
+    config["volume"]["max"][2] = 1.2  # the head and shoulders of a 1.75 m subject are above it
+    config["frames"] = {"start": 0, "stop": 3, "step": 1}
+    (capture / "capture.yaml").write_text(yaml.safe_dump(config))
+    run_pipeline(capture, tmp_path / "out")
+    assert "reaches the working volume's top (+z) face (z = 1.20 m) in 3 of 3 frames" in capfd.readouterr().err
 
 
 @pytest.fixture

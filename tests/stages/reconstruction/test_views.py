@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from sphere_scene import ring_rig
 
-from stages.reconstruction.views import MIN_DEPTH_M, inside_view
+from stages.reconstruction.views import MIN_DEPTH_M, VOLUME_FACES, faces_reached, inside_view
 
 
 def _inside_view_reference(camera, mask, X):
@@ -67,3 +67,15 @@ def test_a_point_gets_the_same_answer_alone_as_in_company(scene):
     alone = [inside_view(camera, mask, X[:, i:i + 1])[0] for i in range(3000)]
     assert np.array_equal(together, alone)
     assert len(inside_view(camera, mask, X[:, :0])) == 0
+
+
+def test_faces_reached_names_the_faces_a_cut_subject_lies_on():
+    volume = np.array([[-1.0, -1.0, 0.0], [1.0, 1.0, 2.0]])
+    standing = np.array([[0.0, 0.0, 0.0], [0.2, -0.1, 1.7]])  # feet on the floor, head below the top
+    assert not faces_reached(standing, volume, 0.02).any()
+    cut = np.array([[0.0, 0.0, 0.5], [0.99, 0.0, 1.995]])
+    assert [name for (_, _, name), hit in zip(VOLUME_FACES, faces_reached(cut, volume, 0.02)) if hit] == [
+        "+x", "top (+z)"]
+    raised = volume + [[0, 0, 0.3], [0, 0, 0]]  # a bottom face above the floor cuts the feet off
+    assert faces_reached(standing + [0, 0, 0.3], raised, 0.02)[4]
+    assert not faces_reached(np.zeros((0, 3)), volume, 0.02).any()
