@@ -74,7 +74,8 @@ def test_faces_reached_names_the_faces_a_cut_subject_lies_on():
     standing = np.array([[0.0, 0.0, 0.0], [0.2, -0.1, 1.7]])  # feet on the floor, head below the top
     assert not faces_reached(standing, volume, 0.02).any()
     cut = np.array([[0.0, 0.0, 0.5], [0.99, 0.0, 1.995]])
-    assert [name for (_, _, name), hit in zip(VOLUME_FACES, faces_reached(cut, volume, 0.02)) if hit] == [
+    assert [name for (_, _, name), hit in zip(VOLUME_FACES, faces_reached(cut, volume, 0.02), strict=True)
+                                                if hit] == [
         "+x", "top (+z)"]
     raised = volume + [[0, 0, 0.3], [0, 0, 0]]  # a bottom face above the floor cuts the feet off
     assert faces_reached(standing + [0, 0, 0.3], raised, 0.02)[4]
