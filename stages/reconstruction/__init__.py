@@ -19,7 +19,7 @@ import numpy as np
 
 from calib.camera import Rig
 from calib.errors import InputError
-from stages.checks import check_int, check_number
+from stages.checks import check_choice, check_int, check_number
 from stages.reconstruction.visual_hull import hull_surface_points
 from stages.reconstruction.visual_shape import rim_points
 
@@ -62,15 +62,8 @@ class ReconstructionParams:
     coarse_voxel_size_m: float = 0.08
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise InputError(
-                f"reconstruction.method: expected one of {', '.join(METHODS)}, got {self.method!r}"
-            )
-        if self.rim_placement not in RIM_PLACEMENTS:
-            raise InputError(
-                f"reconstruction.rim_placement: expected one of {', '.join(RIM_PLACEMENTS)}, "
-                f"got {self.rim_placement!r}"
-            )
+        check_choice("reconstruction.method", self.method, METHODS)
+        check_choice("reconstruction.rim_placement", self.rim_placement, RIM_PLACEMENTS)
         check_int("reconstruction.n_observations", self.n_observations, 50, 5000)
         check_int("reconstruction.tolerated_views", self.tolerated_views, 0)
         check_int("reconstruction.samples_per_ray", self.samples_per_ray, 2)
