@@ -31,6 +31,8 @@ ROTATION_TOLERANCE = 1e-6
 # cv2.undistortPoints stops iterating once the re-distorted point lies this close (pixels) to the
 # observed one; the default (5 iterations) leaves errors of a tenth of a pixel at the corners of
 # lenses with k1 = -0.2.
+#: Points nearer than this to the camera's plane (metres) are not in its view (`Camera.sees`).
+MIN_VIEW_DEPTH_M = 1e-3
 UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-10)
 
 
@@ -256,6 +258,19 @@ class Camera:
         with np.errstate(invalid="ignore"):
             inside_u = (uv[:, 0] >= -0.5) & (uv[:, 0] < width - 0.5)
             return inside_u & (uv[:, 1] >= -0.5) & (uv[:, 1] < height - 0.5)
+
+    def sees(self, X) -> np.ndarray:
+        """(N,) bool: world points ``X (N, 3)`` in front of the camera whose pinhole image is in the image.
+
+        The undistorted projection, because the distortion polynomial folds back far outside the image and
+        can put a point well out of view on the image: this is the test that holds for points anywhere.
+        Near the border it differs from ``in_image(project(X))`` by the distortion.
+        """
+        x = _as_rows(X, 3, "X") @ self.P[:, :3].T + self.P[:, 3]
+        ahead = x[:, 2] > MIN_VIEW_DEPTH_M
+        seen = np.zeros(len(x), dtype=bool)
+        seen[ahead] = self.in_image(x[ahead, :2] / x[ahead, 2:])
+        return seen
 
 
 @dataclass(frozen=True, eq=False)

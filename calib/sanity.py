@@ -65,10 +65,9 @@ def check_cameras_see_volume(rig: Rig, volume: np.ndarray, *, where: str) -> Non
     centre = volume.mean(axis=0)
     column = np.column_stack([np.full(9, centre[0]), np.full(9, centre[1]), np.linspace(*volume[:, 2], 9)])
     for camera in rig:
-        x = column @ camera.P[:, :3].T + camera.P[:, 3]
-        ahead = x[:, 2] > 0
-        if not ahead.any() or not camera.in_image(x[ahead, :2] / x[ahead, 2:]).any():
+        if not camera.sees(column).any():
+            behind = not (camera.depth(column) > 0).any()
             raise InputError(f"{where}: camera {camera.name!r} does not see the working volume (its central "
                              f"column at x, y = {centre[0]:.2f}, {centre[1]:.2f} m is "
-                             f"{'behind it' if not ahead.any() else 'outside its image'}), expected every "
+                             f"{'behind it' if behind else 'outside its image'}), expected every "
                              "camera to look at the volume")

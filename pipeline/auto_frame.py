@@ -132,15 +132,13 @@ def view_indices(rig: Rig, X: np.ndarray) -> np.ndarray:
     """
     indices = np.full((len(rig), len(X)), -1, dtype=np.int64)
     for c, camera in enumerate(rig):
-        ahead = camera.depth(X) > 1e-3
-        x = X[ahead] @ camera.P[:, :3].T + camera.P[:, 3]
-        seen = camera.in_image(x[:, :2] / x[:, 2:])
-        uv = np.full((len(x), 2), np.inf)
-        uv[seen] = camera.project(X[ahead][seen])
+        seen = camera.sees(X)
+        uv = np.full((len(X), 2), np.inf)
+        uv[seen] = camera.project(X[seen])
         seen &= camera.in_image(uv)
         pixels = np.floor(uv[seen] + 0.5).astype(np.int64)
         width = camera.size[0]
-        where = np.flatnonzero(ahead)[seen]
+        where = np.flatnonzero(seen)
         indices[c, where] = np.clip(pixels[:, 1], 0, camera.size[1] - 1) * width + np.clip(pixels[:, 0], 0,
                                                                                              width - 1)
     return indices

@@ -630,8 +630,8 @@ def derive_volume(rig: Rig, *, height_m: float = DERIVED_VOLUME_HEIGHT_M) -> np.
     the mean camera position, half-size the largest camera distance from it plus 1 m, or 3 m if the
     cameras are close together). A position counts as seen by a camera when the vertical segment
     above it, sampled at :data:`DERIVED_VOLUME_HEIGHTS` (the feet and the body's middle), is in front of
-    the camera and inside its image (undistorted pinhole model, which is safe far outside the image where
-    the distortion polynomial is not). Keep the positions seen by a majority of the cameras (at least
+    the camera and inside its image (`Camera.sees`: the undistorted pinhole model, safe far outside the
+    image where the distortion polynomial is not). Keep the positions seen by a majority of the cameras (at least
     two), or, if none, by the largest number seen anywhere; the volume is their bounding box,
     ``-DERIVED_VOLUME_FLOOR_MARGIN_M <= z <= height_m``.
 
@@ -655,10 +655,7 @@ def derive_volume(rig: Rig, *, height_m: float = DERIVED_VOLUME_HEIGHT_M) -> np.
     for fraction in DERIVED_VOLUME_HEIGHTS:
         X = np.hstack([floor, np.full((len(floor), 1), fraction * height_m)])  # (G, 3)
         for c, camera in enumerate(rig):
-            x = X @ camera.P[:, :3].T + camera.P[:, 3]  # (G, 3) homogeneous pixels
-            in_front = x[:, 2] > 1e-6
-            uv = x[:, :2] / np.where(in_front, x[:, 2], 1.0)[:, None]
-            seen[c] &= in_front & camera.in_image(uv)
+            seen[c] &= camera.sees(X)
     counts = seen.sum(axis=0)  # (G,)
     needed = max(2, len(rig) // 2 + 1)
     if counts.max() < needed:

@@ -137,6 +137,18 @@ def test_in_image_uses_pixel_centre_convention():
     np.testing.assert_array_equal(camera.in_image(uv), [True, True, False, False, False])
 
 
+def test_sees_keeps_points_in_front_whose_pinhole_image_is_in_the_image():
+    # Strong barrel distortion folds the far field back into the image: project() puts a point 60° off
+    # the axis inside it, while the point is far out of view.
+    camera = Camera.look_at("c", (0.0, -3.0, 1.0), (0.0, 0.0, 1.0), f_px=500.0, size=(640, 480),
+                            dist=np.array([-0.4, 0.0, 0.0, 0.0, 0.0]))
+    ahead, behind = np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, -6.0, 1.0]])
+    far_off_axis = np.array([[3.0 * np.tan(np.radians(60.0)), 0.0, 1.0]])
+    assert camera.in_image(camera.project(far_off_axis))[0]
+    np.testing.assert_array_equal(camera.sees(np.vstack([ahead, behind, far_off_axis])), [True, False, False])
+    assert camera.sees(np.zeros((0, 3))).shape == (0,)
+
+
 def test_arrays_are_read_only_float64_copies():
     R = np.eye(3)
     camera = Camera("c", np.diag([500.0, 500.0, 1.0]), [0, 0, 0, 0, 0], R, [0, 0, 1], (np.int64(64), 48))
