@@ -1,10 +1,10 @@
 """Bring a calibration into the pipeline's world frame: metres, right-handed, +z up.
 
 Calibration files come in other units and with other up axes (a floor-plane calibration with +y up in
-centimetres is common). ``to_world`` converts a rig once on load; ``from_world`` does the reverse for
-writers of captures in another convention. Both follow CAPTURE_FORMAT.md exactly: translations are
-scaled to metres first, then world points are rotated by the proper rotation ``A`` that takes the
-declared up axis to +z, ``X_new = A @ X_old``.
+centimetres is common). ``fixed_transform(units=..., up=...).apply`` converts a rig once on load;
+``from_world`` does the reverse for writers of captures in another convention. Both follow the capture
+format (docs/capture_format.md) exactly: translations are scaled to metres first, then world points are
+rotated by the proper rotation ``A`` that takes the declared up axis to +z, ``X_new = A @ X_old``.
 
 With ``up: auto`` the calibration's world is arbitrary (camera 1's frame, a checkerboard's): the vertical
 comes from the rig (:func:`rig_vertical`), :func:`level_rotation` turns it to +z, and the floor height,
@@ -136,11 +136,7 @@ def level_rotation(vertical, heading) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z])
 
 
-def to_world(rig: Rig, *, units: str, up: str) -> Rig:
-    """The rig in the pipeline's world frame, from a calibration in ``units`` with up axis ``up``."""
-    return _transform(rig, up_rotation(up), _unit_scale(units))
-
-
 def from_world(rig: Rig, *, units: str, up: str) -> Rig:
-    """The inverse of ``to_world``: a pipeline-frame rig expressed in ``units`` with up axis ``up``."""
+    """The inverse of ``fixed_transform(units=units, up=up).apply``: a pipeline-frame rig expressed in
+    ``units`` with up axis ``up``."""
     return _transform(rig, up_rotation(up).T, 1.0 / _unit_scale(units))

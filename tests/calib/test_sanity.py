@@ -7,7 +7,7 @@ from calib_testing import ring_rig
 from calib.camera import Camera, Rig
 from calib.errors import InputError
 from calib.sanity import check_cameras_see_volume, check_intrinsics, check_rig_size
-from calib.world import to_world
+from calib.world import fixed_transform
 
 VOLUME = np.array([[-1.0, -1.0, 0.0], [1.0, 1.0, 2.0]])
 
@@ -23,13 +23,13 @@ def test_millimetres_declared_as_metres_name_the_unit_that_fits():
     in_mm = Rig(tuple(Camera(c.name, c.K, c.dist, c.R, c.t * 1000.0, c.size) for c in ring_rig(6)))
     with pytest.raises(InputError, match=r"calib.toml: with units: m the cameras span 8.09e\+03 m.*units: mm would "
                                          r"make it 8.09 m") as error:
-        check_rig_size(to_world(in_mm, units="m", up="+z"), units="m", where="calib.toml")
+        check_rig_size(fixed_transform(units="m", up="+z").apply(in_mm), units="m", where="calib.toml")
     assert "\n" not in str(error.value)
 
 
 def test_metres_declared_as_millimetres_are_refused():
     with pytest.raises(InputError, match="span 0.00809 m.*units: m would make it 8.09 m"):
-        check_rig_size(to_world(ring_rig(6), units="mm", up="+z"), units="mm", where="calib.toml")
+        check_rig_size(fixed_transform(units="mm", up="+z").apply(ring_rig(6)), units="mm", where="calib.toml")
 
 
 @pytest.mark.parametrize(("entry", "value", "message"), [((0, 0), 1e308, "focal lengths"),

@@ -4,7 +4,7 @@ from calib_testing import subject_points
 
 from calib.camera import Camera, Rig
 from calib.errors import InputError
-from calib.world import UNIT_SCALE, from_world, to_world, up_rotation
+from calib.world import UNIT_SCALE, fixed_transform, from_world, up_rotation
 
 AXES = {
     "+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1),
@@ -35,7 +35,7 @@ def test_point_in_y_up_centimetre_calibration_lands_at_z_up_metres():
     camera = Camera.look_at("c", (0.0, 150.0, -400.0), head_cm, up=(0.0, 1.0, 0.0), f_px=900.0,
                             size=(800, 600))
     pixel = camera.project(head_cm[None])
-    converted = to_world(Rig((camera,)), units="cm", up="+y")["c"]
+    converted = fixed_transform(units="cm", up="+y").apply(Rig((camera,)))["c"]
     head_m = np.array([0.1, -0.3, 1.7])  # (x, -z, y) / 100
     np.testing.assert_allclose(converted.project(head_m[None]), pixel, atol=1e-9)
     np.testing.assert_allclose(converted.centre, [0.0, 4.0, 1.5], atol=1e-12)
@@ -48,15 +48,15 @@ def test_point_in_y_up_centimetre_calibration_lands_at_z_up_metres():
 def test_projections_unchanged_when_points_are_converted_too(rig12, units, up):
     X_old = subject_points(40) / UNIT_SCALE[units]
     X_new = (UNIT_SCALE[units] * X_old) @ up_rotation(up).T
-    converted = to_world(rig12, units=units, up=up)
+    converted = fixed_transform(units=units, up=up).apply(rig12)
     np.testing.assert_allclose(converted.project(X_new), rig12.project(X_old), atol=1e-9)
     np.testing.assert_allclose(converted.centres, (UNIT_SCALE[units] * rig12.centres) @ up_rotation(up).T,
                                atol=1e-9)
 
 
 @pytest.mark.parametrize("up", AXES)
-def test_from_world_inverts_to_world(rig12, up):
-    back = to_world(from_world(rig12, units="mm", up=up), units="mm", up=up)
+def test_from_world_inverts_the_fixed_transform(rig12, up):
+    back = fixed_transform(units="mm", up=up).apply(from_world(rig12, units="mm", up=up))
     assert back.names == rig12.names
     for original, restored in zip(rig12, back, strict=True):
         np.testing.assert_allclose(restored.R, original.R, atol=1e-12)
@@ -67,9 +67,9 @@ def test_from_world_inverts_to_world(rig12, up):
 
 def test_bad_units_is_an_input_error(rig12):
     with pytest.raises(InputError, match="units: unknown unit 'inch'; expected one of m, cm, mm"):
-        to_world(rig12, units="inch", up="+z")
+        fixed_transform(units="inch", up="+z").apply(rig12)
 
 
 def test_bad_up_axis_is_an_input_error(rig12):
     with pytest.raises(InputError, match="up: unknown axis 'z'"):
-        to_world(rig12, units="m", up="z")
+        fixed_transform(units="m", up="z").apply(rig12)

@@ -10,7 +10,7 @@ import pytest
 
 from calib.errors import InputError
 from calib.formats import load_rig
-from calib.world import to_world
+from calib.world import fixed_transform
 from pipeline.capture import Capture
 from pipeline.cli import main as cli_main
 from pipeline.mocap import load_clip
@@ -199,7 +199,7 @@ def test_ground_truth_joints_fall_inside_the_true_masks(tmp_path, calib_format, 
     stored = load_rig(calib_format, out / {"colmap": "calibration/colmap", "opencv": "calibration/opencv",
                                             "anipose": "calibration/calibration.toml"}[calib_format],
                       image_sizes=sizes)  # fmt: skip
-    rig = to_world(stored, units=units, up=up)
+    rig = fixed_transform(units=units, up=up).apply(stored)
     joints = _read_joints(out / "groundtruth" / "joints.csv")
     assert joints.shape == (4, 17, 3)
     assert _share_of_joints_in_masks(out, rig, joints) >= 0.98
@@ -307,7 +307,8 @@ def test_non_cmu_clip_renders_with_joints_inside_the_true_masks(tmp_path):
     )  # fmt: skip
     synthesise(params, out)
     sizes = dict.fromkeys(("cam1", "cam2", "cam3"), params.size)
-    rig = to_world(load_rig("colmap", out / "calibration" / "colmap", image_sizes=sizes), units="m", up="+z")
+    stored = load_rig("colmap", out / "calibration" / "colmap", image_sizes=sizes)
+    rig = fixed_transform(units="m", up="+z").apply(stored)
     joints = _read_joints(out / "groundtruth" / "joints.csv")
     assert joints.shape == (3, 17, 3)
     assert _share_of_joints_in_masks(out, rig, joints) >= 0.98
