@@ -38,6 +38,7 @@ from calib.formats import load_rig
 from calib.sanity import check_cameras_see_volume, check_intrinsics, check_rig_size
 from calib.world import UNIT_SCALE, WorldTransform, fixed_transform, up_rotation
 from pipeline import frames_io, plain_yaml
+from stages.joints import SUBJECT_HEIGHT_RANGE_M
 
 if TYPE_CHECKING:
     from pipeline.auto_frame import AutoFrame
@@ -369,9 +370,10 @@ def _read_config(path: Path) -> dict:
             raise InputError(f"{path}: subject is {subject!r} (expected a mapping like {{height_m: 1.75}})")
         _reject_unknown(subject, ("height_m",), path, "subject.")
         height = subject.get("height_m")
-        if height is not None and (not _is_number(height) or not 0.5 < height < 2.6):
+        low, high = SUBJECT_HEIGHT_RANGE_M
+        if height is not None and (not _is_number(height) or not low < height <= high):
             raise InputError(f"{path}: subject.height_m is {height!r} "
-                             "(expected a height in metres, 0.5 to 2.6)")
+                             f"(expected a height in metres, above {low:g} and at most {high:g})")
 
     volume = raw.get("volume")
     if volume is not None:

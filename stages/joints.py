@@ -11,3 +11,7 @@ JOINT_NAMES: tuple[str, ...] = (
     "l_toe", "r_toe",
 )
 SCORED_JOINTS: tuple[str, ...] = JOINT_NAMES[:15]
+
+#: A subject's standing height (metres) is above the first and at most the second: a toddler to the
+#: tallest adults on record; outside it the value is a unit mistake (centimetres, millimetres).
+SUBJECT_HEIGHT_RANGE_M: tuple[float, float] = (0.5, 2.6)

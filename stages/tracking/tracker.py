@@ -35,6 +35,7 @@ import numpy as np
 
 from calib.errors import InputError
 from stages.checks import check_choice, check_int, check_number
+from stages.joints import SUBJECT_HEIGHT_RANGE_M
 from stages.tracking.body import BodyModel, shipped_length_groups
 from stages.tracking.distances import DISTANCES, residual_size
 from stages.tracking.em import EMParams, FitResult, Mixture, fit, volume_size
@@ -175,7 +176,7 @@ class TrackerParams:
         stopped the run in its middle.
         """
         if self.height_m is not None:
-            check_number("tracking.height_m", self.height_m, 0.5, 2.6, above=True)
+            check_number("tracking.height_m", self.height_m, *SUBJECT_HEIGHT_RANGE_M, above=True)
         check_choice("tracking.distance", self.distance, DISTANCES)
         for name, minimum in _INTEGER_MINIMA.items():
             check_int(f"tracking.{name}", getattr(self, name), minimum)

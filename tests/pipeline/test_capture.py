@@ -13,6 +13,7 @@ from conftest import BACKGROUND_GREY, TINY_SIZE, frame_image, make_capture, tiny
 
 from calib.errors import InputError
 from pipeline.capture import DERIVED_VOLUME_FLOOR_MARGIN_M, Capture, derive_volume
+from stages.tracking.tracker import TrackerParams
 
 
 def test_image_capture_metadata(tiny_capture):
@@ -136,3 +137,16 @@ def test_unknown_keys_are_refused(tiny_capture, changes, key):
     write_config(tiny_capture, **changes)  # a typo would otherwise be silently ignored
     with pytest.raises(InputError, match=re.escape(f"capture.yaml: unknown key {key}")):
         Capture.open(tiny_capture)
+
+
+@pytest.mark.parametrize(("height", "accepted"), [(2.6, True), (2.61, False), (0.5, False), (175, False)])
+def test_the_capture_and_the_tracker_accept_the_same_subject_heights(tiny_capture, height, accepted):
+    write_config(tiny_capture, subject={"height_m": height})
+    if accepted:
+        assert Capture.open(tiny_capture).height_m == height
+        TrackerParams(height_m=height)
+        return
+    with pytest.raises(InputError, match="subject.height_m"):
+        Capture.open(tiny_capture)
+    with pytest.raises(InputError, match="tracking.height_m"):
+        TrackerParams(height_m=height)
