@@ -37,11 +37,6 @@ STAMP = "tracker-warmup.stamp"
 VOLUME = np.array([[-2.0, -2.0, 0.0], [2.0, 2.0, 2.3]])
 #: Observations per synthetic frame (types, not sizes, decide what numba compiles: a few hundred suffice).
 OBSERVATIONS = 300
-#: Entry points of `stages.tracking.compiled` that the tracker calls from Python; the others are helpers
-#: compiled into them (and cached on their own when they are compiled).
-ENTRY_POINTS = ("e_step", "log_evidence", "hypothesis_scores", "shapes", "residuals", "normal_equations",
-                "whitened_norm2", "pose_normal_equations", "noisy_covariance", "forward_kinematics",
-                "place_ellipsoids", "posed_ellipsoids")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -103,16 +98,11 @@ def dispatchers() -> dict:
 
 
 def _observations(body, pose: np.ndarray, rng: np.random.Generator, count: int = OBSERVATIONS) -> SimpleNamespace:
-    """Points and outward unit normals on the posed ellipsoids (about uniform in area), plus 20 % outliers
+    """Points and outward unit normals on the posed body (`sample_surface`), plus a quarter as many outliers
     uniform in the volume: what a reconstruction of the body would give, as float64 (I, 3) arrays."""
-    ell = body.ellipsoids(pose)
-    a = ell.semi_axes
-    area = a[:, 0] * a[:, 1] + a[:, 1] * a[:, 2] + a[:, 0] * a[:, 2]
-    p = rng.choice(len(a), count, p=area / area.sum())
-    u = rng.normal(size=(count, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    y = np.einsum("kab,kb->ka", ell.R[p], u * a[p]) + ell.t[p]
-    n = np.einsum("kab,kb->ka", ell.R[p], u / a[p])
+    from stages.tracking.body import sample_surface
+
+    y, n = sample_surface(body, pose, count, rng)
     outliers = count // 4
     y_out = rng.uniform(VOLUME[0], VOLUME[1], (outliers, 3))
     n_out = rng.normal(size=(outliers, 3))

@@ -337,6 +337,23 @@ class BodyModel:
         return pose_or_kin if isinstance(pose_or_kin, Kinematics) else self.fk(pose_or_kin)
 
 
+def sample_surface(body: BodyModel, pose: np.ndarray, count: int,
+                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points (count, 3) on the posed body's ellipsoids, about uniform in area, with their outward
+    unit normals (count, 3): the data a perfect reconstruction of this very body would give, for the
+    compile warm-up and the tracker's tests.
+    """
+    ell = body.ellipsoids(pose)
+    a = ell.semi_axes
+    area = a[:, 0] * a[:, 1] + a[:, 1] * a[:, 2] + a[:, 0] * a[:, 2]  # proportional to the area
+    p = rng.choice(len(a), count, p=area / area.sum())
+    u = rng.normal(size=(count, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    y = np.einsum("kab,kb->ka", ell.R[p], u * a[p]) + ell.t[p]
+    n = np.einsum("kab,kb->ka", ell.R[p], u / a[p])
+    return y, n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices [v]× (..., 3, 3) of vectors v (..., 3)."""
     v = np.asarray(v, dtype=float)

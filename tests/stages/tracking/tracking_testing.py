@@ -2,24 +2,18 @@
 
 import numpy as np
 
+from stages.tracking.body import sample_surface
+
 VOLUME = np.array([[-2.0, -2.0, 0.0], [2.0, 2.0, 2.3]])
 
 
 def sample_ellipsoids(body, pose, count, rng, *, outlier_fraction=0.0):
-    """Points and outward normals on the posed ellipsoids (about uniform in area), plus outliers.
+    """Points and outward normals on the posed ellipsoids (`sample_surface`), plus outliers.
 
     Outliers are uniform in VOLUME with random unit normals; they make up `outlier_fraction` of the
     returned data.
     """
-    ell = body.ellipsoids(pose)
-    a = ell.semi_axes
-    area = a[:, 0] * a[:, 1] + a[:, 1] * a[:, 2] + a[:, 0] * a[:, 2]  # proportional to the area
-    p = rng.choice(len(a), count, p=area / area.sum())
-    u = rng.normal(size=(count, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    y = np.einsum("kab,kb->ka", ell.R[p], u * a[p]) + ell.t[p]
-    n = np.einsum("kab,kb->ka", ell.R[p], u / a[p])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    y, n = sample_surface(body, pose, count, rng)
     n_out = int(round(count * outlier_fraction / (1.0 - outlier_fraction)))
     y_out = rng.uniform(VOLUME[0], VOLUME[1], (n_out, 3))
     n_rand = rng.normal(size=(n_out, 3))
