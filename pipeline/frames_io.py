@@ -260,6 +260,12 @@ def _ply_layout(data: bytes) -> _PlyLayout | str:
 
 def ply_problem(data: bytes) -> str | None:
     """What is wrong with the PLY file ``data`` by its header, length and content check, or None."""
+    checked = _checked_ply_layout(data)
+    return checked if isinstance(checked, str) else None
+
+
+def _checked_ply_layout(data: bytes) -> _PlyLayout | str:
+    """The layout of the PLY file ``data`` once its length and content check pass, or what is wrong."""
     layout = _ply_layout(data)
     if isinstance(layout, str):
         return layout
@@ -268,7 +274,7 @@ def ply_problem(data: bytes) -> str | None:
         return f"PLY file is truncated ({len(body)} bytes for {layout.count} vertices)"
     if layout.crc32 is not None and zlib.crc32(body) != layout.crc32:
         return "PLY vertex data fails its crc32 check"
-    return None
+    return layout
 
 
 def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
@@ -282,10 +288,9 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     points, normals : (N, 3) float64 arrays
     """
     data = Path(path).read_bytes()
-    problem = ply_problem(data)
-    if problem:
-        raise DamagedFileError(path, problem)
-    layout = _ply_layout(data)
+    layout = _checked_ply_layout(data)
+    if isinstance(layout, str):
+        raise DamagedFileError(path, layout)
     vertices = np.frombuffer(data, dtype=layout.dtype, count=layout.count, offset=layout.body_start)
     points = np.stack([vertices[name] for name in _PLY_PROPERTIES[:3]], axis=1).astype(np.float64)
     normals = np.stack([vertices[name] for name in _PLY_PROPERTIES[3:]], axis=1).astype(np.float64)
