@@ -38,8 +38,9 @@ _MODELS = {
 }
 # FULL_OPENCV's rational terms k4, k5, k6 (parameters 9..11) must be zero for OpenCV's 5-term model.
 _FULL_OPENCV_RATIONAL = slice(9, 12)
-# Number of parameters of each supported model in COLMAP's files.
-_PARAMETER_COUNTS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8, "FULL_OPENCV": 12}
+# Number of parameters of each supported model in COLMAP's files, as pycolmap counts them.
+_PARAMETER_COUNTS = {model: len(pycolmap.Camera.create_from_model_name(1, model, 1.0, 1, 1).params)
+                     for model in _MODELS}
 # What a line of cameras.txt and the first line of an image in images.txt hold.
 _CAMERA_LINE = "CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]"
 _IMAGE_LINE = "IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, then a line of POINTS2D[] as (X, Y, POINT3D_ID)"
