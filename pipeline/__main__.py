@@ -2,8 +2,8 @@
 
 The process ends with ``os._exit`` once the subcommand has returned and the output is flushed: by then
 every file is written and closed and every worker process has exited, and what a normal exit would
-still do is tear down the interpreter's modules (numba's LLVM, OpenCV, matplotlib), about 0.2 s that the
-user would wait for after a run. Exit handlers that a subcommand's own work needs (a worker pool's
+still do is tear down the interpreter's modules (numba's LLVM, OpenCV, matplotlib), a wait that the
+user would notice after every run. Exit handlers that a subcommand's own work needs (a worker pool's
 shutdown, a thread's join) run when that work ends, not at exit.
 """
 

@@ -13,8 +13,8 @@ and the working volume use the floor):
    are carved into a visual hull around the point the cameras aim at, coarse to find the subject, then
    fine under its lowest part. The floor is the hull's lowest level that holds a few cells
    (:func:`floor_level`), the median over the frames, which ignores the frames where the subject jumps.
-   On ``data_samples/taekwondo`` it lies 2 cm above the true floor: the soles' edges are thinner than
-   what the silhouettes resolve.
+   It lies a little above the true floor: the soles' edges are thinner than what the silhouettes
+   resolve.
 
 The new frame has its origin on the floor below the cameras' aim point and +x along camera 1's image
 x axis made horizontal; :class:`AutoFrame` records the transform and what was found.

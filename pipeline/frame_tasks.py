@@ -3,8 +3,8 @@
 A worker of ``--workers N`` is a spawned process that imports the module of the task it unpickles
 before its first chunk, and a stage's wall time includes the imports its chunks need. These tasks live
 apart from :mod:`pipeline.graph`, which imports the tracker (numba and scipy), and the
-reconstruction (scipy, a quarter of a second) is imported by its own task: a worker is ready for the
-silhouette stage after about 0.3 s rather than 0.8 s, 4 ms per frame of a 112-frame capture.
+reconstruction (scipy, slow to import) is imported by its own task: a worker of the silhouette stage
+imports neither.
 
 Within a worker, frames are the unit of parallelism: OpenCV's own threads are switched off while a
 chunk runs (on small images they mostly synchronise, a fifth more CPU for the same wall time), and
@@ -74,9 +74,8 @@ def single_threaded_opencv() -> Iterator[None]:
 def cached_background_model(path: Path, params: SilhouetteParams) -> BackgroundModel:
     """The background model of the image at ``path``, read and built once per worker.
 
-    Reading a colour PNG and building the model cost about 12 ms per camera, as much as segmenting
-    four frames; the file's modification time and size are part of the key, so a rewritten background
-    is read again.
+    Reading a colour PNG and building the model cost as much as segmenting a few frames, per camera;
+    the file's modification time and size are part of the key, so a rewritten background is read again.
     """
     status = os.stat(path)
     return _background_model(str(path), status.st_mtime_ns, status.st_size, params)

@@ -102,7 +102,7 @@ def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None) -> n
 
 def png_problem(data: bytes) -> str | None:
     """What is wrong with the PNG file ``data`` by its own checks (signature, chunk CRCs, an IEND
-    chunk at the end), or None. A CRC-32 per chunk is cheap to test: about 10 us for a mask."""
+    chunk at the end), or None. A CRC-32 per chunk is cheap to test, far cheaper than decoding the image."""
     if not data.startswith(PNG_SIGNATURE):
         return "not a PNG file"
     position = len(PNG_SIGNATURE)
@@ -123,8 +123,8 @@ def _unfiltered_one_bit_png(data: bytes) -> np.ndarray | None:
     """The (H, W) uint8 0/255 pixels of a 1-bit grey PNG without row filters (as :func:`mask_png` writes
     them), else None (left to OpenCV).
 
-    Inflating and unpacking the rows directly takes a quarter of OpenCV's time for a 780 x 580 mask
-    (0.2 ms against 0.75 ms on a busy machine), and the reconstruction reads every camera's mask.
+    Inflating and unpacking the rows directly takes about a quarter of OpenCV's time for a 780 x 580 mask,
+    and the reconstruction reads every camera's mask.
     """
     if not data.startswith(PNG_SIGNATURE + b"\x00\x00\x00\x0dIHDR") or len(data) < 33:
         return None
@@ -173,9 +173,8 @@ def mask_png(mask: np.ndarray) -> bytes:
 
     Every reader expands 1-bit grey to 0 and 255; an eighth of the bytes of an 8-bit PNG makes writing
     and reading several times faster. The rows (filter type 0) are deflated at level 1 with run-length
-    matches only, as runs are all a mask has: for a 780 x 580 mask the same bytes as OpenCV's
-    ``IMWRITE_PNG_BILEVEL`` with that strategy in 0.15 ms instead of 0.43 ms (OpenCV's 8-bit default:
-    0.8 ms to write, 1.5 ms to read, against 0.4 ms).
+    matches only, as runs are all a mask has: the same bytes as OpenCV's ``IMWRITE_PNG_BILEVEL`` with that
+    strategy, in about a third of its time.
     """
     height, width = mask.shape
     rows = np.zeros((height, (width + 7) // 8 + 1), np.uint8)  # a leading 0 per row: no filter
@@ -365,7 +364,7 @@ def file_problem(path: str | os.PathLike) -> str | None:
     """What is wrong with a per-frame output file by the content check its format carries, or None.
 
     PNG: chunk CRCs; PLY: header, length and crc32; JSON: valid JSON, and a record's check when it has
-    one. Reads the file but decodes nothing: about 20 us for a mask or a point cloud, so a resume can
+    one. Reads the file but decodes nothing, a small fraction of the cost of decoding, so a resume can
     afford it for every frame it keeps. Other suffixes carry no check (None).
     """
     path = Path(path)

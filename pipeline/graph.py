@@ -97,8 +97,8 @@ def read_calibration(folder: Path) -> tuple[Rig, dict]:
 #: Frames sampled per camera for a temporal-median background when no clean plate is given.
 MEDIAN_BACKGROUND_FRAMES = 25
 #: Longest chunk of the silhouette stage on videos (frames). Each chunk seeks its videos, and a seek
-#: decodes from the last keyframe (about 10 ms per camera on the samples, as much as segmenting three
-#: frames), so chunks are as long as this allows; it bounds how unevenly the last chunks load the workers.
+#: decodes from the last keyframe (per camera, as much work as segmenting a few frames), so chunks are as
+#: long as this allows; it bounds how unevenly the last chunks load the workers.
 MAX_VIDEO_CHUNK_FRAMES = 200
 
 
@@ -122,8 +122,8 @@ def _backgrounds(ctx: StageContext) -> None:
     """Write one background image per camera (:func:`background_image`).
 
     Computed once in this process, before the per-frame work, so every worker reads the same model.
-    A clean plate that is a PNG already is copied byte for byte: decoding and encoding it again cost
-    about 25 ms per camera, more than a tenth of a second on a six-camera rig.
+    A clean plate that is a PNG already is copied byte for byte: decoding and encoding it again would
+    only cost time, once per camera.
     """
     for camera in ctx.capture.rig.names:
         path = background_path(ctx.out_dir, camera)
@@ -242,7 +242,7 @@ def _warn_volume_contact(faces: np.ndarray, frames: Sequence[int], volume: np.nd
                         name, "xyz"[axis], volume[bound, axis], len(hits), len(frames), frames[hits[0]])
 
 
-#: The report's module: it imports matplotlib (a quarter of a second), so it is imported only for a report.
+#: The report's module: it imports matplotlib (slow to import), so it is imported only for a report.
 REPORT_MODULE = "pipeline.report"
 
 

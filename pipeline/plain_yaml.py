@@ -1,9 +1,9 @@
 """YAML as users write it for the pipeline: plain values, no aliases.
 
 An alias (``*name``) stands for a node anchored earlier (``&name``); nested, a few hundred bytes of
-them stand for gigabytes once anything walks the data (a "billion laughs": a 752-byte ``subject:``
-took 20 s and 0.8 GB at depth 8). ``capture.yaml``, ``--config`` files and ``--set`` values never need
-them, so :func:`load` refuses the first alias it meets, before anything is built.
+them stand for gigabytes once anything walks the data (a "billion laughs"). ``capture.yaml``,
+``--config`` files and ``--set`` values never need them, so :func:`load` refuses the first alias it meets,
+before anything is built.
 """
 
 from __future__ import annotations

@@ -34,6 +34,8 @@ class ReconstructionParams:
     Attributes
     ----------
     method : {"visual_shape", "visual_hull"}
+        The visual shape's rim points with the exact normals of the viewing cones (the paper's data), or
+        points on a carved voxel hull, slower and with the normals of its facets.
     n_observations : int
         How many observations to return (50 to 5000), spread evenly over cameras and outlines; fewer
         when the silhouettes do not support that many.

@@ -48,8 +48,8 @@ PRUNE_POSTERIOR = 1e-3
 # The E-step skips a pair whose joint density π_p N(y_i | x_ip, Σ_ip) is provably below this fraction of
 # the largest term of the datum's evidence (`_e_step`): its posterior is below it too, every other
 # posterior changes by less than P times it (relative), and ln P(Y | Λ) by less than I·P times it. An
-# order below PRUNE_POSTERIOR: a skipped pair would not have entered the M-step anyway. On the unseen
-# suite 1e-4 and 1e-9 give the same joints to 0.1 mm, and 1e-4 makes the tracker 15 % faster.
+# order below PRUNE_POSTERIOR: a skipped pair would not have entered the M-step anyway, and a smaller
+# fraction only costs time (the joints do not change).
 NEGLIGIBLE_POSTERIOR = 1e-4
 # Prior strength: a DOF with prior weight 1 is held to its predicted value with this standard
 # deviation (radians) when the data say nothing about it; data dominate it whenever they see it.
@@ -406,9 +406,8 @@ def _noisy_covariance(n, i, p, e, t, ellipsoids, Sigma, noise2, max_sigma_m) -> 
     Σ' = (1/T) Σ_k t_k E[z zᵀ | e_k] = Σ − Σ (S₁/T) Σ + Σ (S₂/T) Σ (S₁ = Σ_k t_k Σ_k⁻¹,
     S₂ = Σ_k t_k Σ_k⁻¹ e_k e_kᵀ Σ_k⁻¹, T = Σ_k t_k), never lowers Q; it moves slowly where σ_n² A_k²
     dominates Σ_k (flat, wide surfaces), so it is iterated `NOISY_COVARIANCE_ITERATIONS` times
-    (`compiled.noisy_covariance`). The moment estimate (1/T) Σ_k t_k (e_k e_kᵀ − σ_n² A_k²) used
-    before does not maximise Q: it shrank Σ's narrow axis frame after frame (19 → 9.5 mm over 7
-    iterations of one frame) while ln P(Y | Λ) fell.
+    (`compiled.noisy_covariance`). The moment estimate (1/T) Σ_k t_k (e_k e_kᵀ − σ_n² A_k²) does not
+    maximise Q: it shrinks Σ's narrow axis iteration after iteration while ln P(Y | Λ) falls.
     """
     M, M2 = compiled.shapes(ellipsoids.R, ellipsoids.semi_axes)
     return _bound_covariance(compiled.noisy_covariance(n, i, p, e, t, M, M2, noise2, Sigma,

@@ -76,12 +76,8 @@ class InitParams:
         the observations is higher by `finalist_margin` nats per observation.
     finalist_margin : float
         Two fits in nearly the same place differ by hundredths of a nat per observation (a choice
-        between them is noise), a fit in a better optimum by tenths. Unseen suite (tracking rerun):
-        one finalist put leaning_capsules_noisy's right arm across the body on the first frame
-        (81.1 mm; its runner-up fits 0.43 nats per observation better); two finalists with this
-        margin change only frames where that happens, suite 26.00 -> 25.90 mm, max worst frame
-        81.1 -> 47.6 mm, tracker CPU unchanged (one more EM fit per initialisation); with no margin the
-        choice flips on hundredths and the suite went to 26.17 mm.
+        between them is noise), a fit in a better optimum by tenths: with this margin the runner-up
+        wins only where the first-ranked is in a wrong optimum (an arm across the body).
     """
 
     headings: int = 12
@@ -350,8 +346,8 @@ def _top_ratio(body: BodyModel, pose: np.ndarray) -> float:
 
 # A limb's segment is taken for misplaced when it explains fewer data than this fraction of what its
 # mirror segment explains: left and right limbs have the same surface, and even a limb held against
-# the body or turned away from most cameras keeps a good part of its mirror's share (a forearm put
-# on the wrong side of the body by the initialisation explained 9 observations against 81).
+# the body or turned away from most cameras keeps a good part of its mirror's share, while a forearm put
+# on the wrong side of the body by the initialisation explains a small fraction of it.
 LIMB_SHARE_RATIO = 0.3
 # The comparison only means something when the mirror segment itself explains this many observations
 # (a foot or a forearm seen by few cameras is too noisy a reference).
@@ -363,9 +359,8 @@ _LIMB_HYPOTHESIS_STEP = 0.1
 # Best-scoring limb hypotheses refined by EM on all the data.
 _LIMB_REFINE = 3
 # A re-initialised limb replaces the fit only when the likelihood gains this much per observation (nats):
-# a limb really misplaced gains tenths (0.16-0.99 on the speed and bundled captures), while gains of
-# hundredths came from ambiguous data, where the noisy leaning capture's forearm was flipped back and
-# forth by 250 mm from frame to frame (unseen suite 25.49 -> 25.39 mm, max worst frame 48.6 -> 40.9 mm).
+# a limb really misplaced gains tenths, while gains of hundredths come from ambiguous data, where taking
+# them flips a forearm back and forth from frame to frame.
 LIMB_MARGIN = 0.02
 # Values per DOF of the grid over the limb's two first joints (shoulder and elbow, hip and knee): the
 # library holds whole-body poses, and an arm reaching out from a leaning torso may be in none of them.
@@ -503,10 +498,8 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     otherwise be handicapped by its small prior) and under the initialisation's coarse Σ
     (`_SCORE_SIGMA_M`), not the fit's: grid and library angles are tens of millimetres off at best,
     and under a Σ of 2-3 cm they lost to the misplaced limb itself (the test with arms off the grid
-    shows it; on `make run SEQ=leaning` the first frame's left arm stayed misplaced: worst frame
-    84 -> 31 mm). The best `_LIMB_REFINE`
-    are refined by EM on all the data (the whole body free); the best of them replaces the fit when
-    it is better by `LIMB_MARGIN` nats per observation.
+    shows it). The best `_LIMB_REFINE` are refined by EM on all the data (the whole body free); the
+    best of them replaces the fit when it is better by `LIMB_MARGIN` nats per observation.
     """
     rng = np.random.default_rng(0) if rng is None else rng
     body, pose = result.body, result.pose

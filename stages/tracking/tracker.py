@@ -9,8 +9,7 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
   initialisations of the first `scale_frames` frames); the segment-length and girth factors named by
   `estimate_lengths` (groups of the body file's `lengths`) are estimated with the pose over those frames
   (prior towards the body file's proportions), then frozen. The tracked frames do not refine the
-  height: their EM, with the girth and lengths free as well, drifted it upward on stout bodies
-  (capsules: 1.84 -> 1.89 m for a 1.75 m subject);
+  height: their EM, with the girth and lengths free as well, drifted it upward on stout bodies;
 - a frame far worse than usual even after more EM iterations is also fitted from the last pose
   without velocity (`restart_drop`), the better fit kept;
 - failure detection, by absolute checks that a bad start cannot make the norm: an outlier fraction
@@ -72,20 +71,12 @@ class TrackerParams:
         EM stops when no joint centre moved more than this in an iteration (metres).
     estimate_lengths : tuple of str
         Length groups of the body (its file's `lengths`) whose factors are estimated over the first
-        `scale_frames` frames; the others stay at the file's proportions; () estimates none. The upper
-        arm and the shank are seen well (the elbow and knee bend, the foot bounds the shank), while
-        the thigh's factor trades off against the shank's and the trunk's against the pelvis and head
-        ellipsoids: on the unseen suite (tracking rerun on its reconstructions), estimating all four
-        made the thigh 0.15-0.26 too long on capsule bodies and left the mean MPJPE unchanged (36.8 ->
-        37.1 mm), these two took it to 29.8 mm, and the girth (the build: stouter bodies otherwise
-        come out taller) to 28.5 mm, mean worst frame 60.3 -> 41.5 mm. The forearm (with the hand it
-        carries) and the shoulder width then took the unseen suite from 28.7 to 26.0 mm: with the
-        forearm fixed, a subject's shorter or longer forearm and hand were absorbed by the upper arm
-        (factor 0.91 for a subject whose upper arm is 1.01 of the table's), which put the elbows 5 cm
-        high (walk_capsules 28.0 -> 25.9 mm, elbow flexion error 7.3 -> 5.1° over the suite); the
-        shoulder width follows a narrow-shouldered skeleton (0.75-0.77 for 09_01: run 40.0 -> 29.1 mm)
-        and stays within 0.94-1.02 elsewhere. The hip width, estimated the same way, was pushed out by
-        stout thighs (1.10-1.26 on capsule bodies; suite 26.0 -> 29.1 mm).
+        `scale_frames` frames; the others stay at the file's proportions; () estimates none. The
+        defaults are the groups the data pin down: the bending elbow and knee bound the upper arm and the
+        shank, a fixed forearm's error would be absorbed by the upper arm (the elbows then sit high), the
+        shoulder width follows narrow-shouldered subjects, and the girth keeps stout bodies from coming
+        out taller. The thigh trades off against the shank, the trunk against the pelvis and head
+        ellipsoids, and the hip width is pushed out by stout thighs, so these stay at the file's values.
     sigma_m : float
         Prediction error (metres, > 0): every frame's EM starts from the previous frame's Σ + σ² I, the
         first from σ² I.
@@ -112,10 +103,8 @@ class TrackerParams:
     restart_drop : float
         When such a fit is still `restart_drop` nats below the level, EM also runs from the last pose
         (no velocity) and the better fit is kept (inf never restarts): a motion that stops or turns
-        makes the constant-velocity prediction overshoot into another optimum. On the speed capture's
-        chambered kick this took the worst frame from 70.7 to 28.1 mm (the knee had folded sideways,
-        339 mm off, at 0.35 nats per observation less than EM from the last pose); on the unseen suite
-        the mean stayed at 28.7 mm.
+        makes the constant-velocity prediction overshoot into another optimum (a chambered kick's knee
+        folded sideways).
     velocity_decay : float
         Factor on the velocity for each predicted frame (a gap's motion slows down).
     max_predicted_frames : int
@@ -435,8 +424,8 @@ def _remembered(slot: str, body: BodyModel, key, make):
     """`make()`, a body derived from `body` and `key`, remembered in `slot` for the last (body, key) asked.
 
     Every frame derives the same bodies (the free length groups, then the current height and length
-    factors, which stop changing after `scale_frames` frames); deriving them again (an eigen-decomposition
-    per ellipsoid) cost a third of a millisecond a frame.
+    factors, which stop changing after `scale_frames` frames); remembering them saves an eigen-decomposition
+    per ellipsoid at every frame.
     """
     last = _REMEMBERED.get(slot)
     if last is None or last[0] is not body or last[1] != key:
@@ -539,7 +528,7 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
     # consecutive frames landed in different poses, where tracking from the first would have explained the
     # data far better. The likelihood level is left to the tracked frames: an initialisation's fit (a
     # coarse search, sometimes with a limb still wrong) set it so low that the next frames' slips went
-    # unnoticed (bundled leaning: a wrist 450 mm off on frames 2-3).
+    # unnoticed.
     new_state = replace(state, pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
                         height_weight=weight, Sigma=fitted.mixture.Sigma, pi=fitted.mixture.pi,
                         likelihood_level=state.likelihood_level if doubtful else np.nan,
