@@ -130,9 +130,15 @@ def _data_uri(image: np.ndarray, extension: str, mime: str, options: Sequence[in
     return f"data:{mime};base64," + base64.b64encode(encoded.tobytes()).decode("ascii")
 
 
+def _figure(width_in: float, height_in: float) -> Figure:
+    """A figure that lays itself out as it draws (constrained layout: legends outside the axes included), so
+    that saving draws it once; ``bbox_inches="tight"`` would draw it twice, a second more for the report."""
+    return Figure(figsize=(width_in, height_in), layout="constrained")
+
+
 def _figure_uri(figure: Figure) -> str:
     buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=90, bbox_inches="tight")
+    figure.savefig(buffer, format="png", dpi=90)
     return "data:image/png;base64," + base64.b64encode(buffer.getvalue()).decode("ascii")
 
 
@@ -147,30 +153,42 @@ def _side(name: str) -> str:
     return name[0] if name[:2] in ("l_", "r_") else "c"
 
 
+def with_gaps(frames: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``frames (F,)`` and ``values (F, ...)`` with a NaN row after each frame followed by a gap (a step longer
+    than the smallest), so that a plotted line breaks where frames are missing instead of bridging them."""
+    frames, values = np.asarray(frames), np.asarray(values, dtype=float)
+    if len(frames) < 2:
+        return frames, values
+    steps = np.diff(frames)
+    after = np.flatnonzero(steps > steps.min()) + 1
+    return (np.insert(frames.astype(float), after, frames[after - 1] + steps.min()),
+            np.insert(values, after, np.nan, axis=0))
+
+
 def trajectory_figure(estimate: JointSequence, truth: JointSequence | None) -> Figure:
     """x, y, z of :data:`TRAJECTORY_JOINTS` over frames: estimate solid, truth dashed."""
-    figure = Figure(figsize=(11, 6.5))
+    figure = _figure(11, 6.5)
     axes = figure.subplots(3, 1, sharex=True)
     colours = ("tab:blue", "tab:orange", "tab:green", "tab:red")
     for joint, colour in zip(TRAJECTORY_JOINTS, colours, strict=True):
         for sequence, style, suffix in ((estimate, "-", ""), (truth, "--", " (truth)")):
             if sequence is None or joint not in sequence.names:
                 continue
-            j = sequence.names.index(joint)
+            frames, positions = with_gaps(sequence.frames, sequence.joints[:, sequence.names.index(joint)])
             for k, ax in enumerate(axes):
-                ax.plot(sequence.frames, sequence.joints[:, j, k], style, color=colour, lw=1.2,
+                ax.plot(frames, positions[:, k], style, color=colour, lw=1.2,
                         label=f"{joint}{suffix}" if k == 0 else None)
     for ax, axis in zip(axes, "xyz", strict=True):
         ax.set_ylabel(f"{axis} (m)")
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("frame")
-    axes[0].legend(ncol=4, fontsize=8, loc="upper left", bbox_to_anchor=(0, 1.35))
+    figure.legend(ncol=4, fontsize=8, loc="outside upper left")
     return figure
 
 
 def error_figure(metrics: JointMetrics) -> Figure:
     """Per-frame MPJPE and the worst joint's error over frames (millimetres)."""
-    figure = Figure(figsize=(11, 3.2))
+    figure = _figure(11, 3.2)
     ax = figure.subplots()
     ax.plot(metrics.frames, metrics.per_frame_mm, ".-", lw=1, ms=3, label="MPJPE (scored joints)")
     ax.plot(metrics.frames, metrics.errors_mm.max(axis=1), ":", lw=1, color="tab:red", label="worst joint")
@@ -190,7 +208,7 @@ def quality_figure(statuses: Sequence[FrameStatus], limits: Mapping[str, float])
     and the frame's category as a coloured strip."""
     frames = np.array([status.frame for status in statuses])
     fitted = np.array([status.status in ("tracked", "initialised") for status in statuses])
-    figure = Figure(figsize=(11, 6.2))
+    figure = _figure(11, 6.2)
     axes = figure.subplots(4, 1, sharex=True, gridspec_kw={"height_ratios": [3, 3, 3, 1]})
     series = (("log-likelihood (nats)", [status.log_likelihood for status in statuses], None),
               ("outliers (%)", [100 * status.outlier_fraction for status in statuses],
@@ -209,8 +227,8 @@ def quality_figure(statuses: Sequence[FrameStatus], limits: Mapping[str, float])
     strip.bar(frames, np.ones(len(frames)), width=_frame_step(frames), color=colours, align="center")
     strip.set_yticks([])
     strip.set_xlabel("frame")
-    strip.legend(handles=[Patch(color=CATEGORY_COLOURS[c], label=c) for c in CATEGORIES], ncol=len(CATEGORIES),
-                 fontsize=8, loc="upper left", bbox_to_anchor=(0, -0.9))
+    figure.legend(handles=[Patch(color=CATEGORY_COLOURS[c], label=c) for c in CATEGORIES], ncol=len(CATEGORIES),
+                  fontsize=8, loc="outside lower left")
     return figure
 
 
@@ -232,13 +250,12 @@ def angles_figure(angles: AngleTable, truth: AngleTable | None) -> Figure:
     groups = angle_groups(angles.names)
     columns = 3
     rows = -(-len(groups) // columns)
-    figure = Figure(figsize=(11, 2.3 * rows))
-    axes = np.atleast_1d(figure.subplots(rows, columns, sharex=True, squeeze=False)).ravel()
+    figure = _figure(11, 2.3 * rows)
+    axes = figure.subplots(rows, columns, sharex=True, squeeze=False).ravel()
     for ax, (group, names) in zip(axes, groups.items(), strict=False):
         for name in names:
             colour = SIDE_COLOURS[_side(name)]
-            k = angles.names.index(name)
-            ax.plot(angles.frames, angles.degrees[:, k], "-", lw=1.1, color=colour)
+            ax.plot(*with_gaps(angles.frames, angles.degrees[:, angles.names.index(name)]), "-", lw=1.1, color=colour)
             if truth is not None and name in truth.names:
                 ax.plot(truth.frames, truth.degrees[:, truth.names.index(name)], "--", lw=1, color=colour, alpha=0.7)
         ax.set_title(group.replace("_", " "), fontsize=9)
@@ -249,7 +266,6 @@ def angles_figure(angles: AngleTable, truth: AngleTable | None) -> Figure:
     for ax in axes[-columns:]:
         ax.set_xlabel("frame", fontsize=8)
     figure.supylabel("degrees", fontsize=9)
-    figure.tight_layout()
     return figure
 
 

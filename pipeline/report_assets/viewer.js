@@ -137,20 +137,21 @@
   });
   speedSelect.addEventListener("change", function () { speed = Number(speedSelect.value); last = null; });
 
+  // A drag that starts on the canvas follows the pointer anywhere on the page until it is released.
   let drag = null;
   canvas.addEventListener("pointerdown", function (event) {
     drag = { x: event.clientX, y: event.clientY };
-    canvas.setPointerCapture(event.pointerId);
+    event.preventDefault();  // no text selection while dragging
   });
-  canvas.addEventListener("pointermove", function (event) {
+  window.addEventListener("pointermove", function (event) {
     if (!drag) return;
     view.azimuth += 0.01 * (event.clientX - drag.x);
     view.elevation = Math.min(Math.max(view.elevation + 0.01 * (event.clientY - drag.y), -1.5), 1.5);
     drag = { x: event.clientX, y: event.clientY };
     draw();
   });
-  canvas.addEventListener("pointerup", function () { drag = null; });
-  canvas.addEventListener("pointercancel", function () { drag = null; });
+  window.addEventListener("pointerup", function () { drag = null; });
+  window.addEventListener("pointercancel", function () { drag = null; });
   canvas.addEventListener("wheel", function (event) {
     event.preventDefault();  // the page would scroll instead
     view.zoom = Math.min(Math.max(view.zoom * Math.exp(-0.0015 * event.deltaY), 0.2), 10);

@@ -22,6 +22,7 @@ from pipeline.report import (
     stage_timings,
     viewer_data,
     warning_groups,
+    with_gaps,
     write_report,
 )
 from pipeline.run_warnings import WARNINGS_FILE
@@ -160,7 +161,7 @@ def test_full_report_renders_in_chromium_without_js_errors_and_plays_its_videos(
     assert all(video[0] >= 1 for video in result["videos"])       # HAVE_METADATA or more
 
 
-def test_the_viewer_clock_follows_the_capture_frame_rate_whatever_the_refresh_rate(shared_text, tmp_path):
+def test_the_viewer_plays_at_the_capture_frame_rate_whatever_the_refresh_rate_and_orbits(shared_text, tmp_path):
     """Animation frames at 60 Hz and at 144 Hz for the same time show the same capture frame: number
     first + seconds * fps (the frames run 0..11 at 25 frames/s, so 0.48 s a loop)."""
     drive = ("const v = window.skeletonViewer; v.detach(); const out = {};"
@@ -170,13 +171,26 @@ def test_the_viewer_clock_follows_the_capture_frame_rate_whatever_the_refresh_ra
              "  const s = v.state(); out[hz + '@' + seconds] = [s.frame, Math.round(s.clock * 1e6) / 1e6];"
              "} }"
              "v.pause(); v.seek(0.17); out.label = document.getElementById('skeleton-label').textContent;"
-             "out.slider = document.getElementById('skeleton-frame').value; return out;")
+             "out.slider = document.getElementById('skeleton-frame').value;"
+             "const c = document.getElementById('skeleton-canvas'), home = v.state().view;"
+             "c.dispatchEvent(new WheelEvent('wheel', {deltaY: -200, cancelable: true}));"
+             "c.dispatchEvent(new PointerEvent('pointerdown', {clientX: 10, clientY: 10, bubbles: true}));"
+             "window.dispatchEvent(new PointerEvent('pointermove', {clientX: 60, clientY: 30}));"
+             "window.dispatchEvent(new PointerEvent('pointerup', {}));"
+             "window.dispatchEvent(new PointerEvent('pointermove', {clientX: 300, clientY: 300}));"
+             "out.turned = [home, v.state().view];"
+             "c.dispatchEvent(new MouseEvent('dblclick', {})); out.reset = v.state().view; return out;")
     result = _probed(_chromium_dom(_probe(drive, shared_text), tmp_path))
     for hz in (60, 144):  # whole numbers of animation frames at both rates
         assert result[f"{hz}@0.25"] == [6, 0.25]                          # 0.25 s * 25 frames/s
         assert result[f"{hz}@0.4166666666666667"] == [10, 0.416667]
         assert result[f"{hz}@0.5"] == [0, 0.02]                           # looped after 0.48 s
     assert result["label"] == "frame 4 (0.16 s), not estimated" and result["slider"] == "4"
+    home, turned = result["turned"]  # a wheel turn zooms in, a drag of (50, 20) px orbits; released, it stops
+    assert turned["zoom"] == pytest.approx(home["zoom"] * np.exp(0.3))
+    assert turned["azimuth"] == pytest.approx(home["azimuth"] + 0.5)
+    assert turned["elevation"] == pytest.approx(home["elevation"] + 0.2)
+    assert result["reset"] == home
 
 
 def test_the_accuracy_is_this_runs_as_eval_scores_it_never_a_stale_file(full_run):
@@ -270,3 +284,10 @@ def test_viewer_data_aligns_frames_and_keeps_each_sequence_joints():
     assert [pose is None for pose in data["truth"]["poses"]] == [True, False, False, False]
     assert len(data["truth"]["bones"]) == 14 and len(data["estimate"]["bones"]) == 16
     assert data["estimate"]["sides"][:4] == ["c", "c", "c", "l"]
+
+
+def test_plotted_lines_break_where_frames_are_missing():
+    frames, values = with_gaps(np.array([0, 2, 4, 8, 10]), np.arange(10.0).reshape(5, 2))
+    assert frames.tolist() == [0, 2, 4, 6, 8, 10]                  # the step is 2: a gap after frame 4
+    assert np.isnan(values[3]).all() and values[[0, 1, 2, 4, 5]].tolist() == np.arange(10.0).reshape(5, 2).tolist()
+    assert with_gaps(np.array([3]), np.ones(1))[0].tolist() == [3]
