@@ -21,7 +21,7 @@ from calib.errors import InputError
 from pipeline import frames_io
 from pipeline.export_io import JOINTS_FILE, read_joints_csv
 from pipeline.terminal import printable
-from stages.export.metrics import evaluate_joints, mask_iou
+from stages.export.metrics import JointMetrics, evaluate_joints, mask_iou
 
 #: Where the evaluation writes, inside the run's output directory.
 EVAL_DIR, METRICS_FILE = "eval", "metrics.json"
@@ -90,6 +90,24 @@ def silhouette_iou(estimated_dir: str | os.PathLike, truth_dir: str | os.PathLik
             "per_camera": {camera: float(np.mean(values)) for camera, values in per_camera.items()}}
 
 
+def score_joints(out_dir: str | os.PathLike, truth: str | os.PathLike) -> JointMetrics:
+    """The joint metrics of a run's ``export/joints.csv`` against the ``truth`` joints.csv.
+
+    Only the frames the run was asked to process (capture.yaml's frames range, in capture.json) are
+    scored, so that a run on an excerpt is not charged with the frames it never saw. The report scores
+    with this too, so that its figures are always those of ``pipeline eval`` on the same files.
+    """
+    out_dir = Path(out_dir)
+    estimate = read_joints_csv(out_dir / "export" / JOINTS_FILE)
+    true_frames, true_names, true_joints = read_joints_csv(truth)
+    summary_path = out_dir / CAPTURE_JSON
+    processed = frames_io.read_json(summary_path).get("frames") if summary_path.is_file() else None
+    if processed is not None:
+        kept = np.isin(true_frames, processed)
+        true_frames, true_joints = true_frames[kept], true_joints[kept]
+    return evaluate_joints(*estimate, true_frames, true_names, true_joints)
+
+
 def evaluate_run(out_dir: str | os.PathLike, *, truth: str | os.PathLike | None = None) -> dict:
     """Score a run's exported joints (and silhouettes) and write ``<out_dir>/eval/metrics.json``.
 
@@ -106,16 +124,7 @@ def evaluate_run(out_dir: str | os.PathLike, *, truth: str | os.PathLike | None 
     if not estimate_path.is_file():
         raise InputError(f"{estimate_path}: not found (expected a run whose export stage has finished)")
     truth_path = Path(truth) if truth is not None else default_truth(out_dir)
-    estimate = read_joints_csv(estimate_path)
-    true_frames, true_names, true_joints = read_joints_csv(truth_path)
-    # Score only the frames the run was asked to process (capture.yaml's frames range), so that a run on
-    # an excerpt is not charged with the frames it never saw.
-    summary_path = out_dir / "calibration" / "capture.json"
-    processed = frames_io.read_json(summary_path).get("frames") if summary_path.is_file() else None
-    if processed is not None:
-        kept = np.isin(true_frames, processed)
-        true_frames, true_joints = true_frames[kept], true_joints[kept]
-    metrics = evaluate_joints(*estimate, true_frames, true_names, true_joints)
+    metrics = score_joints(out_dir, truth_path)
     summary = {"estimate": str(estimate_path), "truth": str(truth_path), **metrics.summary(),
                "silhouette_iou": silhouette_iou(out_dir / "silhouettes", truth_path.parent / "masks")}
     frames_io.write_json(out_dir / EVAL_DIR / METRICS_FILE, summary)

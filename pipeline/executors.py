@@ -1,7 +1,9 @@
 """Where per-frame work runs: in this process, in a local process pool, or on a Dask cluster.
 
 All three are ``concurrent.futures.Executor`` objects, so a stage submits chunks of frames the same
-way whatever runs them (see :func:`pipeline.runner.StageContext.map_frames`):
+way whatever runs them (see :func:`pipeline.runner.StageContext.map_frames`). A call in another process
+(:func:`call_logged`) returns the warnings it logged, and :func:`relog` logs them again here, so that they
+are shown and collected (:mod:`pipeline.run_warnings`) like this process's own:
 
 - ``workers=1`` (default): :class:`InProcessExecutor`, calls run immediately in this process. No
   pickling, easiest to debug, and exceptions carry their full traceback.
@@ -20,6 +22,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import importlib
+import logging
 import multiprocessing
 import os
 from collections.abc import Callable, Iterator, Sequence
@@ -44,6 +47,40 @@ class InProcessExecutor(cf.Executor):
         return future
 
 
+class _Keep(logging.Handler):
+    """Keeps the fields of each record it handles (message formatted: arguments need not pickle)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.records: list[dict] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        fields = {key: value for key, value in vars(record).items()
+                  if key in ("name", "levelno", "levelname", "pathname", "filename", "module", "lineno", "funcName",
+                             "created", "msecs", "relativeCreated")}
+        self.records.append({**fields, "msg": record.getMessage(), "args": None,
+                             "template": record.msg if isinstance(record.msg, str) else None})
+
+
+def call_logged(fn: Callable[[Any], Any], argument: Any) -> list[dict]:
+    """``fn(argument)`` in a worker process, returning the WARNING records it logged (for :func:`relog`)
+    instead of its result, which per-frame tasks do not have."""
+    keep = _Keep()
+    root = logging.getLogger()
+    root.addHandler(keep)
+    try:
+        fn(argument)
+    finally:
+        root.removeHandler(keep)
+    return keep.records
+
+
+def relog(records: Sequence[dict]) -> None:
+    """Log again, in this process and thread, the records a worker's :func:`call_logged` returned."""
+    for fields in records:
+        logging.getLogger(fields["name"]).handle(logging.makeLogRecord(fields))
+
+
 @dataclass(frozen=True)
 class Workers:
     """An executor and how many calls it runs at once (to size chunks of frames)."""
@@ -51,6 +88,11 @@ class Workers:
     executor: cf.Executor
     count: int
     description: str
+
+    @property
+    def in_process(self) -> bool:
+        """Whether calls run in this process (their log records need no :func:`relog`)."""
+        return isinstance(self.executor, InProcessExecutor)
 
 
 @contextlib.contextmanager

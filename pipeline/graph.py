@@ -48,7 +48,7 @@ from calib.camera import Rig
 from calib.formats import load_rig, save_rig
 from pipeline import atomic, frames_io
 from pipeline.capture import Capture, capture_summary
-from pipeline.export_io import JOINTS_FILE, write_exports, write_joints_csv, write_overlay_video
+from pipeline.export_io import JOINTS_FILE, write_exports, write_joints_csv
 from pipeline.frame_tasks import (
     background_path,
     observations_path,
@@ -56,6 +56,7 @@ from pipeline.frame_tasks import (
     silhouette_path,
     silhouettes_task,
 )
+from pipeline.overlay_video import overlay_video_name, write_overlay_video
 from pipeline.runner import Stage, StageContext
 from stages.export import ExportParams
 from stages.joints import JOINT_NAMES
@@ -253,7 +254,7 @@ def warm_up_export(capture: Capture, params: ExportParams) -> None:
 
 
 def run_export(ctx: StageContext) -> None:
-    """joints.csv, BVH, angles and C3D of the estimated frames, then the report and overlay videos.
+    """joints.csv, BVH, angles and C3D of the estimated frames, then the overlay videos and the report.
 
     Frames the tracker only predicted are left out, as CAPTURE_FORMAT.md asks (no rows, never NaN).
     """
@@ -265,24 +266,25 @@ def run_export(ctx: StageContext) -> None:
         log.warning("export: %d of %d frames were not estimated and have no rows in joints.csv",
                     len(results) - len(estimated), len(results))
     frames = np.array(sorted(estimated), dtype=int)
-    if not len(frames):
+    if len(frames):
+        write_exports(ctx.out_dir, frames, np.stack([estimated[frame] for frame in frames]), capture.fps)
+    else:
         # Nothing to animate: joints.csv keeps its header so that readers see "no frame", not a failure.
         log.warning("export: no frame was estimated; joints.csv has no rows and no BVH/C3D is written")
         write_joints_csv(ctx.out_dir / JOINTS_FILE, frames, np.zeros((0, len(JOINT_NAMES), 3)))
-        return
-    write_exports(ctx.out_dir, frames, np.stack([estimated[frame] for frame in frames]), capture.fps)
-    if params.report:
+    if params.overlay_videos and capture.has_images and len(frames):  # before the report, which links them
+        for camera in capture.rig:
+            write_overlay_video(capture.iter_images(camera.name, capture.frame_numbers), camera, estimated,
+                                ctx.out_dir / overlay_video_name(camera.name), capture.fps)
+    if params.report:  # also when no frame was estimated: it says what happened
         images = None
-        if capture.has_images and len(frames):
-            middle = int(frames[len(frames) // 2])
-            images = {camera: next(capture.iter_images(camera, [middle])) for camera in capture.rig.names[:2]}
+        if capture.has_images:
+            shown = frames if len(frames) else np.asarray(capture.frame_numbers)
+            middle = int(shown[len(shown) // 2])
+            images = {camera: next(capture.iter_images(camera, [middle])) for camera in capture.rig.names}
         from pipeline.report import write_report  # here: see REPORT_MODULE
 
         write_report(ctx.output_root, rig=capture.rig, images=images)
-    if params.overlay_videos and capture.has_images:
-        for camera in capture.rig:
-            write_overlay_video(capture.iter_images(camera.name, capture.frame_numbers), camera, estimated,
-                                ctx.out_dir / f"overlay_{camera.name}.mp4", capture.fps)
 
 
 #: Modules the per-frame tasks come from: a local worker pool imports them as its processes start.
@@ -311,8 +313,8 @@ STAGES: tuple[Stage, ...] = (
     Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
           code=("stages.export", "stages.checks", "stages.joints", "stages.tracking.tracker", "pipeline.export_io",
-                REPORT_MODULE,
-                "pipeline.report_assets", "pipeline.evaluate", "pipeline.terminal", "pipeline.capture", "calib",
+                "pipeline.overlay_video", REPORT_MODULE, "pipeline.report_assets", "pipeline.tracking_summary",
+                "pipeline.run_warnings", "pipeline.evaluate", "pipeline.terminal", "pipeline.capture", "calib",
                 *FILES_CODE),
           warm_up=warm_up_export),
 )

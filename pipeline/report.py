@@ -1,17 +1,23 @@
 """One self-contained HTML report per run: ``<out_dir>/export/report.html``.
 
-It opens offline: images are inline base64 PNG, the 3-D viewer is inline JavaScript on a <canvas>,
-and nothing is fetched. Each section appears when its inputs exist, so the report also works on a
-run where only some stages finished:
+It opens offline: images are inline (PNG plots and masks, JPEG photographs), the 3-D viewer is inline
+JavaScript on a <canvas>, and nothing is fetched but the overlay videos, which sit beside the report
+(``overlay_<camera>.webm``, written when ``export.overlay_videos`` is on) and are linked. Each section
+appears when its inputs exist, so the report also works on a run where only some stages finished:
 
-- stage timings, from each ``<out_dir>/<stage>/manifest.json`` (``timing`` or ``timings``; missing
-  keys shown as "-");
-- accuracy, from ``<out_dir>/eval/metrics.json`` or, failing that, computed against the truth;
-- plots (matplotlib, off-screen) of joint trajectories against the truth and of the error over time;
-- overlay stills: the skeleton drawn on one frame of some cameras (the caller passes the images and
-  the rig; this module never opens the capture's media);
-- an animated 3-D skeleton (rotating orthographic view, play/pause, frame slider), with the truth in
-  grey when known.
+- what happened: frames tracked, initialised, doubtful, predicted or lost, and why
+  (:mod:`pipeline.tracking_summary`, from the tracking stage's per-frame records);
+- the warnings behind the results (:mod:`pipeline.run_warnings`, ``<out_dir>/warnings.json``);
+- accuracy against the truth, when the capture has one: scored now, from this run's joints.csv, by the
+  same function as ``python -m pipeline eval`` (:func:`pipeline.evaluate.score_joints`), so it can never
+  be an earlier run's;
+- an animated 3-D skeleton: played at the capture's frame rate (a clock in seconds, whatever the
+  screen's refresh rate), orbited by dragging, zoomed with the wheel; the truth in grey when known;
+- plots (matplotlib, off-screen): tracking quality per frame, joint angles (the export's angles.csv),
+  joint trajectories and the error over time (when there is a truth);
+- per camera: the skeleton drawn on one frame, that frame's silhouette, the background, and the overlay
+  video (the caller passes the images and the rig; this module never opens the capture's media);
+- stage timings, from each ``<out_dir>/<stage>/manifest.json``.
 """
 
 from __future__ import annotations
@@ -29,13 +35,25 @@ from pathlib import Path
 import cv2
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.patches import Patch
 
 from calib.camera import Rig
 from calib.errors import InputError
 from pipeline import atomic, frames_io
-from pipeline.evaluate import CAPTURE_JSON, EVAL_DIR, METRICS_FILE, default_truth, format_metrics
-from pipeline.export_io import JOINTS_FILE, read_joints_csv
-from stages.export.metrics import JointMetrics, evaluate_joints
+from pipeline.evaluate import CAPTURE_JSON, default_truth, format_metrics, score_joints
+from pipeline.export_io import ANGLES_FILE, JOINTS_FILE, read_joints_csv
+from pipeline.overlay_video import overlay_video_name
+from pipeline.run_warnings import WARNINGS_FILE, read_warnings
+from pipeline.tracking_summary import (
+    CATEGORIES,
+    FrameStatus,
+    category_counts,
+    category_totals,
+    read_frame_statuses,
+    tracker_params,
+)
+from stages.export.angles import joint_angles
+from stages.export.metrics import JointMetrics
 from stages.export.overlay import draw_skeleton
 from stages.export.skeleton import bones_among
 
@@ -53,8 +71,19 @@ TRAJECTORY_JOINTS = ("pelvis", "head", "l_wrist", "r_ankle")
 #: Frame rate assumed when the run has no readable calibration/capture.json (viewer playback only).
 DEFAULT_FPS = 25.0
 
-#: Widest still image embedded (pixels); larger frames are shrunk to keep the report small.
-STILL_MAX_WIDTH = 640
+#: Widest overlay still embedded (pixels), and the width of the per-camera silhouette and background.
+STILL_MAX_WIDTH = 520
+THUMB_WIDTH = 260
+
+#: JPEG quality of the embedded photographs (overlays, backgrounds): a sixth of PNG's size, no visible loss.
+JPEG_QUALITY = 85
+
+#: Matplotlib colours of the tracking categories (:data:`pipeline.tracking_summary.CATEGORIES`).
+CATEGORY_COLOURS = {"tracked": "tab:green", "initialised": "tab:blue", "doubtful": "tab:orange",
+                    "predicted": "tab:grey", "lost": "tab:red"}
+
+#: Body-side colours of the plots: subject's left blue, right red, as the overlays draw them.
+SIDE_COLOURS = {"l": "tab:blue", "r": "tab:red", "c": "tab:green"}
 
 
 @dataclass(frozen=True)
@@ -71,48 +100,95 @@ class JointSequence:
         return self.joints[hits[0]] if len(hits) else None
 
 
+@dataclass(frozen=True)
+class AngleTable:
+    """Joint angles: ``frames (F,)``, ``names`` (K), ``degrees (F, K)``."""
+
+    frames: np.ndarray
+    names: tuple[str, ...]
+    degrees: np.ndarray
+
+
 # ---------------------------------------------------------------------------------------------
 # Pure pieces: figures, stills, viewer data
 
 
-def png_data_uri(image_bgr: np.ndarray) -> str:
-    """``data:image/png;base64,...`` of a ``(H, W, 3) uint8`` BGR image."""
-    ok, encoded = cv2.imencode(".png", image_bgr)
+def png_data_uri(image: np.ndarray) -> str:
+    """``data:image/png;base64,...`` of a ``(H, W, 3)`` BGR or ``(H, W)`` grey ``uint8`` image."""
+    return _data_uri(image, ".png", "image/png")
+
+
+def jpeg_data_uri(image_bgr: np.ndarray) -> str:
+    """``data:image/jpeg;base64,...`` of a ``(H, W, 3) uint8`` BGR image (:data:`JPEG_QUALITY`)."""
+    return _data_uri(image_bgr, ".jpg", "image/jpeg", [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+
+
+def _data_uri(image: np.ndarray, extension: str, mime: str, options: Sequence[int] = ()) -> str:
+    ok, encoded = cv2.imencode(extension, image, list(options))
     if not ok:
-        raise ValueError("OpenCV could not encode the image as PNG")
-    return "data:image/png;base64," + base64.b64encode(encoded.tobytes()).decode("ascii")
+        raise ValueError(f"OpenCV could not encode the image as {extension}")
+    return f"data:{mime};base64," + base64.b64encode(encoded.tobytes()).decode("ascii")
+
+
+def _figure(width_in: float, height_in: float) -> Figure:
+    """A figure that lays itself out as it draws (constrained layout: legends outside the axes included), so
+    that saving draws it once; ``bbox_inches="tight"`` would draw it twice, a second more for the report."""
+    return Figure(figsize=(width_in, height_in), layout="constrained")
 
 
 def _figure_uri(figure: Figure) -> str:
     buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=90, bbox_inches="tight")
+    figure.savefig(buffer, format="png", dpi=90)
     return "data:image/png;base64," + base64.b64encode(buffer.getvalue()).decode("ascii")
+
+
+def _shrunk(image: np.ndarray, width: int) -> np.ndarray:
+    if image.shape[1] <= width:
+        return image
+    factor = width / image.shape[1]
+    return cv2.resize(image, None, fx=factor, fy=factor, interpolation=cv2.INTER_AREA)
+
+
+def _side(name: str) -> str:
+    return name[0] if name[:2] in ("l_", "r_") else "c"
+
+
+def with_gaps(frames: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``frames (F,)`` and ``values (F, ...)`` with a NaN row after each frame followed by a gap (a step longer
+    than the smallest), so that a plotted line breaks where frames are missing instead of bridging them."""
+    frames, values = np.asarray(frames), np.asarray(values, dtype=float)
+    if len(frames) < 2:
+        return frames, values
+    steps = np.diff(frames)
+    after = np.flatnonzero(steps > steps.min()) + 1
+    return (np.insert(frames.astype(float), after, frames[after - 1] + steps.min()),
+            np.insert(values, after, np.nan, axis=0))
 
 
 def trajectory_figure(estimate: JointSequence, truth: JointSequence | None) -> Figure:
     """x, y, z of :data:`TRAJECTORY_JOINTS` over frames: estimate solid, truth dashed."""
-    figure = Figure(figsize=(11, 6.5))
+    figure = _figure(11, 6.5)
     axes = figure.subplots(3, 1, sharex=True)
     colours = ("tab:blue", "tab:orange", "tab:green", "tab:red")
     for joint, colour in zip(TRAJECTORY_JOINTS, colours, strict=True):
         for sequence, style, suffix in ((estimate, "-", ""), (truth, "--", " (truth)")):
             if sequence is None or joint not in sequence.names:
                 continue
-            j = sequence.names.index(joint)
+            frames, positions = with_gaps(sequence.frames, sequence.joints[:, sequence.names.index(joint)])
             for k, ax in enumerate(axes):
-                ax.plot(sequence.frames, sequence.joints[:, j, k], style, color=colour, lw=1.2,
+                ax.plot(frames, positions[:, k], style, color=colour, lw=1.2,
                         label=f"{joint}{suffix}" if k == 0 else None)
     for ax, axis in zip(axes, "xyz", strict=True):
         ax.set_ylabel(f"{axis} (m)")
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("frame")
-    axes[0].legend(ncol=4, fontsize=8, loc="upper left", bbox_to_anchor=(0, 1.35))
+    figure.legend(ncol=4, fontsize=8, loc="outside upper left")
     return figure
 
 
 def error_figure(metrics: JointMetrics) -> Figure:
     """Per-frame MPJPE and the worst joint's error over frames (millimetres)."""
-    figure = Figure(figsize=(11, 3.2))
+    figure = _figure(11, 3.2)
     ax = figure.subplots()
     ax.plot(metrics.frames, metrics.per_frame_mm, ".-", lw=1, ms=3, label="MPJPE (scored joints)")
     ax.plot(metrics.frames, metrics.errors_mm.max(axis=1), ":", lw=1, color="tab:red", label="worst joint")
@@ -126,7 +202,74 @@ def error_figure(metrics: JointMetrics) -> Figure:
     return figure
 
 
-def overlay_stills(images: Mapping[str, tuple[int, np.ndarray]], rig: Rig, estimate: JointSequence,
+def quality_figure(statuses: Sequence[FrameStatus], limits: Mapping[str, float]) -> Figure:
+    """The tracker's view of each frame: log-likelihood, outlier share and Σ spread of the kept fit (with
+    the failure checks' limits, ``limits["max_outlier_fraction"]`` and ``limits["failure_sigma_m"]``),
+    and the frame's category as a coloured strip."""
+    frames = np.array([status.frame for status in statuses])
+    fitted = np.array([status.status in ("tracked", "initialised") for status in statuses])
+    figure = _figure(11, 6.2)
+    axes = figure.subplots(4, 1, sharex=True, gridspec_kw={"height_ratios": [3, 3, 3, 1]})
+    series = (("log-likelihood (nats)", [status.log_likelihood for status in statuses], None),
+              ("outliers (%)", [100 * status.outlier_fraction for status in statuses],
+               100 * limits["max_outlier_fraction"]),
+              ("Σ spread (cm)", [100 * status.sigma_spread_m for status in statuses], 100 * limits["failure_sigma_m"]))
+    for ax, (label, values, limit) in zip(axes, series, strict=False):
+        values = np.where(fitted, values, np.nan)  # a frame without a fit has no value to show
+        ax.plot(frames, values, ".-", lw=1, ms=3, color="tab:blue")
+        if limit is not None:
+            ax.axhline(limit, color="tab:red", lw=0.8, ls="--", label="failure check")
+            ax.legend(fontsize=8, loc="upper right")
+        ax.set_ylabel(label, fontsize=9)
+        ax.grid(alpha=0.3)
+    strip = axes[-1]
+    colours = [CATEGORY_COLOURS[status.category] for status in statuses]
+    strip.bar(frames, np.ones(len(frames)), width=_frame_step(frames), color=colours, align="center")
+    strip.set_yticks([])
+    strip.set_xlabel("frame")
+    figure.legend(handles=[Patch(color=CATEGORY_COLOURS[c], label=c) for c in CATEGORIES], ncol=len(CATEGORIES),
+                  fontsize=8, loc="outside lower left")
+    return figure
+
+
+def _frame_step(frames: np.ndarray) -> float:
+    return float(np.min(np.diff(frames))) if len(frames) > 1 else 1.0
+
+
+def angle_groups(names: Sequence[str]) -> dict[str, list[str]]:
+    """Angle names grouped by joint, left and right together: ``l_knee_flexion`` and ``r_knee_flexion`` under
+    ``knee_flexion``; a name without a side is its own group. Order of first appearance."""
+    groups: dict[str, list[str]] = {}
+    for name in names:
+        groups.setdefault(name[2:] if _side(name) != "c" else name, []).append(name)
+    return groups
+
+
+def angles_figure(angles: AngleTable, truth: AngleTable | None) -> Figure:
+    """One small plot per joint of the angle table, left blue and right red, the truth dashed."""
+    groups = angle_groups(angles.names)
+    columns = 3
+    rows = -(-len(groups) // columns)
+    figure = _figure(11, 2.3 * rows)
+    axes = figure.subplots(rows, columns, sharex=True, squeeze=False).ravel()
+    for ax, (group, names) in zip(axes, groups.items(), strict=False):
+        for name in names:
+            colour = SIDE_COLOURS[_side(name)]
+            ax.plot(*with_gaps(angles.frames, angles.degrees[:, angles.names.index(name)]), "-", lw=1.1, color=colour)
+            if truth is not None and name in truth.names:
+                ax.plot(truth.frames, truth.degrees[:, truth.names.index(name)], "--", lw=1, color=colour, alpha=0.7)
+        ax.set_title(group.replace("_", " "), fontsize=9)
+        ax.tick_params(labelsize=8)
+        ax.grid(alpha=0.3)
+    for ax in axes[len(groups):]:
+        ax.set_visible(False)
+    for ax in axes[-columns:]:
+        ax.set_xlabel("frame", fontsize=8)
+    figure.supylabel("degrees", fontsize=9)
+    return figure
+
+
+def overlay_stills(images: Mapping[str, tuple[int, np.ndarray]], rig: Rig, estimate: JointSequence | None,
                    truth: JointSequence | None = None) -> list[tuple[str, int, np.ndarray]]:
     """Frames of some cameras with the estimated skeleton (and the truth in white) drawn on them.
 
@@ -134,7 +277,7 @@ def overlay_stills(images: Mapping[str, tuple[int, np.ndarray]], rig: Rig, estim
     ----------
     images : mapping camera name -> (frame, (H, W, 3) uint8 BGR image)
     rig : the calibrated cameras (world frame)
-    estimate, truth : joint sequences; a frame missing from one is drawn without it
+    estimate, truth : joint sequences (or None); a frame missing from one is drawn without it
 
     Returns
     -------
@@ -147,13 +290,10 @@ def overlay_stills(images: Mapping[str, tuple[int, np.ndarray]], rig: Rig, estim
         true_pose = truth.at(frame) if truth is not None else None
         if true_pose is not None:
             drawn = draw_skeleton(drawn, camera, true_pose, truth.names, colour=(255, 255, 255))
-        pose = estimate.at(frame)
+        pose = estimate.at(frame) if estimate is not None else None
         if pose is not None:
             drawn = draw_skeleton(drawn, camera, pose, estimate.names)
-        if drawn.shape[1] > STILL_MAX_WIDTH:
-            factor = STILL_MAX_WIDTH / drawn.shape[1]
-            drawn = cv2.resize(drawn, None, fx=factor, fy=factor, interpolation=cv2.INTER_AREA)
-        stills.append((camera_name, int(frame), drawn))
+        stills.append((camera_name, int(frame), _shrunk(drawn, STILL_MAX_WIDTH)))
     return stills
 
 
@@ -161,15 +301,29 @@ def _viewer_series(sequence: JointSequence, frames: list[int]) -> dict:
     """One sequence for the viewer: its bones, body sides and per-frame poses (None where missing)."""
     row = {int(frame): k for k, frame in enumerate(sequence.frames)}
     poses = [np.round(sequence.joints[row[frame]], 3).tolist() if frame in row else None for frame in frames]
-    sides = ["l" if n.startswith("l_") else "r" if n.startswith("r_") else "c" for n in sequence.names]
-    return {"bones": bones_among(sequence.names), "sides": sides, "poses": poses}
+    return {"bones": bones_among(sequence.names), "sides": [_side(n) for n in sequence.names], "poses": poses}
 
 
-def viewer_data(estimate: JointSequence, truth: JointSequence | None, fps: float) -> dict:
-    """The 3-D viewer's data (see report_assets/viewer.js): every frame of either sequence, mm-rounded."""
+def viewer_data(estimate: JointSequence, truth: JointSequence | None, fps: float,
+                statuses: Sequence[FrameStatus] | None = None) -> dict:
+    """The 3-D viewer's data (see report_assets/viewer.js): every frame of either sequence, mm-rounded, with
+    the tracker's category of each (None where unknown)."""
     frames = sorted(set(estimate.frames.tolist()) | (set(truth.frames.tolist()) if truth else set()))
+    category = {status.frame: status.category for status in statuses or ()}
     return {"frames": frames, "fps": float(fps), "estimate": _viewer_series(estimate, frames),
-            "truth": _viewer_series(truth, frames) if truth is not None else None}
+            "truth": _viewer_series(truth, frames) if truth is not None else None,
+            "categories": [category.get(frame) for frame in frames]}
+
+
+def warning_groups(warnings: Sequence[Mapping]) -> list[tuple[str | None, list[str]]]:
+    """Warnings grouped by stage and message template, in order of first appearance: ``(stage, messages)``
+    per group, so that a warning repeated on a hundred frames is one line with a count."""
+    groups: dict[tuple, tuple[str | None, list[str]]] = {}
+    for warning in warnings:
+        stage = warning.get("stage")
+        key = (stage, warning.get("logger"), warning.get("template") or warning["message"])
+        groups.setdefault(key, (stage, []))[1].append(warning["message"])
+    return list(groups.values())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -195,6 +349,31 @@ def stage_timings(out_dir: Path) -> list[dict]:
     return rows
 
 
+def read_angles_csv(path: Path) -> AngleTable:
+    """An angles.csv (header ``frame,<angle>,...``, one row per frame, degrees; an empty cell is NaN).
+
+    Raises
+    ------
+    InputError
+        The file is not such a table (the message names the file and line).
+    """
+    lines = [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+    header = lines[0].split(",") if lines else []
+    if header[:1] != ["frame"] or len(header) < 2:
+        raise InputError(f"{path}:1: expected a header 'frame,<angle>,...', got {lines[:1]}")
+    rows = []
+    for number, line in enumerate(lines[1:], start=2):
+        cells = line.split(",")
+        try:
+            if len(cells) != len(header):
+                raise ValueError(f"{len(cells)} cells for {len(header)} columns")
+            rows.append([float(cell) if cell.strip() else np.nan for cell in cells])
+        except ValueError as error:
+            raise InputError(f"{path}:{number}: not a row of numbers ({error})") from None
+    table = np.array(rows, dtype=float).reshape(-1, len(header))
+    return AngleTable(table[:, 0].astype(int), tuple(header[1:]), table[:, 1:])
+
+
 def _read_sequence(path: Path) -> JointSequence | None:
     if not path.is_file():
         return None
@@ -211,18 +390,209 @@ def _find_truth(out_dir: Path, truth_path: str | os.PathLike | None) -> Path | N
         return None
 
 
+@dataclass(frozen=True)
+class _Run:
+    """What the report shows of one run; every field but ``fps``, ``capture`` and ``warnings`` may be missing."""
+
+    out_dir: Path
+    fps: float
+    capture: dict
+    estimate: JointSequence | None
+    estimate_problem: str | None
+    truth: JointSequence | None
+    truth_path: Path | None
+    metrics: JointMetrics | None
+    scoring_problem: str | None
+    statuses: list[FrameStatus] | None
+    limits: dict
+    angles: AngleTable | None
+    angles_problem: str | None
+    warnings: list[dict]
+
+
+def _load_run(out_dir: Path, truth_path: str | os.PathLike | None) -> _Run:
+    summary_path = out_dir / CAPTURE_JSON
+    capture = frames_io.read_json(summary_path) if summary_path.is_file() else {}
+    capture = capture if isinstance(capture, dict) else {}
+    fps = capture.get("fps")
+    fps = float(fps) if isinstance(fps, (int, float)) and fps > 0 else DEFAULT_FPS
+    estimate, estimate_problem = None, None
+    try:
+        estimate = _read_sequence(out_dir / "export" / JOINTS_FILE)
+    except InputError as error:  # e.g. no rows: no frame was estimated, which the report is to explain
+        estimate_problem = str(error)
+    found_truth = _find_truth(out_dir, truth_path)
+    truth = _read_sequence(found_truth) if found_truth is not None else None
+    metrics, problem = None, None
+    if estimate is not None and truth is not None:
+        try:
+            metrics = score_joints(out_dir, found_truth)
+        except InputError as error:
+            problem = str(error)
+    frames = capture.get("frames")
+    statuses = read_frame_statuses(out_dir / "tracking", frames) if isinstance(frames, list) else None
+    angles, angles_problem = None, None
+    if (out_dir / "export" / ANGLES_FILE).is_file():
+        try:
+            angles = read_angles_csv(out_dir / "export" / ANGLES_FILE)
+        except (InputError, UnicodeDecodeError) as error:
+            angles_problem = str(error)
+    return _Run(out_dir, fps, capture, estimate, estimate_problem, truth, found_truth if truth is not None else None,
+                metrics, problem, statuses, tracker_params(out_dir / "tracking"), angles, angles_problem,
+                read_warnings(out_dir))
+
+
 # ---------------------------------------------------------------------------------------------
 # HTML
 
 
-def _table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
+def _table(header: Sequence[str], rows: Sequence[Sequence], *, raw_columns: Sequence[int] = (),
+           css_class: str = "") -> str:
+    """An HTML table; cells are escaped except those of ``raw_columns`` (HTML the caller built)."""
     head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
+    body = "".join("<tr>" + "".join(f"<td>{c if k in raw_columns else html.escape(str(c))}</td>"
+                                    for k, c in enumerate(row)) + "</tr>" for row in rows)
+    attribute = f" class='{css_class}'" if css_class else ""
+    return f"<table{attribute}><tr>{head}</tr>{body}</table>"
 
 
 def _number(value, digits: int) -> str:
     return f"{value:.{digits}f}" if isinstance(value, (int, float)) and not isinstance(value, bool) else "-"
+
+
+def _summary_section(run: _Run) -> str:
+    """What happened: frames estimated, the tracker's categories with their causes, warnings, MPJPE."""
+    frames = run.capture.get("frames")
+    facts = []
+    if run.estimate is not None:
+        of_capture = f" of {len(frames)} capture frames" if isinstance(frames, list) else ""
+        facts.append(f"{len(run.estimate.frames)} frames estimated{of_capture}, {len(run.estimate.names)} joints, "
+                     f"{run.fps:g} frames/s.")
+    elif run.estimate_problem is not None:
+        facts.append(f"No motion: {html.escape(run.estimate_problem)}.")
+    else:
+        facts.append("No export/joints.csv: the export stage has not run.")
+    if run.metrics is not None:
+        facts.append(f"MPJPE {run.metrics.mpjpe_mm:.1f} mm against the truth (see Accuracy).")
+    facts.append(f"<a href='#warnings'>{len(run.warnings)} warning{'' if len(run.warnings) == 1 else 's'}</a>."
+                 if run.warnings else "No warnings.")
+    text = "<h2>What happened</h2><p>" + " ".join(facts) + "</p>"
+    if run.statuses is None:
+        return text + "<p class='note'>No complete tracking records: the tracking stage has not finished.</p>"
+    totals, counts = category_totals(run.statuses), category_counts(run.statuses)
+    rows = [(f"<span class='swatch {category}'></span>{category}", totals[category],
+             "; ".join(f"{cause} ({n})" for cause, n in counts[category].most_common()) or "-")
+            for category in CATEGORIES]
+    return text + _table(("tracker", "frames", "why"), rows, raw_columns=(0,), css_class="story")
+
+
+def _warnings_section(run: _Run) -> str:
+    if not run.warnings:
+        return ""
+    items = []
+    for stage, messages in warning_groups(run.warnings):
+        where = html.escape(stage) if stage else "run"
+        first = html.escape(messages[0])
+        if len(messages) == 1:
+            items.append(f"<li><b>{where}</b>: {first}</li>")
+        else:
+            rest = "".join(f"<li>{html.escape(message)}</li>" for message in messages[1:])
+            items.append(f"<li><b>{where}</b>: {first} <details><summary>and {len(messages) - 1} more like it"
+                         f"</summary><ul>{rest}</ul></details></li>")
+    return (f"<h2 id='warnings'>Warnings ({len(run.warnings)})</h2><p class='note'>Every warning behind these "
+            f"results, by the stage that logged it ({WARNINGS_FILE} in the run folder).</p>"
+            f"<ul class='warnings'>{''.join(items)}</ul>")
+
+
+def _accuracy_section(run: _Run) -> str:
+    if run.metrics is not None:
+        text = format_metrics({**run.metrics.summary(), "silhouette_iou": None})
+        return (f"<h2>Accuracy</h2><p class='note'>This run's joints.csv against {html.escape(str(run.truth_path))}"
+                " (as <code>python -m pipeline eval</code> scores it; eval also scores the silhouettes).</p>"
+                f"<pre>{html.escape(text)}</pre>")
+    if run.scoring_problem is not None:
+        return f"<h2>Accuracy</h2><p class='note'>Not scored: {html.escape(run.scoring_problem)}</p>"
+    return ""
+
+
+def _quality_section(run: _Run) -> str:
+    if not run.statuses:
+        return ""
+    return ("<h2>Tracking quality</h2><p class='note'>Per frame, from the tracker's records: the kept fit's "
+            "log-likelihood, the share of data it explains as outliers and the spread of its Σ (a fit beyond a "
+            "dashed limit fails the checks and is re-initialised or flagged doubtful); below, each frame's "
+            "category.</p>"
+            f"<img alt='tracking quality' src='{_figure_uri(quality_figure(run.statuses, run.limits))}'>")
+
+
+def _angles_section(run: _Run) -> str:
+    if run.angles_problem is not None:
+        return f"<h2>Joint angles</h2><p class='note'>Not shown: {html.escape(run.angles_problem)}</p>"
+    if run.angles is None or not len(run.angles.frames):
+        return ""
+    truth = None
+    if run.truth is not None:
+        names, degrees = joint_angles(run.truth.joints, run.truth.names)
+        truth = AngleTable(run.truth.frames, names, degrees)
+    caption = "Left blue, right red" + (", truth dashed" if truth is not None else "")
+    return (f"<h2>Joint angles</h2><p class='note'>From export/{ANGLES_FILE}. {caption}.</p>"
+            f"<img alt='joint angles' src='{_figure_uri(angles_figure(run.angles, truth))}'>")
+
+
+def _plots_section(run: _Run) -> str:
+    if run.estimate is None:
+        return ""
+    note = "Estimate solid, truth dashed." if run.truth is not None else ""
+    parts = [f"<h2>Joint trajectories</h2><p class='note'>{note}</p>",
+             f"<img alt='trajectories' src='{_figure_uri(trajectory_figure(run.estimate, run.truth))}'>"]
+    if run.metrics is not None:
+        parts += ["<h2>Error over time</h2>",
+                  f"<img alt='error over time' src='{_figure_uri(error_figure(run.metrics))}'>"]
+    return "".join(parts)
+
+
+def _mask_thumb(path: Path) -> str | None:
+    """A silhouette or background file as an inline thumbnail, or None when absent or unreadable."""
+    if not path.is_file():
+        return None
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        return None
+    image = _shrunk(image, THUMB_WIDTH)
+    return png_data_uri(image) if image.ndim == 2 else jpeg_data_uri(image)
+
+
+def _cameras_section(run: _Run, rig: Rig | None, images: Mapping[str, tuple[int, np.ndarray]] | None) -> str:
+    """Per camera: the skeleton on one frame, that frame's silhouette, the background, the overlay video."""
+    stills = {camera: (frame, image) for camera, frame, image in
+              (overlay_stills(images, rig, run.estimate, run.truth) if rig is not None and images else [])}
+    cameras = list(stills) or [str(name) for name in run.capture.get("cameras", []) or []]
+    silhouettes = run.out_dir / "silhouettes"
+    rows = []
+    for camera in cameras:
+        frame = stills[camera][0] if camera in stills else None
+        cells = []
+        if camera in stills:
+            cells.append((jpeg_data_uri(stills[camera][1]), f"frame {frame}"))
+        if frame is not None and (mask := _mask_thumb(silhouettes / camera / frames_io.frame_name(frame))):
+            cells.append((mask, f"silhouette, frame {frame}"))
+        if background := _mask_thumb(silhouettes / "background" / f"{camera}.png"):
+            cells.append((background, "background"))
+        figures = "".join(f"<figure><img alt='{html.escape(camera)} {html.escape(caption)}' src='{uri}'>"
+                          f"<figcaption>{html.escape(caption)}</figcaption></figure>" for uri, caption in cells)
+        video = overlay_video_name(camera)
+        if (run.out_dir / "export" / video).is_file():
+            figures += (f"<figure><video controls muted loop preload='metadata' src='{html.escape(video)}'></video>"
+                        f"<figcaption><a href='{html.escape(video)}'>{html.escape(video)}</a></figcaption></figure>")
+        if figures:
+            rows.append(f"<h3>{html.escape(camera)}</h3><div class='stills'>{figures}</div>")
+    if not rows:
+        return ""
+    drawn = [what for what, sequence in (("estimate in colour (subject's left blue, right red)", run.estimate),
+                                         ("truth in white", run.truth))
+             if sequence is not None and any(sequence.at(frame) is not None for frame, _ in stills.values())]
+    legend = (", ".join(drawn) + ". ").capitalize() if drawn else ""
+    return f"<h2>Cameras</h2><p class='note'>{legend}Silhouettes white on black.</p>" + "".join(rows)
 
 
 def _timings_section(rows: list[dict]) -> str:
@@ -239,99 +609,21 @@ def _timings_section(rows: list[dict]) -> str:
     return "<h2>Stage timings</h2>" + _table(header, table_rows)
 
 
-@dataclass(frozen=True)
-class _Run:
-    """What the report shows of one run; every field but ``fps`` may be missing."""
-
-    fps: float
-    capture: dict
-    estimate: JointSequence | None
-    truth: JointSequence | None
-    metrics: JointMetrics | None
-    scoring_problem: str | None
-    saved_metrics: dict | None
-
-
-def _load_run(out_dir: Path, truth_path: str | os.PathLike | None) -> _Run:
-    summary_path = out_dir / CAPTURE_JSON
-    capture = frames_io.read_json(summary_path) if summary_path.is_file() else {}
-    capture = capture if isinstance(capture, dict) else {}
-    fps = capture.get("fps")
-    fps = float(fps) if isinstance(fps, (int, float)) and fps > 0 else DEFAULT_FPS
-    estimate = _read_sequence(out_dir / "export" / JOINTS_FILE)
-    found_truth = _find_truth(out_dir, truth_path)
-    truth = _read_sequence(found_truth) if found_truth is not None else None
-    metrics, problem = None, None
-    if estimate is not None and truth is not None:
-        try:
-            metrics = evaluate_joints(estimate.frames, estimate.names, estimate.joints,
-                                      truth.frames, truth.names, truth.joints)
-        except InputError as error:
-            problem = str(error)
-    metrics_path = out_dir / EVAL_DIR / METRICS_FILE
-    saved = frames_io.read_json(metrics_path) if metrics_path.is_file() else None
-    return _Run(fps, capture, estimate, truth, metrics, problem, saved)
-
-
-def _motion_section(run: _Run) -> str:
-    if run.estimate is None:
-        return "<h2>Motion</h2><p class='note'>No export/joints.csv: the export stage has not run.</p>"
-    frames = run.capture.get("frames")
-    of_capture = f" of {len(frames)} capture frames" if isinstance(frames, list) else ""
-    return (f"<h2>Motion</h2><p>{len(run.estimate.frames)} frames estimated{of_capture}, "
-            f"{len(run.estimate.names)} joints, {run.fps:g} frames/s.</p>")
-
-
-def _accuracy_section(run: _Run) -> str:
-    if run.saved_metrics is not None:
-        title, summary = "Accuracy (eval/metrics.json)", run.saved_metrics
-    elif run.metrics is not None:
-        title, summary = "Accuracy", {"silhouette_iou": None, **run.metrics.summary()}
-    elif run.scoring_problem is not None:
-        return f"<h2>Accuracy</h2><p class='note'>Not scored: {html.escape(run.scoring_problem)}</p>"
-    else:
-        return ""
-    try:
-        text = format_metrics(summary)
-    except (KeyError, TypeError, AttributeError):
-        return f"<h2>{title}</h2><p class='note'>metrics.json is not in the expected layout.</p>"
-    return f"<h2>{title}</h2><pre>{html.escape(text)}</pre>"
-
-
-def _plots_section(run: _Run) -> str:
-    if run.estimate is None:
-        return ""
-    parts = ["<h2>Joint trajectories</h2>",
-             f"<img alt='trajectories' src='{_figure_uri(trajectory_figure(run.estimate, run.truth))}'>"]
-    if run.metrics is not None:
-        parts += ["<h2>Error over time</h2>",
-                  f"<img alt='error over time' src='{_figure_uri(error_figure(run.metrics))}'>"]
-    return "".join(parts)
-
-
-def _stills_section(run: _Run, rig: Rig | None, images: Mapping[str, tuple[int, np.ndarray]] | None) -> str:
-    if run.estimate is None or rig is None or not images:
-        return ""
-    figures = "".join(
-        f"<figure><img alt='{html.escape(camera)}' src='{png_data_uri(image)}'>"
-        f"<figcaption>{html.escape(camera)}, frame {frame}</figcaption></figure>"
-        for camera, frame, image in overlay_stills(images, rig, run.estimate, run.truth))
-    return ("<h2>Overlays</h2><p class='note'>Estimate in colour (subject's left blue, right red), "
-            f"truth in white.</p><div class='stills'>{figures}</div>")
-
-
 def _viewer_section(run: _Run) -> str:
     if run.estimate is None:
         return ""
     # "</" inside a <script> would end it early; JSON allows the escaped form.
-    data = json.dumps(viewer_data(run.estimate, run.truth, run.fps), separators=(",", ":"))
+    data = json.dumps(viewer_data(run.estimate, run.truth, run.fps, run.statuses), separators=(",", ":"))
     data = data.replace("</", "<\\/")
     script = (ASSETS / "viewer.js").read_text(encoding="utf-8")
-    return ("<h2>3-D skeleton</h2><p class='note'>Orthographic view turning about the vertical; "
-            "truth in grey.</p><canvas id='skeleton-canvas' width='640' height='480'></canvas><div>"
+    truth = "; truth in grey" if run.truth is not None else ""
+    return ("<h2>3-D skeleton</h2><p class='note'>Drag to orbit, wheel to zoom, double-click to reset; played at "
+            f"the capture's {run.fps:g} frames/s (or slower){truth}.</p>"
+            "<canvas id='skeleton-canvas' width='720' height='540'></canvas><div class='controls'>"
             "<button id='skeleton-play' type='button'>pause</button> "
             "<input id='skeleton-frame' type='range' min='0' max='0' value='0'> "
-            "<span id='skeleton-label'></span></div>"
+            "<select id='skeleton-speed'><option value='1'>1×</option><option value='0.5'>½×</option>"
+            "<option value='0.25'>¼×</option></select> <span id='skeleton-label'></span></div>"
             f"<script type='application/json' id='skeleton-data'>{data}</script><script>{script}</script>")
 
 
@@ -349,12 +641,13 @@ def build_report(out_dir: str | os.PathLike, *, truth_path: str | os.PathLike | 
     out_dir : the run's output directory
     truth_path : ground-truth joints.csv; by default the capture's (``capture_dir`` in capture.json), if any
     rig, images : the calibrated rig and, per camera name, one ``(frame, BGR image)`` for the overlay
-        stills; without them that section is left out
+        stills; without them the cameras section shows only the silhouette stage's backgrounds
     """
     out_dir = Path(out_dir)
     run = _load_run(out_dir, truth_path)
-    sections = [_timings_section(stage_timings(out_dir)), _motion_section(run), _accuracy_section(run),
-                _plots_section(run), _stills_section(run, rig, images), _viewer_section(run)]
+    sections = [_summary_section(run), _warnings_section(run), _accuracy_section(run), _viewer_section(run),
+                _quality_section(run), _angles_section(run), _plots_section(run),
+                _cameras_section(run, rig, images), _timings_section(stage_timings(out_dir))]
     css = (ASSETS / "report.css").read_text(encoding="utf-8")
     title = f"Motion capture report: {html.escape(out_dir.resolve().name)}"
     return (f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{title}</title>"

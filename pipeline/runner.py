@@ -71,9 +71,9 @@ from typing import Any
 from tqdm import tqdm
 
 from calib.errors import InputError
-from pipeline import atomic, frames_io
+from pipeline import atomic, frames_io, run_warnings
 from pipeline.capture import Capture
-from pipeline.executors import Workers
+from pipeline.executors import Workers, call_logged, relog
 from pipeline.params import params_to_dict
 
 log = logging.getLogger(__name__)
@@ -278,13 +278,17 @@ class StageContext:
             try:
                 while True:
                     while len(running) < ahead and (chunk := next(remaining, None)) is not None:
-                        running[executor.submit(task, chunk)] = chunk
+                        future = executor.submit(task, chunk) if self.workers.in_process else \
+                            executor.submit(call_logged, task, chunk)  # the worker's warnings come back
+                        running[future] = chunk
                     if not running:
                         break
                     done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
                     for future in done:
                         chunk = running.pop(future)
-                        future.result()
+                        result = future.result()
+                        if not self.workers.in_process:
+                            relog(result)
                         bar.update(len(chunk))
             finally:
                 for future in running:
@@ -1039,7 +1043,8 @@ class Runner:
         started = time.perf_counter()
         if stage.name in self._warm_ups:
             self._warm_ups[stage.name].result()
-        frames = stage.run(context)
+        with run_warnings.stage_scope(stage.name):
+            frames = stage.run(context)
         return frames, time.perf_counter() - started
 
     def _finish(self, stage: Stage, expected: Expected, frames: int | None, seconds: float) -> StageOutcome:

@@ -11,15 +11,19 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from calib.errors import InputError
-from pipeline import graph
+from pipeline import graph, run_warnings
 from pipeline.capture import Capture
 from pipeline.executors import make_executor
 from pipeline.export_io import BVH_FILE, C3D_FILE, JOINTS_FILE, read_joints_csv
 from pipeline.params import apply_overrides, default_params, parse_assignments, read_config
-from pipeline.runner import Runner, format_summary, output_lock, select_stages, storage_error
+from pipeline.run_warnings import WARNINGS_FILE
+from pipeline.runner import Runner, StageOutcome, format_summary, output_lock, select_stages, storage_error
+from pipeline.terminal import printable
+from pipeline.tracking_summary import read_frame_statuses, summary_line
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -51,6 +55,8 @@ UNUSABLE_RESULT = 3
 MIN_ESTIMATED_FRACTION = 0.5
 #: What the export stage must have written for the run to count as usable.
 EXPORTED_FILES = (JOINTS_FILE, BVH_FILE, C3D_FILE)
+#: ``pipeline.report.REPORT_FILE``, not imported from there: that module loads matplotlib.
+REPORT_FILE = "report.html"
 
 
 def unusable_result(export_dir: Path, frames: int) -> str | None:
@@ -70,6 +76,24 @@ def unusable_result(export_dir: Path, frames: int) -> str | None:
     return None
 
 
+def closing_lines(out: Path, frames: Sequence[int], outcomes: Sequence[StageOutcome], warned: int) -> list[str]:
+    """What the run's results amount to, below the table of stages: what the tracker did on the frames
+    and why (:mod:`pipeline.tracking_summary`), how many warnings this run logged, and where the report is;
+    the tracker's and the report's lines only when their stage was part of the run."""
+    selected = {outcome.name for outcome in outcomes if outcome.action != "not selected"}
+    lines = []
+    statuses = read_frame_statuses(out / "tracking", frames) if "tracking" in selected else None
+    if statuses is not None:
+        lines.append(summary_line(statuses))
+    if warned:
+        lines.append(f"{warned} warning{'s' if warned > 1 else ''} in this run "
+                     f"(above; every warning behind the results: {out / WARNINGS_FILE} and the report)")
+    report = out / "export" / REPORT_FILE
+    if "export" in selected and report.is_file():
+        lines.append(f"report: {report}")
+    return lines
+
+
 def main(args: argparse.Namespace) -> int:
     if args.only and args.end:
         raise InputError(f"--only {args.only} --to {args.end}: cannot be combined "
@@ -84,11 +108,13 @@ def main(args: argparse.Namespace) -> int:
     show_progress = not args.quiet and sys.stderr.isatty()
     try:
         # The workers start first: their start-up overlaps the checks of the capture.
-        with make_executor(args.workers, args.scheduler, preload=graph.WORKER_MODULES) as workers:
+        with run_warnings.collecting() as warnings, \
+                make_executor(args.workers, args.scheduler, preload=graph.WORKER_MODULES) as workers:
             capture = Capture.open(args.capture, allow_outside_paths=args.allow_outside_paths)
             runner = Runner(stages, capture, params, args.out, workers, show_progress,  # refuses --out in the capture
                             record_facts={"allow_outside_paths": args.allow_outside_paths})
             with output_lock(args.out):
+                warnings.attach(args.out)
                 outcomes = runner.run(selected, force=args.force)
     except OSError as error:  # a full or read-only disk, from this process or a worker: the user's to fix
         problem = storage_error(error, args.out)
@@ -96,6 +122,8 @@ def main(args: argparse.Namespace) -> int:
             raise
         raise problem from None
     print(format_summary(outcomes))
+    for line in closing_lines(Path(args.out), capture.frame_numbers, outcomes, len(warnings.records)):
+        print(printable(line))  # the report's path is the user's, which may hold anything
     if not any(outcome.name == "export" and outcome.action != "not selected" for outcome in outcomes):
         return 0  # no export asked for: nothing to judge
     problem = unusable_result(Path(args.out) / "export", len(capture.frame_numbers))

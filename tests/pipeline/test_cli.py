@@ -29,6 +29,7 @@ from calib.formats import load_rig
 from pipeline import atomic, frames_io
 from pipeline.cli import SUBCOMMANDS, main
 from pipeline.graph import STAGES
+from pipeline.run_warnings import WARNINGS_FILE
 from pipeline.runner import MANIFEST, output_lock
 
 REPO = Path(__file__).resolve().parents[2]
@@ -300,9 +301,10 @@ def test_an_output_folder_overlapping_the_capture_is_refused_untouched(tiny_capt
 
 
 def result_files(out: Path) -> dict[str, bytes]:
-    """Every result file of an output folder by relative path (manifests and the lock left out)."""
+    """Every result file of an output folder by relative path (manifests, the lock and the log of warnings left
+    out)."""
     return {path.relative_to(out).as_posix(): path.read_bytes() for path in sorted(out.rglob("*"))
-            if path.is_file() and path.name not in (MANIFEST, ".lock")}
+            if path.is_file() and path.name not in (MANIFEST, ".lock", WARNINGS_FILE)}
 
 
 def test_damaged_results_are_recomputed_as_they_were(tiny_capture, tmp_path, capsys):

@@ -1,0 +1,96 @@
+import numpy as np
+import pytest
+
+from pipeline import frames_io
+from pipeline.tracking_summary import (
+    category_totals,
+    frame_status,
+    read_frame_statuses,
+    summary_line,
+    tracker_params,
+)
+
+PARAMS = {"max_outlier_fraction": 0.6, "failure_sigma_m": 0.05, "min_observations": 30, "max_predicted_frames": 10,
+          "reinit_every": 0}
+
+
+def record(frame, status, *, doubtful=False, outliers=0.05, spread_m=0.02, recheck=False, since=0):
+    """A tracking record with the fields the summary reads (the tracker's record holds more)."""
+    fitted = status in ("tracked", "initialised")
+    return {"frame": frame,
+            "result": {"status": status, "doubtful": doubtful, "log_likelihood": 3000.0 + frame if fitted else 0.0,
+                       "outlier_fraction": outliers if fitted else 1.0},
+            "state": {"Sigma": (np.diag([spread_m**2, (spread_m / 2) ** 2, 1e-6])).tolist(), "recheck": recheck,
+                      "since_initialisation": since, "frames_without_fit": 0 if fitted else 1}}
+
+
+def causes(current, previous=None, params=PARAMS, fitted_before=True):
+    status = frame_status(current, previous, params, fitted_before=fitted_before)
+    return status.category, status.causes
+
+
+def test_initialisations_say_why_they_happened():
+    assert causes(record(0, "initialised"), fitted_before=False) == ("initialised", ("first frame",))
+    assert causes(record(5, "initialised"), record(4, "lost")) == (
+        "initialised", ("data back after frames without a fit",))
+    assert causes(record(5, "initialised"), record(4, "initialised", doubtful=True, recheck=True)) == (
+        "initialised", ("re-check of a doubtful initialisation",))
+    assert causes(record(5, "initialised"), record(4, "tracked", since=3), {**PARAMS, "reinit_every": 4}) == (
+        "initialised", ("periodic re-initialisation",))
+    assert causes(record(5, "initialised"), record(4, "tracked", since=3)) == (
+        "initialised", ("the fit from the previous frame failed the checks",))
+
+
+def test_a_doubtful_frame_names_the_checks_it_failed():
+    category, why = causes(record(3, "tracked", doubtful=True, outliers=0.7, spread_m=0.08), record(2, "tracked"))
+    assert category == "doubtful" and why == ("outlier share above 60 %", "Sigma spread above 5.0 cm")
+    category, why = causes(record(0, "initialised", doubtful=True, spread_m=0.07), fitted_before=False)
+    assert why == ("Sigma spread above 5.0 cm", "initialised: first frame")
+    status = frame_status(record(3, "tracked", spread_m=0.08), None, PARAMS, fitted_before=True)
+    assert status.category == "tracked" and status.causes == () and status.sigma_spread_m == pytest.approx(0.08)
+
+
+def test_frames_without_a_fit_say_whether_the_subject_was_ever_found():
+    assert causes(record(3, "predicted"), record(2, "tracked")) == ("predicted", ("fewer than 30 observations",))
+    assert causes(record(0, "lost"), fitted_before=False) == (
+        "lost", ("fewer than 30 observations before any fit",))
+    assert causes(record(20, "lost"), record(19, "lost")) == (
+        "lost", ("fewer than 30 observations for more than 10 frames",))
+
+
+def write_records(folder, records, params=None):
+    for entry in records:
+        frames_io.write_record(folder / "frames" / frames_io.frame_name(entry["frame"], ".json"), entry)
+    if params is not None:
+        frames_io.write_json(folder / "manifest.json", {"params": params})
+
+
+def test_read_frame_statuses_follows_the_sequence_and_its_manifest(tmp_path):
+    folder = tmp_path / "tracking"
+    write_records(folder, [record(0, "lost"), record(1, "initialised"), record(2, "tracked", spread_m=0.045),
+                           record(3, "tracked", doubtful=True, spread_m=0.045), record(4, "predicted")],
+                  {**PARAMS, "failure_sigma_m": 0.04, "min_observations": 50})
+    statuses = read_frame_statuses(folder, range(5))
+    assert [status.category for status in statuses] == ["lost", "initialised", "tracked", "doubtful", "predicted"]
+    assert statuses[0].causes == ("fewer than 50 observations before any fit",)
+    assert statuses[1].causes == ("data back after frames without a fit",)
+    assert statuses[3].causes == ("Sigma spread above 4.0 cm",)
+    assert category_totals(statuses) == {"tracked": 1, "initialised": 1, "doubtful": 1, "predicted": 1, "lost": 1}
+    assert summary_line(statuses) == (
+        "tracking, 5 frames: 1 tracked, 1 initialised (data back after frames without a fit), "
+        "1 doubtful (Sigma spread above 4.0 cm), 1 predicted (fewer than 50 observations), "
+        "1 lost (fewer than 50 observations before any fit)")
+
+
+def test_an_unfinished_tracking_stage_has_no_summary(tmp_path):
+    folder = tmp_path / "tracking"
+    write_records(folder, [record(0, "initialised"), record(1, "tracked")])
+    assert read_frame_statuses(folder, range(3)) is None       # frame 2 not written yet
+    (folder / "frames" / "000001.json").write_text("{broken")
+    assert read_frame_statuses(folder, range(2)) is None
+
+
+def test_tracker_params_default_where_the_manifest_is_silent(tmp_path):
+    assert tracker_params(tmp_path) == PARAMS                  # no manifest: the tracker's defaults
+    frames_io.write_json(tmp_path / "manifest.json", {"params": {"max_outlier_fraction": 0.5, "distance": "normals"}})
+    assert tracker_params(tmp_path) == {**PARAMS, "max_outlier_fraction": 0.5}
