@@ -111,11 +111,14 @@ def evaluate_run(out_dir: str | os.PathLike, *, truth: str | os.PathLike | None 
     # Score only the frames the run was asked to process (capture.yaml's frames range), so that a run on
     # an excerpt is not charged with the frames it never saw.
     summary_path = out_dir / "calibration" / "capture.json"
-    processed = frames_io.read_json(summary_path).get("frames") if summary_path.is_file() else None
+    capture = frames_io.read_json(summary_path) if summary_path.is_file() else {}
+    processed = capture.get("frames")
     if processed is not None:
         kept = np.isin(true_frames, processed)
         true_frames, true_joints = true_frames[kept], true_joints[kept]
-    metrics = evaluate_joints(*estimate, true_frames, true_names, true_joints)
+    fps = capture.get("fps")
+    metrics = evaluate_joints(*estimate, true_frames, true_names, true_joints,
+                              frame_time_s=1.0 / fps if fps else None)
     summary = {"estimate": str(estimate_path), "truth": str(truth_path), **metrics.summary(),
                "silhouette_iou": silhouette_iou(out_dir / "silhouettes", truth_path.parent / "masks")}
     frames_io.write_json(out_dir / EVAL_DIR / METRICS_FILE, summary)
@@ -132,6 +135,13 @@ def format_metrics(summary: dict) -> str:
         f"{summary['truth_frames']} truth frames estimated",
         pck,
         f"worst frame {worst['frame']}: {worst['mpjpe_mm']:.1f} mm",
+    ]
+    acceleration = summary.get("per_joint_acceleration_error_m_s2") or {}
+    if acceleration:
+        wrists = "  ".join(f"{name} {acceleration[name]:.2f}" for name in ("l_wrist", "r_wrist")
+                           if name in acceleration)
+        lines.append(f"acceleration error {summary['acceleration_error_m_s2']:.2f} m/s² (mean over joints; {wrists})")
+    lines += [
         "",
         f"{'joint':<20}{'MPJPE mm':>10}",
     ]
