@@ -16,25 +16,26 @@ are positive on the left as on the right.
 ==================== ======================================================================================
 angle                definition (degrees)
 ==================== ======================================================================================
-hip_flexion          Cardan Z-X-Y of the thigh in the pelvis frame (the ISB hip sequence): flexion about
-hip_abduction        the pelvis's Z, then abduction about the floating X, then internal rotation about the
-hip_rotation         thigh's Y. Of the two equivalent (flexion, abduction) pairs, the one with the smaller
-                     total turn |flexion| + |abduction|. Rotation needs the knee bent by at least
-                     :data:`MIN_HINGE_FLEXION_DEG` (the knee's plane sets the thigh's X); else empty.
-knee_flexion         the angle between thigh and shank, negative when the knee is hyperextended (the ankle
-                     in front of the thigh's line in the thigh frame; a hip rotates by less than 90 degrees,
-                     so the side the shank bends to tells flexion from hyperextension)
+hip_flexion          the thigh in the pelvis frame, split into swing and twist: the swing (the smallest rotation
+hip_abduction        taking the pelvis's Y onto the thigh's) as its attitude vector's components, flexion about
+hip_rotation         Z and abduction about -X (Woltring 1994), then internal rotation, the twist about the
+                     thigh's own axis that remains. One plane at a time, these are the ISB's Cardan angles; unlike
+                     a Cardan sequence they have no gimbal lock where a kick or a raised arm goes (abduction near
+                     90 degrees), only with the limb pointing straight up along the trunk. Rotation needs the knee
+                     bent by at least :data:`MIN_HINGE_FLEXION_DEG` (the knee's plane sets the thigh's X); else empty
+knee_flexion         the angle between thigh and shank, negative when the knee is hyperextended: the ankle in
+                     front of the thigh's line, seen in the thigh's swing frame, by less than
+                     :data:`MAX_HYPEREXTENSION_DEG` (a larger bend is a flexion, whichever way it seems to go)
 ankle_dorsiflexion   90 - the angle between the shank (ankle -> knee) and the foot (ankle -> toe): positive
                      when the toes come up towards the shin (needs the toes)
-shoulder_flexion     the same Cardan Z-X-Y sequence for the upper arm in the thorax frame; the elbow's plane
-shoulder_abduction   sets the arm's X (rotation empty when the elbow is straighter than
-shoulder_rotation    :data:`MIN_HINGE_FLEXION_DEG`). Near 90 degrees of abduction (arm horizontal to the side)
-                     the sequence is in gimbal lock: flexion and rotation are then ill-defined, their sum is not
+shoulder_flexion     the same for the upper arm in the thorax frame, the elbow's plane setting the arm's X
+shoulder_abduction   (rotation empty when the elbow is straighter than :data:`MIN_HINGE_FLEXION_DEG`)
+shoulder_rotation
 elbow_flexion        the angle between upper arm and forearm, 0 = straight, never negative: the arm rotates by
                      more than 90 degrees, so the side the forearm bends to cannot tell a hyperextended elbow
                      from a rotated arm
 hip_elevation        the angle between the trunk downwards (neck -> pelvis) and the thigh: how far the thigh
-shoulder_elevation   (upper arm) is raised in whichever direction; free of the sequences' singularities
+shoulder_elevation   (upper arm) is raised in whichever direction
 trunk_inclination    the angle between the trunk (pelvis -> neck) and world +z: 0 = upright, 90 = lying
 ==================== ======================================================================================
 
@@ -46,6 +47,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from stages.joints import JOINT_NAMES
 
@@ -54,11 +56,18 @@ from stages.joints import JOINT_NAMES
 #: a 45 cm shank bent by 20 degrees is 7 degrees of rotation).
 MIN_HINGE_FLEXION_DEG = 20.0
 
+#: A knee bent "forwards" by less than this reads as hyperextended, by more as flexed: no knee hyperextends
+#: that far (genu recurvatum is 5-15 degrees), while a thigh raised high or rotated far turns the frame the
+#: bend is judged in (Codman's paradox), so a deep flexion can look forwards.
+MAX_HYPEREXTENSION_DEG = 30.0
+
 #: Decimal places of angles in angles.csv (a thousandth of a degree).
 ANGLE_DECIMALS = 3
 
 _SIDES = ("l", "r")
 _UP = np.array([0.0, 0.0, 1.0])
+#: Below this sine a limb counts as along its proximal frame's Y (no swing, so no flexion or abduction).
+_PARALLEL = 1e-12
 
 
 def angle_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -89,27 +98,22 @@ def _local(frame: np.ndarray, v: np.ndarray, side: str) -> np.ndarray:
     return local
 
 
-def _cardan_zxy(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Flexion and abduction (radians) of a right limb whose proximal axis is ``axis (F, 3)`` (unit, local).
+def _swing(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Swing of a right limb whose proximal axis is ``axis (F, 3)`` (unit, in its proximal frame), radians.
 
-    ``axis = Rz(flexion) Rx(-abduction) e_y``; of the pair (a, b) and its twin (a + 180, 180 - b), the
-    one with the smaller |a| + |b| (both wrapped to [-180, 180]).
+    The swing is the smallest rotation taking the frame's Y onto ``axis``: an angle (the elevation) about
+    an axis in the X-Z plane; flexion and abduction are its attitude-vector components about Z and about
+    -X (Woltring 1994), so that elevation² = flexion² + abduction². Returns (flexion, abduction, elevation).
     """
-    flexion = np.arctan2(-axis[:, 0], axis[:, 1])
-    adduction = np.arcsin(np.clip(axis[:, 2], -1.0, 1.0))
-    twin_flexion = np.angle(np.exp(1j * (flexion + np.pi)))
-    twin_adduction = np.angle(np.exp(1j * (np.pi - adduction)))
-    twin = np.abs(twin_flexion) + np.abs(twin_adduction) < np.abs(flexion) + np.abs(adduction)
-    return np.where(twin, twin_flexion, flexion), -np.where(twin, twin_adduction, adduction)
+    elevation = np.arctan2(np.hypot(axis[:, 0], axis[:, 2]), axis[:, 1])
+    across = np.hypot(axis[:, 0], axis[:, 2])
+    scale = np.divide(elevation, across, out=np.zeros_like(across), where=across > _PARALLEL)
+    return -scale * axis[:, 0], -scale * axis[:, 2], elevation
 
 
-def _in_cardan_frame(local: np.ndarray, flexion: np.ndarray, abduction: np.ndarray) -> np.ndarray:
-    """``local (F, 3)`` expressed in the frame Rz(flexion) Rx(-abduction), rotation still undone."""
-    c, s = np.cos(flexion), np.sin(flexion)
-    x = c * local[:, 0] + s * local[:, 1]               # Rz(-flexion)
-    y = -s * local[:, 0] + c * local[:, 1]
-    ca, sa = np.cos(abduction), np.sin(abduction)      # Rx(+abduction)
-    return np.stack([x, ca * y - sa * local[:, 2], sa * y + ca * local[:, 2]], axis=-1)
+def _unswung(local: np.ndarray, flexion: np.ndarray, abduction: np.ndarray) -> np.ndarray:
+    """``local (F, 3)`` with the swing of attitude vector (-abduction, 0, flexion) undone."""
+    return Rotation.from_rotvec(np.column_stack([abduction, np.zeros_like(flexion), -flexion])).apply(local)
 
 
 def _limb(P: dict[str, np.ndarray], side: str, proximal: str, hinge: str, distal: str,
@@ -119,18 +123,18 @@ def _limb(P: dict[str, np.ndarray], side: str, proximal: str, hinge: str, distal
     ``bends_forward``: the distal segment swings anterior when the hinge flexes (elbow), else posterior (knee).
     """
     p, h, d = (f"{side}_{name}" for name in (proximal, hinge, distal))
-    flexion, abduction = _cardan_zxy(_local(frame, _unit(P[p] - P[h]), side))
-    distal_dir = _in_cardan_frame(_local(frame, _unit(P[d] - P[h]), side), flexion, abduction)
+    flexion, abduction, _ = _swing(_local(frame, _unit(P[p] - P[h]), side))
+    distal_dir = _unswung(_local(frame, _unit(P[d] - P[h]), side), flexion, abduction)
     # distal_dir = (±sin k cos r, -cos k, ∓sin k sin r) for hinge flexion k and rotation r (+ elbow, - knee)
     forward = distal_dir[:, 0] if bends_forward else -distal_dir[:, 0]
     sideways = -distal_dir[:, 2] if bends_forward else distal_dir[:, 2]
     bend = np.hypot(forward, sideways)
     if bends_forward:  # unsigned flexion, rotation over the full turn
         hinge_flexion, rotation = np.arctan2(bend, -distal_dir[:, 1]), np.arctan2(sideways, forward)
-    else:  # signed flexion, rotation within +-90 degrees
-        sign = np.where(forward < 0, -1.0, 1.0)
-        hinge_flexion = np.arctan2(sign * bend, -distal_dir[:, 1])
-        rotation = np.arctan2(sign * sideways, np.abs(forward))
+    else:  # signed flexion: a shank bent forwards, by no more than a knee can hyperextend
+        magnitude = np.arctan2(bend, -distal_dir[:, 1])
+        sign = np.where((forward < 0) & (magnitude < np.radians(MAX_HYPEREXTENSION_DEG)), -1.0, 1.0)
+        hinge_flexion, rotation = sign * magnitude, np.arctan2(sign * sideways, sign * forward)
     rotation = np.where(np.abs(np.degrees(hinge_flexion)) >= MIN_HINGE_FLEXION_DEG, rotation, np.nan)
     return {"flexion": np.degrees(flexion), "abduction": np.degrees(abduction), "rotation": np.degrees(rotation),
             "hinge": np.degrees(hinge_flexion)}

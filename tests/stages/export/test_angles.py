@@ -19,8 +19,8 @@ def _pose(heading_deg: float = 30.0, **angles: float) -> np.ndarray:
     """(1, 17, 3) a person built from anatomical angles (degrees, keyword ``<side>_<angle>``, default 0).
 
     The pelvis and thorax frames are one (X anterior, Y up, Z right), turned by ``heading_deg`` about the
-    vertical; each limb is ``Rz(flexion) Rx(-abduction) Ry(rotation)`` from that frame, then its hinge,
-    built for a right limb and mirrored through the sagittal plane for a left one.
+    vertical; each limb is the swing of attitude vector (-abduction, 0, flexion) after the twist ``Ry(rotation)``
+    from that frame, then its hinge, built for a right limb and mirrored through the sagittal plane for a left one.
     """
     turn = Rotation.from_euler("z", heading_deg, degrees=True).as_matrix()
     trunk = turn @ np.column_stack([[0, 1, 0], [0, 0, 1], [1, 0, 0]])  # columns X, Y, Z in the world
@@ -30,7 +30,8 @@ def _pose(heading_deg: float = 30.0, **angles: float) -> np.ndarray:
     def limb(side, root, hinge, distal, forward, lengths):
         get = {name: np.radians(angles.get(f"{side}_{name}", 0.0)) for name in (hinge[1], "flexion", "abduction",
                                                                               "rotation")}
-        frame = Rotation.from_euler("ZXY", [get["flexion"], -get["abduction"], get["rotation"]]).as_matrix()
+        frame = (Rotation.from_rotvec([-get["abduction"], 0.0, get["flexion"]])
+                 * Rotation.from_euler("y", get["rotation"])).as_matrix()
         k = get[hinge[1]]
         bend = np.array([np.sin(k) if forward else -np.sin(k), -np.cos(k), 0.0])
         mirror = np.diag([1.0, 1.0, -1.0 if side == "l" else 1.0])
@@ -105,11 +106,26 @@ def test_rotation_needs_a_bent_hinge():
     assert np.isnan(below["r_hip_rotation"]) and above["r_hip_rotation"] == pytest.approx(30.0)
 
 
-@pytest.mark.parametrize(("flexion", "abduction"), [(135.0, 0.0), (0.0, 135.0), (100.0, 10.0), (-30.0, 20.0)])
-def test_arms_raised_overhead_read_as_the_smaller_turn(flexion, abduction):
-    value = _angles(_pose(r_flexion=flexion, r_abduction=abduction))
-    assert value["r_shoulder_flexion"] == pytest.approx(flexion)
-    assert value["r_shoulder_abduction"] == pytest.approx(abduction)
+@pytest.mark.parametrize(("flexion", "abduction"), [(135.0, 0.0), (0.0, 135.0), (100.0, 10.0), (-30.0, 20.0),
+                                                   (0.0, 90.0), (60.0, 80.0)])
+def test_raised_limbs_read_without_gimbal_lock(flexion, abduction):
+    """Overhead forwards or sideways, horizontal to the side (a Cardan sequence's gimbal lock), a side kick."""
+    value = _angles(_pose(r_flexion=flexion, r_abduction=abduction, r_rotation=40.0, r_elbow_flexion=70.0,
+                          r_knee_flexion=70.0))
+    for limb in ("shoulder", "hip"):
+        assert value[f"r_{limb}_flexion"] == pytest.approx(flexion)
+        assert value[f"r_{limb}_abduction"] == pytest.approx(abduction)
+        assert value[f"r_{limb}_rotation"] == pytest.approx(40.0)
+    assert value["r_knee_flexion"] == pytest.approx(70.0) and value["r_elbow_flexion"] == pytest.approx(70.0)
+    assert value["r_shoulder_elevation"] == pytest.approx(np.hypot(flexion, abduction))
+
+
+def test_a_high_chambered_kick_keeps_its_knee_flexed_and_its_hip_rotation():
+    """A thigh raised high and out to the side, turned beyond 90 degrees from the frame its swing carries: the
+    bend looks forwards there, but a deep one is a flexion (no knee hyperextends 130 degrees)."""
+    value = _angles(_pose(l_flexion=60.0, l_abduction=130.0, l_rotation=-115.0, l_knee_flexion=130.0))
+    assert value["l_knee_flexion"] == pytest.approx(130.0) and value["l_hip_rotation"] == pytest.approx(-115.0)
+    assert value["l_hip_abduction"] == pytest.approx(130.0)
 
 
 def test_ankle_dorsiflexion_and_elevations():

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from tracking_testing import VOLUME, sample_ellipsoids
 
-from stages.tracking import tracker
 from stages.joints import JOINT_NAMES
+from stages.tracking import tracker
 from stages.tracking.body import load_body
 from stages.tracking.tracker import STATUSES, TrackerParams, TrackerState, track_frame
 
