@@ -86,11 +86,20 @@ def export_trajectories(frames: np.ndarray, joints: np.ndarray, fps: float, name
     gridded = with_bone_lengths(gridded, names, lengths)
     if cutoff_hz is not None:
         rate = fps / _frame_step(grid)
-        if not cutoff_hz < rate / 2:
-            raise InputError(f"export.filter_cutoff_hz: expected a cut-off below half the frame rate "
-                             f"({rate / 2:g} Hz for {rate:g} frames/s), got {cutoff_hz:g}")
+        check_cutoff(cutoff_hz, rate)
         gridded = with_bone_lengths(lowpass(gridded, rate, cutoff_hz), names, lengths)
     return grid, gridded
+
+
+def check_cutoff(cutoff_hz: float | None, rate: float) -> None:
+    """Refuse a smoothing cut-off (``export.filter_cutoff_hz``) that is not below half the frame ``rate``.
+
+    The run command calls it with the capture's rate before any work; :func:`export_trajectories` again with
+    the rate of the frames estimated (lost frames can widen the step between them).
+    """
+    if cutoff_hz is not None and not cutoff_hz < rate / 2:
+        raise InputError(f"export.filter_cutoff_hz: expected a cut-off below half the frame rate "
+                         f"({rate / 2:g} Hz for {rate:g} frames/s), got {cutoff_hz:g}")
 
 
 def write_joints_csv(path: str | os.PathLike, frames: np.ndarray, joints: np.ndarray,

@@ -6,17 +6,19 @@ import cv2
 import ezc3d
 import numpy as np
 import pytest
-from conftest import stick_figure
+from conftest import make_capture, stick_figure
 from trc import TRCData
 
 from calib.camera import Camera
 from calib.errors import InputError
+from pipeline.cli import main
 from pipeline.export_io import (
     read_joints_csv,
     write_exports,
     write_joints_csv,
     write_overlay_video,
 )
+from pipeline.runner import MANIFEST
 from stages.export import ExportParams
 from stages.export.angles import ANGLE_NAMES
 from stages.export.bvh import WORLD_TO_BVH
@@ -178,6 +180,15 @@ def test_filter_cut_off_above_the_nyquist_rate_is_refused(tmp_path):
     with pytest.raises(InputError, match="filter_cutoff_hz"):
         write_exports(tmp_path, np.arange(0, 20, 2), _walk(10), fps=30.0, params=ExportParams(filter_cutoff_hz=8.0))
     assert not (tmp_path / "joints.csv").exists()
+
+
+def test_the_run_command_refuses_a_cut_off_above_the_captures_nyquist_rate_before_any_work(tmp_path, capsys):
+    capture, out = make_capture(tmp_path / "capture"), tmp_path / "out"
+    assert main(["run", str(capture), "--out", str(out), "-q", "--set", "export.filter_cutoff_hz=12.5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == ("error: export.filter_cutoff_hz: expected a cut-off below half the frame rate "
+                       "(12.5 Hz for 25 frames/s), got 12.5")
+    assert not list(out.rglob(MANIFEST))
 
 
 def test_quality_csv_is_written_beside_joints_csv(tmp_path):
