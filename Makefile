@@ -21,7 +21,7 @@ check-seq:
 run: setup check-seq
 	$(PY) -m pipeline run data_samples/$(SEQ) --out runs/$(SEQ) --workers $(WORKERS) $(ARGS)
 	@if [ -f data_samples/$(SEQ)/groundtruth/joints.csv ]; then $(PY) -m pipeline eval runs/$(SEQ) | head -3; fi
-	@echo "report: runs/$(SEQ)/export/report.html   motion: runs/$(SEQ)/export/ (joints.csv, motion.bvh, angles.csv, joints.c3d)"
+	@echo "report: runs/$(SEQ)/export/report.html   motion: runs/$(SEQ)/export/ (joints.csv, quality.csv, joints.trc, motion.bvh, joints.c3d, angles.csv)"
 
 stage: setup check-seq
 	@test -n "$(STAGE)" || { echo "make: say which stage, e.g. make stage STAGE=tracking SEQ=$(SEQ)"; exit 2; }

@@ -101,11 +101,13 @@ def score_joints(out_dir: str | os.PathLike, truth: str | os.PathLike) -> JointM
     estimate = read_joints_csv(out_dir / "export" / JOINTS_FILE)
     true_frames, true_names, true_joints = read_joints_csv(truth)
     summary_path = out_dir / CAPTURE_JSON
-    processed = frames_io.read_json(summary_path).get("frames") if summary_path.is_file() else None
+    capture = frames_io.read_json(summary_path) if summary_path.is_file() else {}
+    processed = capture.get("frames")
     if processed is not None:
         kept = np.isin(true_frames, processed)
         true_frames, true_joints = true_frames[kept], true_joints[kept]
-    return evaluate_joints(*estimate, true_frames, true_names, true_joints)
+    fps = capture.get("fps")
+    return evaluate_joints(*estimate, true_frames, true_names, true_joints, frame_time_s=1.0 / fps if fps else None)
 
 
 def evaluate_run(out_dir: str | os.PathLike, *, truth: str | os.PathLike | None = None) -> dict:
@@ -141,6 +143,13 @@ def format_metrics(summary: dict) -> str:
         f"{summary['truth_frames']} truth frames estimated",
         pck,
         f"worst frame {worst['frame']}: {worst['mpjpe_mm']:.1f} mm",
+    ]
+    acceleration = summary.get("per_joint_acceleration_error_m_s2") or {}
+    if acceleration:
+        wrists = "  ".join(f"{name} {acceleration[name]:.2f}" for name in ("l_wrist", "r_wrist")
+                           if name in acceleration)
+        lines.append(f"acceleration error {summary['acceleration_error_m_s2']:.2f} m/s² (mean over joints; {wrists})")
+    lines += [
         "",
         f"{'joint':<20}{'MPJPE mm':>10}",
     ]

@@ -48,7 +48,13 @@ from calib.camera import Rig
 from calib.formats import load_rig, save_rig
 from pipeline import atomic, frames_io
 from pipeline.capture import Capture, capture_summary
-from pipeline.export_io import JOINTS_FILE, write_exports, write_joints_csv
+from pipeline.export_io import (
+    JOINTS_FILE,
+    QUALITY_FILE,
+    write_exports,
+    write_joints_csv,
+    write_quality_csv,
+)
 from pipeline.frame_tasks import (
     background_path,
     observations_path,
@@ -59,6 +65,7 @@ from pipeline.frame_tasks import (
 from pipeline.overlay_video import overlay_video_name, write_overlay_video
 from pipeline.runner import Stage, StageContext
 from stages.export import ExportParams
+from stages.export.quality import FrameQuality
 from stages.joints import JOINT_NAMES
 from stages.reconstruction import Observations, ReconstructionParams
 from stages.reconstruction.views import VOLUME_FACES, faces_reached
@@ -185,14 +192,17 @@ def read_tracking(folder: Path, frame: int) -> tuple[FrameResult, TrackerState]:
     record = frames_io.read_record(path)
     try:
         result, state = record["result"], TrackerState.from_dict(record["state"])
+        support = result.get("joint_support")  # absent from records written before it was saved
         estimate = FrameResult(**{**result, "pose": np.asarray(result["pose"], dtype=float),
-                                  "joints": np.asarray(result["joints"], dtype=float)})
+                                  "joints": np.asarray(result["joints"], dtype=float),
+                                  "joint_support": None if support is None else np.asarray(support, dtype=float)})
     except (KeyError, TypeError, ValueError) as error:
         raise frames_io.DamagedFileError(path, f"not a tracking record ({type(error).__name__}: {error})") from None
+    support_shape = None if estimate.joint_support is None else estimate.joint_support.shape
     if (record.get("frame") != frame or estimate.joints.shape != (len(JOINT_NAMES), 3)
-            or estimate.status not in STATUSES):
+            or estimate.status not in STATUSES or support_shape not in (None, (len(JOINT_NAMES),))):
         raise frames_io.DamagedFileError(path, f"not the tracking record of frame {frame} "
-                                         "(its frame number, joints or status differ)")
+                                         "(its frame number, joints, joint support or status differ)")
     return estimate, state
 
 
@@ -253,8 +263,24 @@ def warm_up_export(capture: Capture, params: ExportParams) -> None:
         importlib.import_module(REPORT_MODULE)
 
 
+def frame_quality(results: dict[int, FrameResult]) -> FrameQuality:
+    """The tracker's per-frame records as the arrays of ``quality.csv`` (``stages.export.quality``)."""
+    frames = sorted(results)
+    unrecorded = np.full(len(JOINT_NAMES), np.nan)
+    return FrameQuality(
+        frames=np.array(frames, dtype=int), statuses=np.array([results[f].status for f in frames]),
+        doubtful=np.array([results[f].doubtful for f in frames]),
+        observations=np.array([results[f].observations for f in frames], dtype=int),
+        log_likelihood=np.array([results[f].log_likelihood for f in frames], dtype=float),
+        outlier_fraction=np.array([results[f].outlier_fraction for f in frames], dtype=float),
+        support=np.array([unrecorded if results[f].joint_support is None else results[f].joint_support
+                          for f in frames]),
+        fitted=np.array([results[f].status in EXPORTED_STATUSES for f in frames]))
+
+
 def run_export(ctx: StageContext) -> None:
-    """joints.csv, BVH, angles and C3D of the estimated frames, then the overlay videos and the report.
+    """joints.csv, BVH, TRC, angles, C3D and quality.csv of the estimated frames, then the overlay videos and
+    the report.
 
     Frames the tracker only predicted are left out, as CAPTURE_FORMAT.md asks (no rows, never NaN).
     """
@@ -266,12 +292,15 @@ def run_export(ctx: StageContext) -> None:
         log.warning("export: %d of %d frames were not estimated and have no rows in joints.csv",
                     len(results) - len(estimated), len(results))
     frames = np.array(sorted(estimated), dtype=int)
+    quality = frame_quality(results)
     if len(frames):
-        write_exports(ctx.out_dir, frames, np.stack([estimated[frame] for frame in frames]), capture.fps)
+        write_exports(ctx.out_dir, frames, np.stack([estimated[frame] for frame in frames]), capture.fps,
+                      params=params, quality=quality)
     else:
         # Nothing to animate: joints.csv keeps its header so that readers see "no frame", not a failure.
-        log.warning("export: no frame was estimated; joints.csv has no rows and no BVH/C3D is written")
+        log.warning("export: no frame was estimated; joints.csv has no rows and no BVH/TRC/C3D is written")
         write_joints_csv(ctx.out_dir / JOINTS_FILE, frames, np.zeros((0, len(JOINT_NAMES), 3)))
+        write_quality_csv(ctx.out_dir / QUALITY_FILE, quality)
     if params.overlay_videos and capture.has_images and len(frames):  # before the report, which links them
         for camera in capture.rig:
             write_overlay_video(capture.iter_images(camera.name, capture.frame_numbers), camera, estimated,

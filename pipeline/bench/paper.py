@@ -54,7 +54,7 @@ BASE_OBSERVATIONS = 1000
 OUTLIER_FRACTION = 0.2
 #: Angles averaged into the joint-angle error (the kinematic parameters, not the free motion).
 LIMB_ANGLES = ("l_knee_flexion", "r_knee_flexion", "l_elbow_flexion", "r_elbow_flexion",
-               "l_hip_angle", "r_hip_angle", "l_shoulder_angle", "r_shoulder_angle")
+               "l_hip_elevation", "r_hip_elevation", "l_shoulder_elevation", "r_shoulder_elevation")
 TRAJECTORY_ANGLES = ("l_knee_flexion", "r_elbow_flexion")
 #: A frame whose MPJPE exceeds this is off track (the body lost, not merely imprecise), millimetres.
 OFF_TRACK_MM = 100.0
@@ -208,7 +208,7 @@ def score(joints: np.ndarray, statuses: Sequence[str], truth: np.ndarray) -> dic
     frames = pelvis_frame({name: truth[:, JOINT_NAMES.index(name)] for name in ("l_hip", "r_hip", "pelvis", "neck")})
     offset = np.einsum("fba,fjb->fja", frames, joints - truth).mean(axis=0)  # (17, 3) in the body's frame
     _, offset_free = joint_angles(joints - np.einsum("fab,jb->fja", frames, offset))
-    hips = [names.index(name) for name in ("l_hip_angle", "r_hip_angle")]
+    hips = [names.index(name) for name in ("l_hip_elevation", "r_hip_elevation")]
     forward = 1000.0 * offset[:, 2]  # the pelvis frame's third axis, millimetres
     scored = [JOINT_NAMES.index(name) for name in SCORED_JOINTS]
     frame_mpjpe = 1000.0 * np.linalg.norm(joints[:, scored] - truth[:, scored], axis=2).mean(axis=1)

@@ -25,7 +25,7 @@ from pathlib import Path
 from pipeline import atomic
 from pipeline.bench import figures
 
-SUITES = ("speed", "unseen", "paper", "foreign")
+SUITES = ("speed", "unseen", "paper", "foreign", "exports")
 RESULTS_JSON, RESULTS_MD = "results.json", "results.md"
 
 #: The project's targets (on this 2-core CPU).
@@ -46,6 +46,10 @@ FOREIGN_TRACKER_RATIO = 1.5
 #: masks were before their shadows were settled across views): points + normals' MPJPE must stay below this.
 PAPER_NOISY_STRENGTH = 0.75
 PAPER_NOISY_MPJPE_MM = 35.0
+#: Exports: the largest distance between joints.csv and the BVH, TRC or C3D in any frame (independent readers),
+#: and the most the smoothing may raise the MPJPE while it lowers the wrists' acceleration error.
+EXPORT_AGREEMENT_MM = 0.1
+SMOOTHING_MPJPE_RISE_MM = 0.5
 
 
 class SuiteSkipped(Exception):
@@ -138,6 +142,19 @@ def _noise_row(section: dict, strength: float) -> dict:
     raise KeyError(strength)
 
 
+def _largest_disagreement(section: dict) -> float:
+    """The largest distance (mm) between joints.csv and another export over every run, smoothed or not."""
+    return max(max(row["largest_disagreement_mm"], *(entry["largest_disagreement_mm"] for entry in row["smoothed"]))
+               for row in _scored(section))
+
+
+def _smoothing(section: dict, measure: Callable[[dict, dict], float]) -> float:
+    """The worst capture's ``measure(unsmoothed row, row smoothed at the judged cut-off)``."""
+    from pipeline.bench.exports import smoothed_row
+
+    return max(measure(row, smoothed_row(row, section["judged_cutoff_hz"])) for row in _scored(section))
+
+
 def _claim_share(rows: list[dict], rival: str, error: str = "angle_error_deg") -> float:
     """Fraction of swept values where points + normals has a lower ``error`` than ``rival``."""
     by_x: dict[float, dict[str, float]] = {}
@@ -189,6 +206,14 @@ TARGETS: tuple[Target, ...] = (
            lambda s: _noise_row(s, PAPER_NOISY_STRENGTH)["mpjpe_mm"], PAPER_NOISY_MPJPE_MM, False, "mm"),
     Target("paper", "points+normals frames off track at silhouette noise 0.75",
            lambda s: 100 * _noise_row(s, PAPER_NOISY_STRENGTH)["off_track"], 0.0, False, "%"),
+    Target("exports", "BVH, TRC, C3D vs joints.csv, largest distance in any frame (worst capture, smoothed or not)",
+           _largest_disagreement, EXPORT_AGREEMENT_MM, False, "mm", strict=True),
+    Target("exports", "smoothing at 6 Hz: wrist acceleration error, smoothed / unsmoothed (worst capture)",
+           lambda s: _smoothing(s, lambda raw, smooth: smooth["wrist_acceleration_m_s2"]
+                                / raw["wrist_acceleration_m_s2"]), 1.0, False, "×", strict=True),
+    Target("exports", "smoothing at 6 Hz: MPJPE rise (worst capture)",
+           lambda s: _smoothing(s, lambda raw, smooth: smooth["mpjpe_mm"] - raw["mpjpe_mm"]),
+           SMOOTHING_MPJPE_RISE_MM, False, "mm"),
 )
 
 
@@ -329,6 +354,33 @@ def format_foreign(foreign: dict) -> str:
     return "\n".join(lines)
 
 
+def format_exports(exports: dict) -> str:
+    """The agreement and confidence per capture, then MPJPE and wrist acceleration error per cut-off."""
+    def mm(row: dict, file: str):
+        return fmt(row.get("agreement_mm", {}).get(file), 5)
+
+    files = ("motion.bvh", "joints.trc", "joints.c3d")
+    scored = [row for row in exports["rows"] if "mpjpe_mm" in row]
+    first = format_table(
+        ["capture", *(f"{file} mm" for file in files), "unsupported pairs", "MPJPE unsupported mm",
+         "MPJPE others mm", "errors > 50 mm flagged"],
+        [(row["capture"], *(mm(row, file) for file in files), _percent(row["confidence"]["unsupported_share"]),
+          fmt(row["confidence"]["unsupported_mpjpe_mm"]), fmt(row["confidence"]["supported_mpjpe_mm"]),
+          _percent(row["confidence"]["large_errors_flagged"])) for row in scored])
+    cutoffs = exports["cutoffs_hz"]
+    second = format_table(
+        ["capture", "unsmoothed MPJPE mm", "wrist accel. m/s²",
+         *(f"{c:g} Hz: MPJPE mm / wrist accel." for c in cutoffs)],
+        [(row["capture"], fmt(row["mpjpe_mm"]), fmt(row["wrist_acceleration_m_s2"], 2),
+          *(f"{fmt(e['mpjpe_mm'])} / {fmt(e['wrist_acceleration_m_s2'], 2)}" for e in row["smoothed"]))
+         for row in scored if "smoothed" in row])
+    lines = [f"Captures found in `{exports['root']}`.", "", first, "", second]
+    for row in exports["rows"]:
+        if "error" in row or "mpjpe_mm" not in row:
+            lines += ["", f"`{row['capture']}` was not scored: {row.get('error') or row['run'].get('log_tail', '')}"]
+    return "\n".join(lines)
+
+
 def format_sweep(rows: list[dict], x_name: str) -> str:
     """One row per swept value and distance (the paper's curves are the ``angle mean`` column)."""
     extra = "mask IoU" if x_name == "noise" else "reconstructed"
@@ -402,6 +454,16 @@ FOREIGN_NOTES = (
     "ended in each status "
     "(doubtful: exported but flagged by the tracker's failure checks, overlapping tracked and initialised) and "
     "the share of frames initialised anew after the first.")
+EXPORTS_NOTES = (
+    "How: each foreign capture is run afresh with the default parameters (`python -m pipeline run`, 2 workers), "
+    "then its export stage alone again with `--set export.filter_cutoff_hz=<Hz>` at each cut-off. First table "
+    "(unsmoothed run): the largest distance over the estimated frames and joints between joints.csv and each "
+    "export as an independent reader sees it (bvhio's forward kinematics of the BVH, trc-data-reader, the c3d "
+    "package; `pipeline.bench.exports.agreement_mm`), then the scored (frame, joint) pairs whose quality.csv "
+    "confidence is below 0.5, the MPJPE of those and of the others, and the share of joint errors above 50 mm "
+    "that are so flagged. Second table: MPJPE and the wrists' acceleration error (mean norm of the difference "
+    "between estimated and true second differences, `pipeline eval`) unsmoothed and at each cut-off. The "
+    "targets are judged at 6 Hz; the agreement target over every run, smoothed or not.")
 PAPER_NOTES = (
     "How: in memory, calling the stage functions (`stages.reconstruction.reconstruct`, "
     "`stages.tracking.tracker.track_frame`) on the true silhouettes of a 56 fps rendering, perturbed "
@@ -429,7 +491,8 @@ def format_results(results: dict, figure_links: dict[str, str] | None = None, *,
     sections = (("speed", "Speed", SPEED_NOTES, format_speed),
                 ("unseen", "Accuracy on unseen captures", UNSEEN_NOTES, format_unseen),
                 ("paper", "The paper's experiments (Horaud et al. 2009, Sec. 4.1, Fig. 4)", PAPER_NOTES, None),
-                ("foreign", "Accuracy on captures made by another program", FOREIGN_NOTES, format_foreign))
+                ("foreign", "Accuracy on captures made by another program", FOREIGN_NOTES, format_foreign),
+                ("exports", "Exports: agreement, smoothing, confidence", EXPORTS_NOTES, format_exports))
     for suite, title, notes, body in sections:
         if suite not in results:
             continue
@@ -477,12 +540,14 @@ def peak_memory_mb() -> dict:
 
 def suite_runners() -> dict[str, Callable[..., dict]]:
     """Suite name -> ``run(out, captures, *, quick, workers) -> section`` (imported when needed)."""
+    from pipeline.bench.exports import run_exports
     from pipeline.bench.foreign import run_foreign
     from pipeline.bench.paper import run_paper
     from pipeline.bench.speed import run_speed
     from pipeline.bench.unseen import run_unseen
 
-    return {"speed": run_speed, "unseen": run_unseen, "paper": run_paper, "foreign": run_foreign}
+    return {"speed": run_speed, "unseen": run_unseen, "paper": run_paper, "foreign": run_foreign,
+            "exports": run_exports}
 
 
 def draw_figures(results: dict, folder: Path) -> dict[str, Path]:

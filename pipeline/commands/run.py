@@ -18,7 +18,7 @@ from calib.errors import InputError
 from pipeline import graph, run_warnings
 from pipeline.capture import Capture
 from pipeline.executors import make_executor
-from pipeline.export_io import BVH_FILE, C3D_FILE, JOINTS_FILE, read_joints_csv
+from pipeline.export_io import BVH_FILE, C3D_FILE, JOINTS_FILE, check_cutoff, read_joints_csv
 from pipeline.params import apply_overrides, default_params, parse_assignments, read_config
 from pipeline.run_warnings import WARNINGS_FILE
 from pipeline.runner import Runner, StageOutcome, format_summary, output_lock, select_stages, storage_error
@@ -111,6 +111,8 @@ def main(args: argparse.Namespace) -> int:
         with run_warnings.collecting() as warnings, \
                 make_executor(args.workers, args.scheduler, preload=graph.WORKER_MODULES) as workers:
             capture = Capture.open(args.capture, allow_outside_paths=args.allow_outside_paths)
+            step = capture.frame_numbers[1] - capture.frame_numbers[0] if len(capture.frame_numbers) > 1 else 1
+            check_cutoff(params["export"].filter_cutoff_hz, capture.fps / step)  # before any work
             runner = Runner(stages, capture, params, args.out, workers, show_progress,  # refuses --out in the capture
                             record_facts={"allow_outside_paths": args.allow_outside_paths})
             with output_lock(args.out):

@@ -5,24 +5,32 @@ Why from positions: a BVH viewer (Blender, MotionBuilder, bvhacker) then shows e
 
 Axes and units
     BVH viewers expect +Y up, so world points (x, y, z) (+z up, CAPTURE_FORMAT.md) are written as
-    (x, z, -y), the proper rotation by -90 degrees about x. Lengths stay in metres (Blender imports
-    a BVH at scale 1 as metres).
+    (x, z, -y), the proper rotation by -90 degrees about x. Lengths are in centimetres by default
+    (:data:`UNITS`): MotionBuilder, Maya and most animation tools read BVH lengths as centimetres
+    (a metre file shows a 1.7 cm character there); Blender asks for a scale on import (0.01 for cm).
 
 Hierarchy
-    The tree of :data:`stages.export.skeleton.BONES` with three zero-length helper joints: ``spine``
-    (at the pelvis, aims the trunk pelvis -> neck) and ``l_clavicle`` / ``r_clavicle`` (at the neck,
-    aim the shoulders). They exist because a BVH joint has one rotation, which can aim one bone
-    exactly; the pelvis aims both hips (they are opposite each other, the pelvis being their centre)
-    and every other joint aims one bone. The rest pose is a T-pose facing +Z: legs down (-Y), arms
-    sideways (the subject's left is +X), trunk, neck and head up, feet forward (+Z). Offsets are the
-    median bone lengths over the sequence along these rest directions. Every joint has
-    ``Zrotation Xrotation Yrotation`` channels (intrinsic Z, X, Y). The root (pelvis), the neck and
-    the head also have position channels: the trunk (pelvis -> neck) and the neck (neck -> head) are
-    the bones whose straight length really changes, because the spine bends (over the CMU clips in
-    mocap/ the pelvis-neck distance varies by 5 to 55 mm, neck-head by up to 8 mm), and a rigid
-    trunk would shift the whole upper body by that much. Their position channels give the exact
-    distance along the bone; a viewer that ignores position channels below the root shows the
-    median length instead.
+    The tree of :data:`stages.export.skeleton.BONES` with helper joints: ``spine`` (at the pelvis, aims
+    the trunk pelvis -> neck), ``chest`` (at the trunk's top, the neck joint centre: the frame the
+    neck and the shoulder girdle hang from), ``neck`` (at the same point, aims the head) and
+    ``l_clavicle`` / ``r_clavicle`` (there too, aim the shoulders). They exist because a BVH joint
+    has one rotation, which can aim one bone exactly; the pelvis aims both hips (they are opposite
+    each other, the pelvis being their centre) and every other joint aims one bone. With the
+    shoulders under the chest rather than the neck, a nod of the head moves no arm, as in animation
+    rigs. The rest pose is a T-pose facing +Z: legs down (-Y), arms sideways (the subject's left is
+    +X), trunk, neck and head up, feet forward (+Z). Offsets are the median bone lengths over the
+    sequence along these rest directions. Every joint has ``Zrotation Xrotation Yrotation`` channels
+    (intrinsic Z, X, Y). The root (pelvis), the chest and the head also have position channels: the
+    trunk (pelvis -> neck) and the neck (neck -> head) are the bones whose straight length really
+    changes (:data:`stages.export.skeleton.FLEXIBLE_BONES`; over the CMU clips in mocap/ the
+    pelvis-neck distance varies by 5 to 55 mm, neck-head by up to 8 mm), and a rigid trunk would
+    shift the whole upper body by that much. Their position channels give the exact distance along
+    the bone; a viewer that ignores position channels below the root shows the median length instead.
+
+Names
+    The joints keep joints.csv's names (plus the helpers'), or take the Mixamo rig's names
+    (:data:`MIXAMO_NAMES`: ``Hips``, ``LeftUpLeg``, ``LeftForeArm``...), which Blender's, Unity's
+    and most retargeting tools map onto a character by name.
 
 Rotations
     The pelvis frame is measured: x from the right to the left hip, y the trunk direction made
@@ -38,7 +46,8 @@ Rotations
 Exactness: a joint's position is its parent's plus the rotated offset, i.e. the observed bone
 direction times the median length, so positions are reproduced exactly for bones whose length is
 constant (and for the trunk and neck whatever their length), and otherwise are off by the length's deviation
-from the median.
+from the median. The pipeline's exports give every frame the same rigid bone lengths
+(:func:`stages.export.skeleton.with_bone_lengths`), so their BVH reproduces joints.csv in every frame.
 """
 
 from __future__ import annotations
@@ -51,21 +60,36 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from stages.export.joints_table import select_joints
+from stages.export.skeleton import FLEXIBLE_BONES
 from stages.joints import JOINT_NAMES, SCORED_JOINTS
 
 #: World (x, y, z), +z up  ->  BVH (x, z, -y), +Y up.
 WORLD_TO_BVH = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
-#: BVH joints with position channels: the root, and the ends of the bending trunk and neck.
-_POSITIONED = ("pelvis", "neck", "head")
+#: Length unit of the file -> its number per metre.
+UNITS: dict[str, float] = {"cm": 100.0, "m": 1.0, "mm": 1000.0}
 
 #: Length (metres) of the End Site segments (top of head, hands, tips of the feet): a display
 #: aid only, no joint position depends on it.
 END_SITE_LENGTH_M = 0.1
 
-#: Decimal places written for positions (metres) and angles (degrees): micrometres and
-#: micro-degrees keep a 1 m chain exact to far below a millimetre.
+#: Decimal places written for positions and angles (degrees): a micrometre in a metre file, and
+#: micro-degrees, keep a 1 m chain exact to far below a millimetre.
 DECIMALS = 6
+
+#: The BVH joints' names in the Mixamo rig (without its ``mixamorig:`` prefix). Mixamo's spine has
+#: three joints; here the one trunk bone runs from ``Spine`` to ``Spine2``, the chest the neck and the
+#: shoulders hang from in both rigs.
+MIXAMO_NAMES: dict[str, str] = {
+    "pelvis": "Hips", "spine": "Spine", "chest": "Spine2", "neck": "Neck", "head": "Head",
+    "l_hip": "LeftUpLeg", "l_knee": "LeftLeg", "l_ankle": "LeftFoot", "l_toe": "LeftToeBase",
+    "r_hip": "RightUpLeg", "r_knee": "RightLeg", "r_ankle": "RightFoot", "r_toe": "RightToeBase",
+    "l_clavicle": "LeftShoulder", "l_shoulder": "LeftArm", "l_elbow": "LeftForeArm", "l_wrist": "LeftHand",
+    "r_clavicle": "RightShoulder", "r_shoulder": "RightArm", "r_elbow": "RightForeArm", "r_wrist": "RightHand",
+}
+
+#: ``export.bvh_names`` value -> renaming of the BVH joints (an empty mapping keeps them).
+BONE_NAMINGS: dict[str, dict[str, str]] = {"joints": {}, "mixamo": MIXAMO_NAMES}
 
 #: Below this sine two directions count as parallel (or opposite) in :func:`_swing`.
 _TINY = 1e-12
@@ -95,13 +119,14 @@ _JOINTS: tuple[_BvhJoint, ...] = (
     _BvhJoint("r_ankle", "r_knee", "r_ankle", _DOWN, _FORWARD),
     _BvhJoint("r_toe", "r_ankle", "r_toe", _FORWARD, _FORWARD),
     _BvhJoint("spine", "pelvis", "pelvis", (0, 0, 0), _UP),
-    _BvhJoint("neck", "spine", "neck", _UP, _UP),
+    _BvhJoint("chest", "spine", "neck", _UP, _UP),
+    _BvhJoint("neck", "chest", "neck", (0, 0, 0), _UP),
     _BvhJoint("head", "neck", "head", _UP, _UP),
-    _BvhJoint("l_clavicle", "neck", "neck", (0, 0, 0), _LEFT),
+    _BvhJoint("l_clavicle", "chest", "neck", (0, 0, 0), _LEFT),
     _BvhJoint("l_shoulder", "l_clavicle", "l_shoulder", _LEFT, _LEFT),
     _BvhJoint("l_elbow", "l_shoulder", "l_elbow", _LEFT, _LEFT),
     _BvhJoint("l_wrist", "l_elbow", "l_wrist", _LEFT, _LEFT),
-    _BvhJoint("r_clavicle", "neck", "neck", (0, 0, 0), _RIGHT),
+    _BvhJoint("r_clavicle", "chest", "neck", (0, 0, 0), _RIGHT),
     _BvhJoint("r_shoulder", "r_clavicle", "r_shoulder", _RIGHT, _RIGHT),
     _BvhJoint("r_elbow", "r_shoulder", "r_elbow", _RIGHT, _RIGHT),
     _BvhJoint("r_wrist", "r_elbow", "r_wrist", _RIGHT, _RIGHT),
@@ -186,17 +211,26 @@ def _euler_zxy_degrees(R: np.ndarray) -> np.ndarray:
     return angles
 
 
-def _hierarchy_text(joints: list[_BvhJoint], offsets: dict[str, np.ndarray]) -> list[str]:
+def _positioned(joints: list[_BvhJoint]) -> set[str]:
+    """BVH joints with position channels: the root, and the ends of the flexible bones (trunk, neck)."""
+    at = {joint.name: joint.at for joint in joints}
+    return {joints[0].name} | {joint.name for joint in joints[1:]
+                               if (at[joint.parent], joint.at) in FLEXIBLE_BONES and any(joint.rest_from_parent)}
+
+
+def _hierarchy_text(joints: list[_BvhJoint], offsets: dict[str, np.ndarray], names: dict[str, str],
+                    end_site_length: float) -> list[str]:
     lines = ["HIERARCHY"]
+    positioned = _positioned(joints)
 
     def write(joint: _BvhJoint, depth: int) -> None:
         pad = "  " * depth
         keyword = "ROOT" if joint.parent is None else "JOINT"
-        lines.append(f"{pad}{keyword} {joint.name}")
+        lines.append(f"{pad}{keyword} {names.get(joint.name, joint.name)}")
         lines.append(f"{pad}{{")
         x, y, z = offsets[joint.name]
         lines.append(f"{pad}  OFFSET {x:.{DECIMALS}f} {y:.{DECIMALS}f} {z:.{DECIMALS}f}")
-        if joint.name in _POSITIONED:
+        if joint.name in positioned:
             lines.append(f"{pad}  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation")
         else:
             lines.append(f"{pad}  CHANNELS 3 Zrotation Xrotation Yrotation")
@@ -204,7 +238,7 @@ def _hierarchy_text(joints: list[_BvhJoint], offsets: dict[str, np.ndarray]) -> 
         for child in children:
             write(child, depth + 1)
         if not children:
-            ex, ey, ez = np.array(joint.end_site) * END_SITE_LENGTH_M
+            ex, ey, ez = np.array(joint.end_site) * end_site_length
             end_offset = f"OFFSET {ex:.{DECIMALS}f} {ey:.{DECIMALS}f} {ez:.{DECIMALS}f}"
             lines.extend([f"{pad}  End Site", f"{pad}  {{", f"{pad}    {end_offset}", f"{pad}  }}"])
         lines.append(f"{pad}}}")
@@ -213,7 +247,8 @@ def _hierarchy_text(joints: list[_BvhJoint], offsets: dict[str, np.ndarray]) -> 
     return lines
 
 
-def bvh_from_joints(joints: np.ndarray, frame_time_s: float, *, names: Sequence[str] = JOINT_NAMES) -> str:
+def bvh_from_joints(joints: np.ndarray, frame_time_s: float, *, names: Sequence[str] = JOINT_NAMES,
+                    units: str = "cm", naming: str = "joints") -> str:
     """BVH text animating a skeleton through the given joint positions.
 
     Parameters
@@ -225,6 +260,10 @@ def bvh_from_joints(joints: np.ndarray, frame_time_s: float, *, names: Sequence[
         Seconds between frames (``step / fps``).
     names : sequence of J str
         Must include the 15 scored joints; ``l_toe`` / ``r_toe`` are used when present.
+    units : {"cm", "m", "mm"}
+        Length unit of the file (:data:`UNITS`).
+    naming : {"joints", "mixamo"}
+        The BVH joints' names (:data:`BONE_NAMINGS`).
 
     Returns
     -------
@@ -236,9 +275,12 @@ def bvh_from_joints(joints: np.ndarray, frame_time_s: float, *, names: Sequence[
         raise ValueError(f"joints must have shape (F >= 1, {len(names)}, 3), got {joints.shape}")
     if not np.all(np.isfinite(joints)) or not frame_time_s > 0:
         raise ValueError("bvh_from_joints needs finite joints (fill gaps first) and a positive frame time")
+    if units not in UNITS or naming not in BONE_NAMINGS:
+        raise ValueError(f"units must be one of {list(UNITS)} and naming one of {list(BONE_NAMINGS)}, "
+                         f"got {units!r} and {naming!r}")
     present = [n for n in JOINT_NAMES if n in names]
     wanted = list(SCORED_JOINTS) + [n for n in ("l_toe", "r_toe") if n in present]
-    selected = select_joints(names, joints, wanted, source="bvh_from_joints joints")
+    selected = select_joints(names, joints, wanted, source="bvh_from_joints joints") * UNITS[units]
     P = {name: selected[:, i] @ WORLD_TO_BVH.T for i, name in enumerate(wanted)}
     bvh_joints = _bvh_joints(wanted)
 
@@ -250,16 +292,17 @@ def bvh_from_joints(joints: np.ndarray, frame_time_s: float, *, names: Sequence[
         offsets[joint.name] = np.array(joint.rest_from_parent, dtype=np.float64) * length
 
     G = _world_rotations(bvh_joints, P)
+    positioned = _positioned(bvh_joints)
     columns = [P["pelvis"], _euler_zxy_degrees(G["pelvis"])]
     for joint in bvh_joints[1:]:
-        if joint.name in _POSITIONED:  # the rest direction times the bone's current length
+        if joint.name in positioned:  # the rest direction times the bone's current length
             length = np.linalg.norm(P[joint.at] - P[parent_at[joint.name]], axis=-1)
             columns.append(length[:, None] * np.array(joint.rest_from_parent, dtype=np.float64))
         local = np.swapaxes(G[joint.parent], -1, -2) @ G[joint.name]
         columns.append(_euler_zxy_degrees(local))
     motion = np.hstack(columns)
 
-    lines = _hierarchy_text(bvh_joints, offsets)
+    lines = _hierarchy_text(bvh_joints, offsets, BONE_NAMINGS[naming], END_SITE_LENGTH_M * UNITS[units])
     lines += ["MOTION", f"Frames: {len(motion)}", f"Frame Time: {frame_time_s:.{DECIMALS + 2}f}"]
     lines += [" ".join(f"{v:.{DECIMALS}f}" for v in row) for row in motion]
     return "\n".join(lines) + "\n"

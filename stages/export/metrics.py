@@ -6,7 +6,11 @@ Definitions (the usual ones of the human-pose literature):
 - MPJPE (mean per-joint position error): the mean joint error over scored joints and matched frames,
   reported in millimetres, overall, per joint and per frame;
 - PCK@t: the fraction of (frame, joint) pairs whose error is at most t;
-- angle error: mean absolute difference of an angle of :mod:`stages.export.angles` over matched frames;
+- angle error: mean absolute difference (wrapped to +-180 degrees) of an angle of :mod:`stages.export.angles`
+  over the matched frames where both define it;
+- acceleration error: the mean norm of the difference between estimated and true accelerations (second
+  differences over three consecutive matched frames, m/s²), per joint: the jitter of a trajectory, which
+  MPJPE barely sees, and which smoothing (``export.filter_cutoff_hz``) lowers;
 - fraction estimated: matched frames / ground-truth frames (a frame the tracker lost has no row and
   counts as not estimated; it does not enter MPJPE);
 - silhouette IoU: |estimate AND truth| / |estimate OR truth| of binary masks.
@@ -15,7 +19,7 @@ Definitions (the usual ones of the human-pose literature):
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -41,6 +45,7 @@ class JointMetrics:
     truth_frame_count: int
     pck_thresholds_mm: tuple[float, ...]
     angle_errors_deg: dict[str, float]      # mean absolute error per angle
+    acceleration_errors_m_s2: dict[str, float] = field(default_factory=dict)  # per joint; {} without a frame time
 
     @property
     def per_frame_mm(self) -> np.ndarray:
@@ -76,6 +81,9 @@ class JointMetrics:
             "pck": {f"{threshold:g}mm": self.pck(threshold) for threshold in self.pck_thresholds_mm},
             "worst_frame": {"frame": int(self.frames[worst]), "mpjpe_mm": float(self.per_frame_mm[worst])},
             "angle_errors_deg": dict(self.angle_errors_deg),
+            "acceleration_error_m_s2": (float(np.mean(list(self.acceleration_errors_m_s2.values())))
+                                        if self.acceleration_errors_m_s2 else None),
+            "per_joint_acceleration_error_m_s2": dict(self.acceleration_errors_m_s2),
         }
 
 
@@ -94,13 +102,47 @@ def angle_errors(estimate: np.ndarray, truth: np.ndarray, names: Sequence[str]) 
     """
     angle_names, estimated = joint_angles(estimate, names)
     _, true = joint_angles(truth, names)
-    return {name: float(np.mean(np.abs(estimated[:, k] - true[:, k]))) for k, name in enumerate(angle_names)}
+    difference = np.abs((estimated - true + 180.0) % 360.0 - 180.0)  # NaN where either is undefined
+    defined = ~np.isnan(difference)
+    return {name: float(difference[defined[:, k], k].mean()) for k, name in enumerate(angle_names)
+            if defined[:, k].any()}
+
+
+def acceleration_errors(frames: np.ndarray, estimate: np.ndarray, truth: np.ndarray, names: Sequence[str],
+                        frame_time_s: float) -> dict[str, float]:
+    """Mean acceleration error (m/s²) per joint over the matched frames' consecutive triples.
+
+    Parameters
+    ----------
+    frames : (F,) int, ascending matched frame numbers
+    estimate, truth : (F, J, 3) float, metres
+    frame_time_s : float, seconds per capture frame (1 / fps)
+
+    A triple (f - s, f, f + s) counts when both gaps equal the smallest gap s between matched frames
+    (the capture's frame step); none: {}.
+    """
+    frames = np.asarray(frames, dtype=np.int64)
+    if len(frames) < 3:
+        return {}
+    gaps = np.diff(frames)
+    step = int(gaps.min())
+    middle = np.flatnonzero((gaps[:-1] == step) & (gaps[1:] == step)) + 1
+    if not len(middle):
+        return {}
+
+    def acceleration(x: np.ndarray) -> np.ndarray:
+        return (x[middle + 1] - 2.0 * x[middle] + x[middle - 1]) / (step * frame_time_s) ** 2
+
+    error = np.linalg.norm(acceleration(np.asarray(estimate, dtype=np.float64))
+                           - acceleration(np.asarray(truth, dtype=np.float64)), axis=-1)
+    return {name: float(e) for name, e in zip(names, error.mean(axis=0), strict=True)}
 
 
 def evaluate_joints(
     estimate_frames: np.ndarray, estimate_names: Sequence[str], estimate: np.ndarray,
     truth_frames: np.ndarray, truth_names: Sequence[str], truth: np.ndarray,
     *, scored: Sequence[str] = SCORED_JOINTS, pck_thresholds_mm: Sequence[float] = PCK_THRESHOLDS_MM,
+    frame_time_s: float | None = None,
 ) -> JointMetrics:
     """Score an estimated joint sequence against ground truth on their common frames.
 
@@ -109,6 +151,7 @@ def evaluate_joints(
     estimate_frames : (F,) int;  estimate_names : J names;  estimate : (F, J, 3) float, metres
     truth_frames : (T,) int;  truth_names : K names;  truth : (T, K, 3) float, metres
     scored : joint names to score (those present in both sequences are used)
+    frame_time_s : seconds per capture frame (1 / fps), for the acceleration errors; None: not computed
 
     Raises
     ------
@@ -132,6 +175,8 @@ def evaluate_joints(
         truth_frame_count=len(truth_frames),
         pck_thresholds_mm=tuple(float(t) for t in pck_thresholds_mm),
         angle_errors_deg=angle_errors(est, tru, joints),
+        acceleration_errors_m_s2={} if frame_time_s is None else acceleration_errors(common, est, tru, joints,
+                                                                                      frame_time_s),
     )
 
 

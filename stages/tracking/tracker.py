@@ -228,6 +228,13 @@ class FrameResult:
     doubtful : bool
         The fit failed the failure checks (`TrackerParams.max_outlier_fraction`, `failure_sigma_m`)
         and so did a re-initialisation: the better of the two is the estimate, exported but flagged.
+    observations : int
+        Usable observations of the frame (the data the likelihood sums over).
+    joint_support : (17,) float or None
+        Per joint of `JOINT_NAMES`, the observations explained by the segment that places it relative
+        to the joint before it in the skeleton (`joint_support`); None when the frame was not fitted.
+        The export's per-joint confidence comes from it: a limb EM keeps where the data say nothing
+        is still "tracked", and only this says that its data are missing.
     """
 
     pose: np.ndarray
@@ -238,10 +245,13 @@ class FrameResult:
     status: str
     height_m: float
     doubtful: bool = False
+    observations: int = 0
+    joint_support: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (lists of floats)."""
-        return {**asdict(self), "pose": self.pose.tolist(), "joints": self.joints.tolist()}
+        support = None if self.joint_support is None else np.asarray(self.joint_support).tolist()
+        return {**asdict(self), "pose": self.pose.tolist(), "joints": self.joints.tolist(), "joint_support": support}
 
 
 @dataclass(frozen=True)
@@ -326,6 +336,8 @@ _REFIT_TOLERANCE = 1e-3
 _REFIT_DISPLACEMENT_M = 5e-4
 # Normals shorter than this are not directions; such rows are dropped.
 _MIN_NORMAL = 1e-6
+# A joint this close to its segment's joint centre (metres) sits on it (`joint_support`).
+_AT_JOINT_CENTRE_M = 1e-9
 
 
 def track_frame(state: TrackerState | None, obs, body: BodyModel, params: TrackerParams,
@@ -353,7 +365,7 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     sized = _remembered("sized", body, (state.height_m, state.length_factors.tobytes()),
                         lambda: body.scaled(state.height_m).with_lengths(state.length_factors))
     if len(y) < params.min_observations:
-        return _predict(state, sized, params)
+        return _predict(state, sized, params, len(y))
     em = EMParams(distance=params.distance, max_iterations=params.max_iterations, tolerance=params.tolerance,
                   displacement_m=params.displacement_m, normal_noise_rad=np.radians(params.normal_noise_deg),
                   min_outlier_prior=params.min_outlier_prior, max_sigma_m=params.max_sigma_m)
@@ -416,8 +428,23 @@ def track_frame(state: TrackerState | None, obs, body: BodyModel, params: Tracke
     result = FrameResult(pose=tracked.pose, joints=tracked.body.joint_positions(tracked.pose),
                          log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
                          outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m,
-                         doubtful=doubtful)
+                         doubtful=doubtful, observations=len(y),
+                         joint_support=joint_support(tracked.body, tracked.mixture, len(y)))
     return result, new_state
+
+
+def joint_support(body: BodyModel, mixture: Mixture, n_observations: int) -> np.ndarray:
+    """(17,) observations explained by the segment that places each joint of `JOINT_NAMES`.
+
+    A joint at its segment's joint centre (an elbow at the forearm's) is placed by the parent segment
+    (the upper arm: its direction sets where the elbow is); any other joint (a wrist) by the segment
+    carrying it. The root's joint (the pelvis) by the root. The data a segment explains are I Σ π_p over
+    its ellipsoids (`init.segment_shares`).
+    """
+    segment = body.joint_segment
+    at_centre = np.all(np.abs(body.joint_offset) < _AT_JOINT_CENTRE_M, axis=1) & (body.parent[segment] >= 0)
+    placing = np.where(at_centre, body.parent[segment], segment)
+    return n_observations * segment_shares(body, mixture)[placing]
 
 
 def _remembered(slot: str, body: BodyModel, key, make):
@@ -469,7 +496,8 @@ def _usable(obs) -> tuple[np.ndarray, np.ndarray]:
     return y[keep], n[keep] / length[keep, None]
 
 
-def _predict(state: TrackerState, body: BodyModel, params: TrackerParams) -> tuple[FrameResult, TrackerState]:
+def _predict(state: TrackerState, body: BodyModel, params: TrackerParams,
+             observations: int) -> tuple[FrameResult, TrackerState]:
     """A frame without a fit: continue the motion (slowing down), flag it, declare a loss when long."""
     gap = state.frames_without_fit + 1
     lost = state.lost or gap > params.max_predicted_frames
@@ -480,7 +508,8 @@ def _predict(state: TrackerState, body: BodyModel, params: TrackerParams) -> tup
                              Sigma=state.Sigma, pi=state.pi, likelihood_level=state.likelihood_level,
                              frames_without_fit=gap, lost=lost, segment_shares=state.segment_shares)
     result = FrameResult(pose=pose, joints=body.joint_positions(pose), log_likelihood=0.0, iterations=0,
-                         outlier_fraction=1.0, status="lost" if lost else "predicted", height_m=state.height_m)
+                         outlier_fraction=1.0, status="lost" if lost else "predicted", height_m=state.height_m,
+                         observations=observations)
     return result, new_state
 
 
@@ -536,5 +565,6 @@ def _initialise(state, y, n, body, params, volume, em) -> tuple[FrameResult, Tra
                         recheck=doubtful)
     result = FrameResult(pose=fitted.pose, joints=joints, log_likelihood=fitted.log_likelihood[-1],
                          iterations=fitted.iterations, outlier_fraction=fitted.outlier_fraction,
-                         status="initialised", height_m=init.height_m, doubtful=doubtful)
+                         status="initialised", height_m=init.height_m, doubtful=doubtful, observations=len(y),
+                         joint_support=joint_support(fitted.body, fitted.mixture, len(y)))
     return result, new_state

@@ -271,7 +271,7 @@ def results():
 
 def test_targets_are_judged_on_the_measured_numbers(results):
     verdicts = {(t["suite"], t["target"]): t for t in suite.judge_targets(results)}
-    assert len(verdicts) == len(suite.TARGETS)
+    assert len(verdicts) == len([t for t in suite.TARGETS if t.suite in results])  # exports: test_bench_exports
     assert not verdicts[("speed", "end-to-end frames/s (6 cameras 780x580, video, 2 workers)")]["met"]
     tracker = verdicts[("speed", "tracker alone, frames/s at ~1000 observations")]
     assert tracker["met"] and tracker["value"] == 120.0  # over all frames, not the tracked ones only

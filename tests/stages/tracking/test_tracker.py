@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from tracking_testing import VOLUME, sample_ellipsoids
 
+from stages.joints import JOINT_NAMES
 from stages.tracking import tracker
 from stages.tracking.body import load_body
 from stages.tracking.tracker import STATUSES, TrackerParams, TrackerState, track_frame
@@ -203,3 +204,31 @@ def test_a_doubtful_initialisation_is_tracked_from_and_weighed_against_a_fresh_o
     tracked_ll, fresh_ll = fits[-1].log_likelihood[-1], initialisations[0][0].log_likelihood
     assert result.log_likelihood == max(tracked_ll, fresh_ll) and not after.recheck
     assert np.linalg.norm(result.joints - body.joint_positions(poses[1]), axis=1).mean() < 0.02
+
+
+def test_frames_record_the_data_supporting_each_joint_and_a_hidden_forearm_has_little(body):
+    """`joint_support`: the elbow is placed by the upper arm, the wrist by the forearm; a forearm whose data
+    are gone (hidden) explains almost nothing though the frame is still tracked."""
+    rng = np.random.default_rng(25)
+    poses = _walk(body, 3)
+    result, state = track_frame(None, _obs(body, poses[0], rng), body, PARAMS, VOLUME)
+    assert result.observations > 0 and result.joint_support.shape == (17,)
+    result, state = track_frame(state, _obs(body, poses[1], rng), body, PARAMS, VOLUME)
+    seen = dict(zip(JOINT_NAMES, result.joint_support, strict=True))
+    explained = result.observations * np.bincount(body.ellipsoid_segment, weights=state.pi[:-1])  # per segment
+    for joint, segment in [("l_elbow", "l_upperarm"), ("l_wrist", "l_forearm"), ("pelvis", "pelvis"),
+                           ("l_hip", "pelvis"), ("l_knee", "l_thigh"), ("l_toe", "l_foot")]:
+        assert seen[joint] == pytest.approx(explained[body.segment_names.index(segment)]), joint
+    obs = _obs(body, poses[2], rng)
+    ellipsoids = body.ellipsoids(poses[2])
+    forearm = np.flatnonzero(body.ellipsoid_segment == body.segment_names.index("l_forearm"))
+    inside = np.zeros(len(obs.points), bool)
+    for e in forearm:  # drop every datum within 1.5 semi-axes of the left forearm's ellipsoids
+        local = (obs.points - ellipsoids.t[e]) @ ellipsoids.R[e] / ellipsoids.semi_axes[e]
+        inside |= np.linalg.norm(local, axis=1) < 1.5
+    hidden = SimpleNamespace(points=obs.points[~inside], normals=obs.normals[~inside])
+    result, state = track_frame(state, hidden, body, PARAMS, VOLUME)
+    assert result.status == "tracked" and result.observations == len(hidden.points)
+    support = dict(zip(JOINT_NAMES, result.joint_support, strict=True))
+    assert support["l_wrist"] < 0.3 * seen["l_wrist"] and support["r_wrist"] > 0.5 * seen["r_wrist"]
+    assert json.loads(json.dumps(result.to_dict()))["joint_support"] == result.joint_support.tolist()
