@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import importlib
 import logging
 import math
 from collections.abc import Sequence
@@ -63,6 +62,7 @@ from pipeline.frame_tasks import (
     silhouettes_task,
 )
 from pipeline.overlay_video import overlay_video_name, write_overlay_video
+from pipeline.report import write_report
 from pipeline.runner import Stage, StageContext
 from stages.export import ExportParams
 from stages.export.quality import FrameQuality
@@ -253,16 +253,6 @@ def _warn_volume_contact(faces: np.ndarray, frames: Sequence[int], volume: np.nd
                         name, "xyz"[axis], volume[bound, axis], len(hits), len(frames), frames[hits[0]])
 
 
-#: The report's module: it imports matplotlib (slow to import), so it is imported only for a report.
-REPORT_MODULE = "pipeline.report"
-
-
-def warm_up_export(capture: Capture, params: ExportParams) -> None:
-    """Import the report's module (matplotlib) ahead of the export stage when it will write a report."""
-    if params.report:
-        importlib.import_module(REPORT_MODULE)
-
-
 def frame_quality(results: dict[int, FrameResult]) -> FrameQuality:
     """The tracker's per-frame records as the arrays of ``quality.csv`` (``stages.export.quality``)."""
     frames = sorted(results)
@@ -311,8 +301,6 @@ def run_export(ctx: StageContext) -> None:
             shown = frames if len(frames) else np.asarray(capture.frame_numbers)
             middle = int(shown[len(shown) // 2])
             images = {camera: next(capture.iter_images(camera, [middle])) for camera in capture.rig.names}
-        from pipeline.report import write_report  # here: see REPORT_MODULE
-
         write_report(ctx.output_root, rig=capture.rig, images=images)
 
 
@@ -342,8 +330,8 @@ STAGES: tuple[Stage, ...] = (
     Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
           code=("stages.export", "stages.checks", "stages.joints", "stages.tracking.tracker", "pipeline.export_io",
-                "pipeline.overlay_video", REPORT_MODULE, "pipeline.report_assets", "pipeline.tracking_summary",
+                "pipeline.overlay_video", "pipeline.report", "pipeline.svg_plot",
+                "pipeline.report_assets", "pipeline.tracking_summary",
                 "pipeline.run_warnings", "pipeline.evaluate", "pipeline.terminal", "pipeline.capture", "calib",
-                *FILES_CODE),
-          warm_up=warm_up_export),
+                *FILES_CODE)),
 )

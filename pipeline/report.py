@@ -1,6 +1,6 @@
 """One self-contained HTML report per run: ``<out_dir>/export/report.html``.
 
-It opens offline: images are inline (PNG plots and masks, JPEG photographs), the 3-D viewer is inline
+It opens offline: images are inline (SVG plots, PNG masks, JPEG photographs), the 3-D viewer is inline
 JavaScript on a <canvas>, and nothing is fetched but the overlay videos, which sit beside the report
 (``overlay_<camera>.webm``, written when ``export.overlay_videos`` is on) and are linked. Each section
 appears when its inputs exist, so the report also works on a run where only some stages finished:
@@ -13,7 +13,7 @@ appears when its inputs exist, so the report also works on a run where only some
   be an earlier run's;
 - an animated 3-D skeleton: played at the capture's frame rate (a clock in seconds, whatever the
   screen's refresh rate), orbited by dragging, zoomed with the wheel; the truth in grey when known;
-- plots (matplotlib, off-screen): tracking quality per frame, joint angles (the export's angles.csv),
+- plots (inline SVG, :mod:`pipeline.svg_plot`): tracking quality per frame, joint angles (the export's angles.csv),
   joint trajectories and the error over time (when there is a truth);
 - per camera: the skeleton drawn on one frame, that frame's silhouette, the background, and the overlay
   video (the caller passes the images and the rig; this module never opens the capture's media);
@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 import json
 import logging
 import os
@@ -34,8 +33,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from matplotlib.figure import Figure
-from matplotlib.patches import Patch
 
 from calib.camera import Rig
 from calib.errors import InputError
@@ -44,6 +41,7 @@ from pipeline.evaluate import CAPTURE_JSON, default_truth, format_metrics, score
 from pipeline.export_io import ANGLES_FILE, JOINTS_FILE, read_joints_csv
 from pipeline.overlay_video import overlay_video_name
 from pipeline.run_warnings import WARNINGS_FILE, read_warnings
+from pipeline.svg_plot import LegendEntry, Panel, ReferenceLine, Series, Strip, line_chart, with_gaps
 from pipeline.tracking_summary import (
     CATEGORIES,
     FrameStatus,
@@ -78,12 +76,17 @@ THUMB_WIDTH = 260
 #: JPEG quality of the embedded photographs (overlays, backgrounds): a sixth of PNG's size, no visible loss.
 JPEG_QUALITY = 85
 
-#: Matplotlib colours of the tracking categories (:data:`pipeline.tracking_summary.CATEGORIES`).
-CATEGORY_COLOURS = {"tracked": "tab:green", "initialised": "tab:blue", "doubtful": "tab:orange",
-                    "predicted": "tab:grey", "lost": "tab:red"}
+#: Matplotlib's "tab" colours, which the plots and report.css keep.
+BLUE, ORANGE, GREEN, RED, GREY = "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#7f7f7f"
+
+#: Colours of the tracking categories (:data:`pipeline.tracking_summary.CATEGORIES`), as report.css's swatches.
+CATEGORY_COLOURS = {"tracked": GREEN, "initialised": BLUE, "doubtful": ORANGE, "predicted": GREY, "lost": RED}
 
 #: Body-side colours of the plots: subject's left blue, right red, as the overlays draw them.
-SIDE_COLOURS = {"l": "tab:blue", "r": "tab:red", "c": "tab:green"}
+SIDE_COLOURS = {"l": BLUE, "r": RED, "c": GREEN}
+
+#: Line colours of :data:`TRAJECTORY_JOINTS`.
+TRAJECTORY_COLOURS = (BLUE, ORANGE, GREEN, RED)
 
 
 @dataclass(frozen=True)
@@ -130,18 +133,6 @@ def _data_uri(image: np.ndarray, extension: str, mime: str, options: Sequence[in
     return f"data:{mime};base64," + base64.b64encode(encoded.tobytes()).decode("ascii")
 
 
-def _figure(width_in: float, height_in: float) -> Figure:
-    """A figure that lays itself out as it draws (constrained layout: legends outside the axes included), so
-    that saving draws it once; ``bbox_inches="tight"`` would draw it twice, a second more for the report."""
-    return Figure(figsize=(width_in, height_in), layout="constrained")
-
-
-def _figure_uri(figure: Figure) -> str:
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=90)
-    return "data:image/png;base64," + base64.b64encode(buffer.getvalue()).decode("ascii")
-
-
 def _shrunk(image: np.ndarray, width: int) -> np.ndarray:
     if image.shape[1] <= width:
         return image
@@ -153,83 +144,55 @@ def _side(name: str) -> str:
     return name[0] if name[:2] in ("l_", "r_") else "c"
 
 
-def with_gaps(frames: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``frames (F,)`` and ``values (F, ...)`` with a NaN row after each frame followed by a gap (a step longer
-    than the smallest), so that a plotted line breaks where frames are missing instead of bridging them."""
-    frames, values = np.asarray(frames), np.asarray(values, dtype=float)
-    if len(frames) < 2:
-        return frames, values
-    steps = np.diff(frames)
-    after = np.flatnonzero(steps > steps.min()) + 1
-    return (np.insert(frames.astype(float), after, frames[after - 1] + steps.min()),
-            np.insert(values, after, np.nan, axis=0))
-
-
-def trajectory_figure(estimate: JointSequence, truth: JointSequence | None) -> Figure:
-    """x, y, z of :data:`TRAJECTORY_JOINTS` over frames: estimate solid, truth dashed."""
-    figure = _figure(11, 6.5)
-    axes = figure.subplots(3, 1, sharex=True)
-    colours = ("tab:blue", "tab:orange", "tab:green", "tab:red")
-    for joint, colour in zip(TRAJECTORY_JOINTS, colours, strict=True):
-        for sequence, style, suffix in ((estimate, "-", ""), (truth, "--", " (truth)")):
+def trajectory_figure(estimate: JointSequence, truth: JointSequence | None) -> str:
+    """x, y, z of :data:`TRAJECTORY_JOINTS` over frames (SVG): estimate solid, truth dashed."""
+    panels = [[] for _ in "xyz"]
+    legend = []
+    for joint, colour in zip(TRAJECTORY_JOINTS, TRAJECTORY_COLOURS, strict=True):
+        for sequence, style, suffix in ((estimate, "solid", ""), (truth, "dashed", " (truth)")):
             if sequence is None or joint not in sequence.names:
                 continue
             frames, positions = with_gaps(sequence.frames, sequence.joints[:, sequence.names.index(joint)])
-            for k, ax in enumerate(axes):
-                ax.plot(frames, positions[:, k], style, color=colour, lw=1.2,
-                        label=f"{joint}{suffix}" if k == 0 else None)
-    for ax, axis in zip(axes, "xyz", strict=True):
-        ax.set_ylabel(f"{axis} (m)")
-        ax.grid(alpha=0.3)
-    axes[-1].set_xlabel("frame")
-    figure.legend(ncol=4, fontsize=8, loc="outside upper left")
-    return figure
+            for k, series in enumerate(panels):
+                series.append(Series(frames, positions[:, k], colour, style))
+            legend.append(LegendEntry(f"{joint}{suffix}", colour, style))
+    return line_chart([Panel(series, y_label=f"{axis} (m)", height=150) for series, axis in zip(panels, "xyz",
+                                                                                              strict=True)],
+                      x_label="frame", legend=legend, description="joint trajectories")
 
 
-def error_figure(metrics: JointMetrics) -> Figure:
-    """Per-frame MPJPE and the worst joint's error over frames (millimetres)."""
-    figure = _figure(11, 3.2)
-    ax = figure.subplots()
-    ax.plot(metrics.frames, metrics.per_frame_mm, ".-", lw=1, ms=3, label="MPJPE (scored joints)")
-    ax.plot(metrics.frames, metrics.errors_mm.max(axis=1), ":", lw=1, color="tab:red", label="worst joint")
-    for threshold in metrics.pck_thresholds_mm:
-        ax.axhline(threshold, color="grey", lw=0.8, ls="--")
-    ax.set_xlabel("frame")
-    ax.set_ylabel("error (mm)")
-    ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    return figure
+def error_figure(metrics: JointMetrics) -> str:
+    """Per-frame MPJPE and the worst joint's error over frames (millimetres, SVG)."""
+    frames, worst = with_gaps(metrics.frames, metrics.errors_mm.max(axis=1))
+    series = (Series(*with_gaps(metrics.frames, metrics.per_frame_mm), BLUE, dots=True, width=1),
+              Series(frames, worst, RED, "dotted", width=1.2))
+    lines = [ReferenceLine(threshold, GREY, f"{threshold:g} mm") for threshold in metrics.pck_thresholds_mm]
+    legend = (LegendEntry("MPJPE (scored joints)", BLUE), LegendEntry("worst joint", RED, "dotted"))
+    return line_chart([Panel(series, y_label="error (mm)", reference_lines=lines, height=200, y_min=0.0)],
+                      x_label="frame", legend=legend, description="error over time")
 
 
-def quality_figure(statuses: Sequence[FrameStatus], limits: Mapping[str, float]) -> Figure:
-    """The tracker's view of each frame: log-likelihood, outlier share and Σ spread of the kept fit (with
+def quality_figure(statuses: Sequence[FrameStatus], limits: Mapping[str, float]) -> str:
+    """The tracker's view of each frame (SVG): log-likelihood, outlier share and Σ spread of the kept fit (with
     the failure checks' limits, ``limits["max_outlier_fraction"]`` and ``limits["failure_sigma_m"]``),
     and the frame's category as a coloured strip."""
     frames = np.array([status.frame for status in statuses])
     fitted = np.array([status.status in ("tracked", "initialised") for status in statuses])
-    figure = _figure(11, 6.2)
-    axes = figure.subplots(4, 1, sharex=True, gridspec_kw={"height_ratios": [3, 3, 3, 1]})
-    series = (("log-likelihood (nats)", [status.log_likelihood for status in statuses], None),
-              ("outliers (%)", [100 * status.outlier_fraction for status in statuses],
-               100 * limits["max_outlier_fraction"]),
-              ("Σ spread (cm)", [100 * status.sigma_spread_m for status in statuses], 100 * limits["failure_sigma_m"]))
-    for ax, (label, values, limit) in zip(axes, series, strict=False):
-        values = np.where(fitted, values, np.nan)  # a frame without a fit has no value to show
-        ax.plot(frames, values, ".-", lw=1, ms=3, color="tab:blue")
-        if limit is not None:
-            ax.axhline(limit, color="tab:red", lw=0.8, ls="--", label="failure check")
-            ax.legend(fontsize=8, loc="upper right")
-        ax.set_ylabel(label, fontsize=9)
-        ax.grid(alpha=0.3)
-    strip = axes[-1]
+    quantities = (("log-likelihood (nats)", [status.log_likelihood for status in statuses], None),
+                  ("outliers (%)", [100 * status.outlier_fraction for status in statuses],
+                   100 * limits["max_outlier_fraction"]),
+                  ("Σ spread (cm)", [100 * status.sigma_spread_m for status in statuses],
+                   100 * limits["failure_sigma_m"]))
+    panels = []
+    for label, values, limit in quantities:
+        values = np.where(fitted, np.asarray(values, dtype=float), np.nan)  # a frame without a fit has no value
+        lines = [ReferenceLine(limit, RED, "failure check")] if limit is not None else []
+        panels.append(Panel([Series(*with_gaps(frames, values), BLUE, dots=True, width=1)], y_label=label,
+                            reference_lines=lines, height=130))
     colours = [CATEGORY_COLOURS[status.category] for status in statuses]
-    strip.bar(frames, np.ones(len(frames)), width=_frame_step(frames), color=colours, align="center")
-    strip.set_yticks([])
-    strip.set_xlabel("frame")
-    figure.legend(handles=[Patch(color=CATEGORY_COLOURS[c], label=c) for c in CATEGORIES], ncol=len(CATEGORIES),
-                  fontsize=8, loc="outside lower left")
-    return figure
+    panels.append(Panel(strip=Strip(frames, colours, _frame_step(frames)), y_label="", height=36))
+    legend = [LegendEntry(category, CATEGORY_COLOURS[category], "box") for category in CATEGORIES]
+    return line_chart(panels, x_label="frame", legend=legend, legend_below=True, description="tracking quality")
 
 
 def _frame_step(frames: np.ndarray) -> float:
@@ -245,28 +208,20 @@ def angle_groups(names: Sequence[str]) -> dict[str, list[str]]:
     return groups
 
 
-def angles_figure(angles: AngleTable, truth: AngleTable | None) -> Figure:
-    """One small plot per joint of the angle table, left blue and right red, the truth dashed."""
-    groups = angle_groups(angles.names)
-    columns = 3
-    rows = -(-len(groups) // columns)
-    figure = _figure(11, 2.3 * rows)
-    axes = figure.subplots(rows, columns, sharex=True, squeeze=False).ravel()
-    for ax, (group, names) in zip(axes, groups.items(), strict=False):
+def angles_figure(angles: AngleTable, truth: AngleTable | None) -> str:
+    """One small plot per joint of the angle table (SVG), left blue and right red, the truth dashed."""
+    panels = []
+    for group, names in angle_groups(angles.names).items():
+        series = []
         for name in names:
             colour = SIDE_COLOURS[_side(name)]
-            ax.plot(*with_gaps(angles.frames, angles.degrees[:, angles.names.index(name)]), "-", lw=1.1, color=colour)
+            series.append(Series(*with_gaps(angles.frames, angles.degrees[:, angles.names.index(name)]), colour,
+                                 width=1.1))
             if truth is not None and name in truth.names:
-                ax.plot(truth.frames, truth.degrees[:, truth.names.index(name)], "--", lw=1, color=colour, alpha=0.7)
-        ax.set_title(group.replace("_", " "), fontsize=9)
-        ax.tick_params(labelsize=8)
-        ax.grid(alpha=0.3)
-    for ax in axes[len(groups):]:
-        ax.set_visible(False)
-    for ax in axes[-columns:]:
-        ax.set_xlabel("frame", fontsize=8)
-    figure.supylabel("degrees", fontsize=9)
-    return figure
+                series.append(Series(*with_gaps(truth.frames, truth.degrees[:, truth.names.index(name)]), colour,
+                                     "dashed", width=1, opacity=0.7))
+        panels.append(Panel(series, title=group.replace("_", " "), height=150))
+    return line_chart(panels, columns=3, x_label="frame", y_label="degrees", description="joint angles")
 
 
 def overlay_stills(images: Mapping[str, tuple[int, np.ndarray]], rig: Rig, estimate: JointSequence | None,
@@ -522,7 +477,7 @@ def _quality_section(run: _Run) -> str:
             "log-likelihood, the share of data it explains as outliers and the spread of its Σ (a fit beyond a "
             "dashed limit fails the checks and is re-initialised or flagged doubtful); below, each frame's "
             "category.</p>"
-            f"<img alt='tracking quality' src='{_figure_uri(quality_figure(run.statuses, run.limits))}'>")
+            + quality_figure(run.statuses, run.limits))
 
 
 def _angles_section(run: _Run) -> str:
@@ -536,18 +491,16 @@ def _angles_section(run: _Run) -> str:
         truth = AngleTable(run.truth.frames, names, degrees)
     caption = "Left blue, right red" + (", truth dashed" if truth is not None else "")
     return (f"<h2>Joint angles</h2><p class='note'>From export/{ANGLES_FILE}. {caption}.</p>"
-            f"<img alt='joint angles' src='{_figure_uri(angles_figure(run.angles, truth))}'>")
+            + angles_figure(run.angles, truth))
 
 
 def _plots_section(run: _Run) -> str:
     if run.estimate is None:
         return ""
     note = "Estimate solid, truth dashed." if run.truth is not None else ""
-    parts = [f"<h2>Joint trajectories</h2><p class='note'>{note}</p>",
-             f"<img alt='trajectories' src='{_figure_uri(trajectory_figure(run.estimate, run.truth))}'>"]
+    parts = [f"<h2>Joint trajectories</h2><p class='note'>{note}</p>", trajectory_figure(run.estimate, run.truth)]
     if run.metrics is not None:
-        parts += ["<h2>Error over time</h2>",
-                  f"<img alt='error over time' src='{_figure_uri(error_figure(run.metrics))}'>"]
+        parts += ["<h2>Error over time</h2>", error_figure(run.metrics)]
     return "".join(parts)
 
 

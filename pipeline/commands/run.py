@@ -20,6 +20,7 @@ from pipeline.capture import Capture
 from pipeline.executors import make_executor
 from pipeline.export_io import BVH_FILE, C3D_FILE, JOINTS_FILE, check_cutoff, read_joints_csv
 from pipeline.params import apply_overrides, default_params, parse_assignments, read_config
+from pipeline.report import REPORT_FILE
 from pipeline.run_warnings import WARNINGS_FILE
 from pipeline.runner import Runner, StageOutcome, format_summary, output_lock, select_stages, storage_error
 from pipeline.terminal import printable
@@ -55,8 +56,6 @@ UNUSABLE_RESULT = 3
 MIN_ESTIMATED_FRACTION = 0.5
 #: What the export stage must have written for the run to count as usable.
 EXPORTED_FILES = (JOINTS_FILE, BVH_FILE, C3D_FILE)
-#: ``pipeline.report.REPORT_FILE``, not imported from there: that module loads matplotlib.
-REPORT_FILE = "report.html"
 
 
 def unusable_result(export_dir: Path, frames: int) -> str | None:

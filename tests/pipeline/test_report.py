@@ -2,6 +2,7 @@ import json
 import re
 import shutil
 import subprocess
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -22,7 +23,6 @@ from pipeline.report import (
     stage_timings,
     viewer_data,
     warning_groups,
-    with_gaps,
     write_report,
 )
 from pipeline.run_warnings import WARNINGS_FILE
@@ -90,7 +90,7 @@ def shared_run(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def shared_text(shared_run):
-    """The report of :func:`shared_run` (building one takes a second or two: its plots)."""
+    """The report of :func:`shared_run`."""
     return build_report(shared_run)
 
 
@@ -146,19 +146,24 @@ def test_full_report_renders_in_chromium_without_js_errors_and_plays_its_videos(
                     "Joint trajectories", "Error over time", "Cameras", "Stage timings"):
         assert re.search(rf"<h2[^>]*>{re.escape(heading)}", text), heading
     assert not re.search(r"(src|href)=['\"]?(https?:)?//", text)  # nothing fetched from the network
-    assert text.count("data:image/png;base64,") == 4 + 2             # four plots, two silhouettes
+    assert text.count("data:image/png;base64,") == 2 and text.count("<svg ") == 4   # two silhouettes, four plots
     assert text.count("data:image/jpeg;base64,") == 2 + 2            # two overlay stills, two backgrounds
     assert "<video controls muted loop preload='metadata' src='overlay_front.webm'>" in text
     probe = ("return {errors: document.getElementById('js-errors').textContent, "
              "status: document.getElementById('skeleton-status').textContent, "
              "videos: Array.from(document.querySelectorAll('video')).map(v => [v.readyState, v.videoWidth, "
-             "v.error ? v.error.code : 0, Math.round(v.duration * 1000)])};")
+             "v.error ? v.error.code : 0, Math.round(v.duration * 1000)]), "
+             "plots: Array.from(document.querySelectorAll('svg.plot')).map(svg => {"
+             "const box = svg.getBoundingClientRect(); return [Math.round(box.width), Math.round(box.height), "
+             "svg.querySelectorAll('polyline').length]; })};")
     # A media element delays the page's load event until it has its metadata or has failed: at load, each
     # video knows its size and length, or why it cannot play (an mp4v MP4 fails here: error code 4).
     result = _probed(_chromium_dom(_probe(probe, text), full_run / "export", "probed.html"))
     assert result["errors"] == "" and result["status"] == f"rendered {FRAMES} frames"
     assert [video[1:] for video in result["videos"]] == [[160, 0, 1000 * FRAMES / FPS]] * 2, result["videos"]
     assert all(video[0] >= 1 for video in result["videos"])       # HAVE_METADATA or more
+    assert len(result["plots"]) == 4 and all(width > 500 and 100 < height < width and lines
+                                             for width, height, lines in result["plots"]), result["plots"]
 
 
 def test_the_viewer_plays_at_the_capture_frame_rate_whatever_the_refresh_rate_and_orbits(shared_text, tmp_path):
@@ -286,8 +291,10 @@ def test_viewer_data_aligns_frames_and_keeps_each_sequence_joints():
     assert data["estimate"]["sides"][:4] == ["c", "c", "c", "l"]
 
 
-def test_plotted_lines_break_where_frames_are_missing():
-    frames, values = with_gaps(np.array([0, 2, 4, 8, 10]), np.arange(10.0).reshape(5, 2))
-    assert frames.tolist() == [0, 2, 4, 6, 8, 10]                  # the step is 2: a gap after frame 4
-    assert np.isnan(values[3]).all() and values[[0, 1, 2, 4, 5]].tolist() == np.arange(10.0).reshape(5, 2).tolist()
-    assert with_gaps(np.array([3]), np.ones(1))[0].tolist() == [3]
+def test_every_plot_is_well_formed_svg_and_no_png_figure_is_left(shared_text):
+    plots = re.findall(r"<svg .*?</svg>", shared_text, re.S)
+    assert len(plots) == 4                     # quality, angles, trajectories, error
+    for plot in plots:
+        ElementTree.fromstring(plot)
+    assert "data:image/png" not in shared_text.split("<h2>Cameras")[0]   # PNGs are only the silhouettes below
+    assert "failure check" in plots[0] and "knee flexion" in plots[1] and "l_wrist (truth)" in plots[2]
