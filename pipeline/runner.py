@@ -122,11 +122,6 @@ class Stage:
         The stage may run while its last input stage is still writing: it reads each input file
         through :meth:`StageContext.ready`, which waits for the file. A run then overlaps the two
         (see :meth:`Runner.run`).
-    warm_up : callable or None
-        ``warm_up(capture, params)``: work that only makes the stage's first frame faster, such as
-        importing or loading compiled code. A run that will run the stage calls it in a background
-        thread as the run starts, so that it overlaps the stages before, and starts the stage once it
-        has returned. It writes nothing; if it fails, the failure is logged and the stage runs anyway.
     """
 
     name: str
@@ -136,7 +131,6 @@ class Stage:
     capture_parts: tuple[str, ...] = ()
     code: tuple[str, ...] = ()
     streams: bool = False
-    warm_up: Callable[[Capture, Any], None] | None = None
 
     def __post_init__(self) -> None:
         if not _STAGE_NAME.match(self.name):
@@ -792,7 +786,6 @@ class Runner:
     show_progress: bool = False
     record_facts: Mapping[str, Any] = field(default_factory=dict)
     outcomes: list[StageOutcome] = field(default_factory=list)
-    _warm_ups: dict[str, cf.Future] = field(default_factory=dict, init=False, repr=False)
     _changing: bool = field(default=False, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -882,15 +875,14 @@ class Runner:
         """One pass of :meth:`run` over the stages, the ``forced`` ones rerun even if up to date."""
         self.outcomes = []
         stages = list(self.stages)
-        with self._warming_up([stage for stage in stages if stage.name in selected], forced):
-            while stages:
-                stage = stages.pop(0)
-                if stage.name not in selected:
-                    self.outcomes.append(StageOutcome(stage.name, "not selected"))
-                elif stages and stages[0].name in selected and self._streams_after(stage, stages[0], forced):
-                    self.outcomes.extend(self._run_streaming(stage, stages.pop(0), forced))
-                else:
-                    self.outcomes.append(self.run_stage(stage, force=stage.name in forced))
+        while stages:
+            stage = stages.pop(0)
+            if stage.name not in selected:
+                self.outcomes.append(StageOutcome(stage.name, "not selected"))
+            elif stages and stages[0].name in selected and self._streams_after(stage, stages[0], forced):
+                self.outcomes.extend(self._run_streaming(stage, stages.pop(0), forced))
+            else:
+                self.outcomes.append(self.run_stage(stage, force=stage.name in forced))
 
     def _repair(self, error: frames_io.DamagedFileError, repaired: set[Path]) -> str:
         """Delete the damaged file of ``error`` and its stage's manifest; return that stage's name.
@@ -909,33 +901,6 @@ class Runner:
         path.unlink(missing_ok=True)
         (self.output_root / owner / MANIFEST).unlink(missing_ok=True)
         return owner
-
-    @contextlib.contextmanager
-    def _warming_up(self, stages: Sequence[Stage], forced: Collection[str]) -> Iterator[None]:
-        """Run the warm-ups (:attr:`Stage.warm_up`) of those of ``stages`` that will run, one after the other
-        in a background thread, during the block.
-
-        A stage will run when it has no finished result (or is ``forced``); one that has may still be up
-        to date, and its warm-up would then only delay the end of the run.
-        """
-        warming = [stage for stage in stages if stage.warm_up is not None
-                   and (stage.name in forced or read_manifest(self.output_root / stage.name) is None)]
-        if not warming:
-            yield
-            return
-        with cf.ThreadPoolExecutor(1, thread_name_prefix="warm-up") as background:
-            self._warm_ups = {stage.name: background.submit(self._warm_up, stage) for stage in warming}
-            try:
-                yield
-            finally:
-                self._warm_ups = {}
-
-    def _warm_up(self, stage: Stage) -> None:
-        try:
-            stage.warm_up(self.capture, self.params[stage.name])
-        except Exception as error:  # only a head start was lost: the stage itself shows any real problem
-            log.warning("%s: warm-up failed (%s: %s); the stage runs without it", stage.name,
-                        type(error).__name__, error)
 
     def _streams_after(self, upstream: Stage, stage: Stage, forced: Collection[str]) -> bool:
         """Whether ``stage`` should run alongside ``upstream``: it streams from it, will run anyway (no
@@ -1041,8 +1006,6 @@ class Runner:
         context = StageContext(stage.name, self.capture, self.params[stage.name], self.output_root / stage.name,
                                self.output_root, self.workers, self.show_progress, upstream)
         started = time.perf_counter()
-        if stage.name in self._warm_ups:
-            self._warm_ups[stage.name].result()
         with run_warnings.stage_scope(stage.name):
             frames = stage.run(context)
         return frames, time.perf_counter() - started

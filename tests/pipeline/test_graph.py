@@ -1,5 +1,5 @@
-"""The stage graph: what the run command imports, the export stage's warm-up, and each stage's cache key
-covering the code and data it really runs and reads."""
+"""The stage graph: what the run command imports, and each stage's cache key covering the code and data it
+really runs and reads."""
 
 from __future__ import annotations
 
@@ -20,10 +20,6 @@ def test_the_run_command_never_imports_matplotlib():
     code = "import sys, pipeline.commands.run, pipeline.report; print('matplotlib' in sys.modules)"
     imported = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert imported.strip() == "False"  # a quarter of a second to import: the report's plots are SVG instead
-
-
-def test_no_stage_needs_a_warm_up():
-    assert [stage.name for stage in STAGES if stage.warm_up is not None] == []
 
 
 #: Run in a fresh interpreter: each stage of pipeline.graph, run again on a finished output folder, in a

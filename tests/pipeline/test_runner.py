@@ -491,38 +491,6 @@ def test_an_upstream_failure_stops_the_streaming_stage_without_a_record(setup, m
     assert run(stages=STREAMING) == {"source": "up to date", "per_frame": "ran", "follower": "ran"}
 
 
-def warm_summary(capture, params) -> None:
-    _log(f"warm-up summary {params.rounding}")
-
-
-def failing_warm_up(capture, params) -> None:
-    raise RuntimeError("no compiled code today")
-
-
-WARMED = (*STAGES[:2], Stage("summary", run_summary, inputs=("per_frame",), params_type=SummaryParams,
-                             warm_up=warm_summary))
-
-
-def test_a_warm_up_runs_before_its_stage_and_only_when_the_stage_will_run(setup):
-    _, _, run, work = setup
-    run(stages=WARMED)
-    log = work()
-    assert "warm-up summary 3" in log and log.index("warm-up summary 3") < log.index("summary")
-    assert run(stages=WARMED) == {"source": "up to date", "per_frame": "up to date", "summary": "up to date"}
-    assert work() == []
-    run(stages=WARMED, force=True)
-    assert "warm-up summary 3" in work()
-
-
-def test_a_failed_warm_up_is_logged_and_its_stage_still_runs(setup, caplog):
-    _, out, run, _ = setup
-    stages = (*STAGES[:2], Stage("summary", run_summary, inputs=("per_frame",), params_type=SummaryParams,
-                                 warm_up=failing_warm_up))
-    assert run(stages=stages)["summary"] == "ran"
-    assert "summary: warm-up failed (RuntimeError: no compiled code today)" in caplog.text
-    assert frames_io.read_json(out / "summary" / "total.json") == {"total": 12.0}
-
-
 FOLLOWER_FAIL_AT = "FAKE_FOLLOWER_FAIL_AT"  # environment: frame at which the resuming follower raises
 
 
