@@ -95,7 +95,7 @@ def _subpixels(intrinsic: ElementTree.Element, full_width: int, where: str) -> f
     extent = _number(intrinsic, "sensorMaxU", where) - _number(intrinsic, "sensorMinU", where)
     ratio = extent / full_width
     factor = round(ratio)
-    if factor < 1 or abs(ratio - factor) > 0.01 * factor:
+    if factor < 1 or abs(ratio - factor) > 0.05:  # max - min is factor * width, or one unit less
         raise InputError(f"{where}: sensorMinU..sensorMaxU spans {extent:g} units over a {full_width}-pixel field of "
                          "view, expected a whole number of sub-pixel units per pixel (64 for QTM)")
     return float(factor)
