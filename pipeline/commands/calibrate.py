@@ -236,19 +236,20 @@ def calibrate_cameras(board: Board, intrinsic_views: dict[str, CameraViews], ext
     return result
 
 
-def _floor_views(text: str | None, extrinsic_views: dict[str, CameraViews]) -> tuple[str, ...]:
+def floor_views(text: str | None, sources: dict[str, Source]) -> tuple[str, ...]:
+    """The views named by ``--floor``, checked against the extrinsics image names (video frames are checked once
+    the board has been searched for: :func:`calibrate_rig` names a floor view no camera found)."""
     if text is None:
         return ()
+    if not sources:
+        raise InputError(f"--floor {text}: needs extrinsics/ views (the board on the floor seen by the rig)")
     views = tuple(view.strip() for view in text.split(",") if view.strip())
-    names = {view for camera in extrinsic_views.values() for view in camera.detections}
-    searched = {view for camera in extrinsic_views.values()
-                for view in ([p.stem for p in camera.source.images] if camera.source.images else [])}
+    stems = {path.stem for source in sources.values() for path in source.images}
+    videos = any(source.is_video for source in sources.values())
     for view in views:
-        if view not in names:
-            where = "is not one of the extrinsics views" if searched and view not in searched else \
-                "shows no board that any camera found"
-            raise InputError(f"--floor {text}: view {view!r} {where} (expected the file stem, or the 6-digit frame "
-                             "number of a video, of a view with the board flat on the floor)")
+        if view not in stems and not (videos and view.isdigit() and len(view) == 6):
+            raise InputError(f"--floor {text}: view {view!r} is not one of the extrinsics views (expected the file "
+                             "stem of a view with the board flat on the floor, or the 6-digit frame number in a video)")
     return views
 
 
@@ -365,21 +366,24 @@ def main(args: argparse.Namespace) -> int:
     if extrinsic_sources and only_intrinsics:
         raise InputError(f"{args.boards / 'extrinsics'}: no views of camera {only_intrinsics[0]!r}, expected "
                          f"extrinsics/{only_intrinsics[0]}/ like the other cameras' (or leave out its intrinsics/)")
+    floor = floor_views(args.floor, extrinsic_sources)
     args.out.mkdir(parents=True, exist_ok=True)
     _check_overwrite(args.out, args.force)
     progress = not args.quiet and sys.stderr.isatty()
+    # Intrinsics first, so that a board never found or too few views stop the command before the (longer) search
+    # of the extrinsics; cameras without intrinsics/ wait for their extrinsics views.
     intrinsic_views = detect_all(board, intrinsic_sources, "intrinsics", video_step=args.video_step, progress=progress)
+    intrinsics = calibrate_cameras(board, intrinsic_views, {}, distortion=args.distortion, max_views=args.max_views)
     extrinsic_views = detect_all(board, extrinsic_sources, "extrinsics", video_step=args.video_step, progress=progress)
-    floor = _floor_views(args.floor, extrinsic_views) if extrinsic_views else ()
-    if args.floor and not extrinsic_views:
-        raise InputError(f"--floor {args.floor}: needs extrinsics/ views (the board on the floor seen by the rig)")
     for name, views in intrinsic_views.items():
         if name in extrinsic_views and views.size != extrinsic_views[name].size:
             raise InputError(f"{extrinsic_views[name].source.path}: {extrinsic_views[name].size[0]}x"
                              f"{extrinsic_views[name].size[1]} views, but intrinsics/{name} has {views.size[0]}x"
                              f"{views.size[1]}: expected the same camera settings for both")
-    intrinsics = calibrate_cameras(board, intrinsic_views, extrinsic_views, distortion=args.distortion,
-                                   max_views=args.max_views)
+    intrinsics |= calibrate_cameras(board, {}, {name: views for name, views in extrinsic_views.items()
+                                                if name not in intrinsic_views},
+                                    distortion=args.distortion, max_views=args.max_views)
+    intrinsics = {name: intrinsics[name] for name in sorted(intrinsics, key=_natural_key)}
     sources = {name: ("intrinsics" if name in intrinsic_views else "extrinsics") + f"/{name}" for name in intrinsics}
     searched = {name: (intrinsic_views.get(name) or extrinsic_views[name]).searched for name in intrinsics}
     rig = None
