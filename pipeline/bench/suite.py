@@ -25,7 +25,7 @@ from pathlib import Path
 from pipeline import atomic
 from pipeline.bench import figures
 
-SUITES = ("speed", "unseen", "paper", "foreign")
+SUITES = ("speed", "unseen", "paper", "foreign", "calibration")
 RESULTS_JSON, RESULTS_MD = "results.json", "results.md"
 
 #: The project's targets (on this 2-core CPU).
@@ -46,6 +46,15 @@ FOREIGN_TRACKER_RATIO = 1.5
 #: masks were before their shadows were settled across views): points + normals' MPJPE must stay below this.
 PAPER_NOISY_STRENGTH = 0.75
 PAPER_NOISY_MPJPE_MM = 35.0
+#: Self-calibration from rendered board recordings (issue #17): the worst camera of the rig scenarios, and the
+#: taekwondo capture run on the self-calibrated rig against the true one; a phone's focal length from 7 views.
+CALIBRATION_FOCAL_PERCENT = 0.5
+CALIBRATION_PRINCIPAL_PX = 2.0
+CALIBRATION_CENTRE_MM = 10.0
+CALIBRATION_ROTATION_DEG = 0.2
+CALIBRATION_RMS_PX = 0.5
+CALIBRATION_MPJPE_MM = 2.0
+PHONE_FOCAL_PERCENT = 1.5
 
 
 class SuiteSkipped(Exception):
@@ -190,6 +199,38 @@ TARGETS: tuple[Target, ...] = (
     Target("paper", "points+normals frames off track at silhouette noise 0.75",
            lambda s: 100 * _noise_row(s, PAPER_NOISY_STRENGTH)["off_track"], 0.0, False, "%"),
 )
+
+
+def _calibration_worst(section: dict, key: str) -> float:
+    from pipeline.bench.calibration import board_rows
+
+    rows = board_rows(section)
+    if len(rows) < len([row for row in section["rows"] if "board" in row and row["scenario"] != "phone"]):
+        return float("nan")  # a scenario failed: no figure stands for it
+    return max(row[key] for row in rows)
+
+
+def _calibration_row(section: dict, scenario: str) -> dict:
+    from pipeline.bench.calibration import row_of
+
+    return row_of(section, scenario)
+
+
+TARGETS += tuple(Target("calibration", name, measure, threshold, False, unit) for name, measure, threshold, unit in (
+    ("focal length error, worst camera (rendered boards)", lambda s: _calibration_worst(s, "focal_percent"),
+     CALIBRATION_FOCAL_PERCENT, "%"),
+    ("principal point error, worst camera", lambda s: _calibration_worst(s, "principal_px"), CALIBRATION_PRINCIPAL_PX,
+     "px"),
+    ("camera centre error, worst camera (floor frame)", lambda s: _calibration_worst(s, "centre_mm"),
+     CALIBRATION_CENTRE_MM, "mm"),
+    ("camera rotation error, worst camera (floor frame)", lambda s: _calibration_worst(s, "rotation_deg"),
+     CALIBRATION_ROTATION_DEG, "°"),
+    ("reprojection RMS after bundle adjustment", lambda s: _calibration_worst(s, "rms_px"), CALIBRATION_RMS_PX, "px"),
+    ("taekwondo MPJPE, self-calibrated minus true rig", lambda s: _calibration_row(s, "taekwondo")[
+        "mpjpe_difference_mm"], CALIBRATION_MPJPE_MM, "mm"),
+    ("phone focal length error (1088x1920, 7 views)", lambda s: _calibration_row(s, "phone")["focal_percent"],
+     PHONE_FOCAL_PERCENT, "%"),
+))
 
 
 def judge_targets(results: dict) -> list[dict]:
@@ -422,14 +463,17 @@ def format_results(results: dict, figure_links: dict[str, str] | None = None, *,
     origin = f" from `{source}`" if source is not None else ""
     lines = ["# Benchmark results", "",
              f"Drawn by `python -m pipeline bench`{origin}; each section names the command that measured it. "
-             "`make bench` runs every suite (`ARGS=\"--suite speed|unseen|paper|foreign\"` for one, `--quick` for a "
-             "smoke run); `python -m pipeline bench --report-only --docs docs` redraws docs/results.md and "
-             "docs/figures/ from the stored results without measuring again.",
+             "`make bench` runs every suite (`ARGS=\"--suite speed|unseen|paper|foreign|calibration\"` for one, "
+             "`--quick` for a smoke run); `python -m pipeline bench --report-only --docs docs` redraws "
+             "docs/results.md and docs/figures/ from the stored results without measuring again.",
              "", "## Targets", "", format_targets(results)]
+    from pipeline.bench.calibration import CALIBRATION_NOTES, format_calibration
+
     sections = (("speed", "Speed", SPEED_NOTES, format_speed),
                 ("unseen", "Accuracy on unseen captures", UNSEEN_NOTES, format_unseen),
                 ("paper", "The paper's experiments (Horaud et al. 2009, Sec. 4.1, Fig. 4)", PAPER_NOTES, None),
-                ("foreign", "Accuracy on captures made by another program", FOREIGN_NOTES, format_foreign))
+                ("foreign", "Accuracy on captures made by another program", FOREIGN_NOTES, format_foreign),
+                ("calibration", "Calibrating a studio from board recordings", CALIBRATION_NOTES, format_calibration))
     for suite, title, notes, body in sections:
         if suite not in results:
             continue
@@ -477,12 +521,14 @@ def peak_memory_mb() -> dict:
 
 def suite_runners() -> dict[str, Callable[..., dict]]:
     """Suite name -> ``run(out, captures, *, quick, workers) -> section`` (imported when needed)."""
+    from pipeline.bench.calibration import run_calibration
     from pipeline.bench.foreign import run_foreign
     from pipeline.bench.paper import run_paper
     from pipeline.bench.speed import run_speed
     from pipeline.bench.unseen import run_unseen
 
-    return {"speed": run_speed, "unseen": run_unseen, "paper": run_paper, "foreign": run_foreign}
+    return {"speed": run_speed, "unseen": run_unseen, "paper": run_paper, "foreign": run_foreign,
+            "calibration": run_calibration}
 
 
 def draw_figures(results: dict, folder: Path) -> dict[str, Path]:

@@ -4,7 +4,7 @@ What ``python -m pipeline calibrate`` reads (docs/calibration.md)::
 
     <boards>/intrinsics/<camera>/<view:03d>.png   the board moved in front of one camera
     <boards>/extrinsics/<camera>/<view:03d>.png   one board pose per view, seen at once by every camera
-    <boards>/extrinsics/<camera>/floor.png        the board laid flat on the floor (optional)
+    <boards>/extrinsics/<camera>/floor.png        the board laid flat on the floor (optional; floor1.png ... more)
     <boards>/groundtruth/calibration.toml         the true rig (anipose), for scoring only
     <boards>/groundtruth/boards.json              the board, its poses, how the recording was made
 
@@ -257,6 +257,20 @@ def extrinsic_poses(rig: Rig, board: Board, count: int, rng: np.random.Generator
 FLOOR_POSE = BoardPose(np.diag([1.0, -1.0, -1.0]), np.zeros(3))
 
 
+def floor_poses(rig: Rig, count: int) -> dict[str, BoardPose]:
+    """``count`` views of the board flat on the floor: ``floor`` is :data:`FLOOR_POSE`; ``floor1``, ``floor2``, ...
+    lie turned on a circle of 1.2 m around the point below :func:`rig_centre` (more of the floor, seen by more
+    cameras, pins its plane down better)."""
+    middle = rig_centre(rig)
+    poses = {FLOOR_VIEW: FLOOR_POSE}
+    for k in range(1, count):
+        angle = 2 * np.pi * (k - 1) / max(count - 1, 1)
+        turn = Rotation.from_euler("z", np.degrees(angle) + 30, degrees=True).as_matrix()
+        position = np.array([*(middle[:2] + 1.2 * np.array([np.cos(angle), np.sin(angle)])), 0.0])
+        poses[f"{FLOOR_VIEW}{k}"] = BoardPose(turn @ FLOOR_POSE.R, position)
+    return poses
+
+
 def studio_room(rig: Rig, seed: int) -> Room:
     """A room around the rig: the cameras 0.8 m inside its walls, the ceiling above the highest."""
     centres = rig.centres
@@ -267,10 +281,11 @@ def studio_room(rig: Rig, seed: int) -> Room:
 
 
 def write_board_recording(rig: Rig, board: Board, out: Path, *, intrinsic_views: int, extrinsic_views: int,
-                          floor: bool = True, noise_sigma: float = 2.0, seed: int = 0,
+                          floor_views: int = 1, noise_sigma: float = 2.0, seed: int = 0,
                           cameras_for_intrinsics: list[str] | None = None) -> None:
     """Render a ``BOARDS`` folder (module docstring) for ``rig`` into ``out`` (created; must not exist).
 
+    ``floor_views``: views of the board on the floor (:func:`floor_poses`; 0 for none);
     ``cameras_for_intrinsics``: the cameras that get an ``intrinsics/`` folder (default all).
     """
     out = Path(out)
@@ -289,9 +304,8 @@ def write_board_recording(rig: Rig, board: Board, out: Path, *, intrinsic_views:
             cv2.imwrite(str(folder / f"{index:03d}.png"), image)
         record["intrinsics"][name] = [pose.to_dict() for pose in poses]
     poses = {f"{index:03d}": pose for index, pose in enumerate(extrinsic_poses(rig, board, extrinsic_views, pose_rng))}
-    if floor:
-        poses[FLOOR_VIEW] = FLOOR_POSE
-    for camera in rig:
+    poses |= floor_poses(rig, floor_views) if floor_views else {}
+    for camera in rig if poses else ():
         folder = out / "extrinsics" / camera.name
         folder.mkdir(parents=True)
         for key, pose in poses.items():
