@@ -303,7 +303,8 @@ def write_board_recording(rig: Rig, board: Board, out: Path, *, intrinsic_views:
             image = render_view(views[name], board, texture, pose, noise_sigma=noise_sigma, rng=noise_rng)
             cv2.imwrite(str(folder / f"{index:03d}.png"), image)
         record["intrinsics"][name] = [pose.to_dict() for pose in poses]
-    poses = {f"{index:03d}": pose for index, pose in enumerate(extrinsic_poses(rig, board, extrinsic_views, pose_rng))}
+    shared = extrinsic_poses(rig, board, extrinsic_views, pose_rng) if extrinsic_views else []
+    poses = {f"{index:03d}": pose for index, pose in enumerate(shared)}
     poses |= floor_poses(rig, floor_views) if floor_views else {}
     for camera in rig if poses else ():
         folder = out / "extrinsics" / camera.name
