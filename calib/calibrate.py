@@ -255,10 +255,11 @@ def calibrate_rig(intrinsics: Mapping[str, Intrinsics], observations: Mapping[st
     if missing:
         raise InputError(f"camera {missing[0]!r}: the board was found in none of its extrinsics views, expected it "
                          "in views shared with other cameras")
-    floor = tuple(floor)
-    for view in floor:
-        if not any(view in observations[name] for name in names):
-            raise InputError(f"--floor {view}: no camera found the board in view {view!r}, expected it in at least one")
+    found = tuple(view for view in floor if any(view in observations[name] for name in names))
+    if floor and not found:
+        raise InputError(f"--floor {','.join(floor)}: no camera found the board in these views, expected it in at "
+                         "least one camera (a board on the floor is seen at a grazing angle: larger squares help)")
+    floor = found  # a floor view no camera found is left out (RigCalibration.floor lists those used)
     candidates = {(name, view): board_poses(object_points, detection, intrinsics[name].K, intrinsics[name].dist)
                   for name in names for view, detection in observations[name].items()}
     support, relative = _pairwise(names, intrinsics, observations, candidates, object_points)

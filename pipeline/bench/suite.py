@@ -221,9 +221,9 @@ TARGETS += tuple(Target("calibration", name, measure, threshold, False, unit) fo
      CALIBRATION_FOCAL_PERCENT, "%"),
     ("principal point error, worst camera", lambda s: _calibration_worst(s, "principal_px"), CALIBRATION_PRINCIPAL_PX,
      "px"),
-    ("camera centre error, worst camera (floor frame)", lambda s: _calibration_worst(s, "centre_mm"),
+    ("camera centre error, worst camera (rigidly aligned)", lambda s: _calibration_worst(s, "aligned_centre_mm"),
      CALIBRATION_CENTRE_MM, "mm"),
-    ("camera rotation error, worst camera (floor frame)", lambda s: _calibration_worst(s, "rotation_deg"),
+    ("camera rotation error, worst camera (rigidly aligned)", lambda s: _calibration_worst(s, "aligned_rotation_deg"),
      CALIBRATION_ROTATION_DEG, "°"),
     ("reprojection RMS after bundle adjustment", lambda s: _calibration_worst(s, "rms_px"), CALIBRATION_RMS_PX, "px"),
     ("taekwondo MPJPE, self-calibrated minus true rig", lambda s: _calibration_row(s, "taekwondo")[

@@ -390,6 +390,10 @@ def main(args: argparse.Namespace) -> int:
     if extrinsic_views:
         rig = calibrate_rig(intrinsics, {name: extrinsic_views[name].detections for name in intrinsics},
                             board.object_points, floor=floor)
+    if rig is not None and set(rig.floor) != set(floor):
+        missing = ", ".join(sorted(set(floor) - set(rig.floor)))
+        print(f"warning: --floor: no camera found the board in view(s) {missing}; the floor is set by "
+              f"{', '.join(rig.floor)}", file=sys.stderr)
     report = build_report(board, args, intrinsics, sources, searched, rig)
     for name, lens in intrinsics.items():
         if lens.weak:
