@@ -164,8 +164,8 @@ def _taekwondo_copy(folder: Path, calibration: Path | None, frames: int | None) 
     for part in ("videos", "background", "groundtruth"):
         (folder / part).symlink_to(TAEKWONDO / part)
     text = (TAEKWONDO / "capture.yaml").read_text()
-    if calibration is None:
-        (folder / "calibration").symlink_to(TAEKWONDO / "calibration")
+    if calibration is None:  # copied, not linked: a calibration must lie inside its capture
+        shutil.copytree(TAEKWONDO / "calibration", folder / "calibration")
     else:
         shutil.copytree(calibration, folder / "calibration")
         from pipeline.commands.calibrate import calibration_block, update_capture_yaml
