@@ -1,4 +1,5 @@
-"""Read and write a rig in the calibration formats of CAPTURE_FORMAT.md: colmap, opencv, anipose, projection.
+"""Read and write a rig in the calibration formats of CAPTURE_FORMAT.md: colmap, opencv, anipose, projection,
+qualisys.
 
 Readers return the rig exactly as the file states it (file units, file up axis); ``calib.world``
 converts it to the pipeline's world frame. Every problem with a file raises ``InputError`` naming
@@ -15,9 +16,10 @@ from types import ModuleType
 from calib.camera import Rig
 from calib.errors import InputError
 
-FORMATS = ("colmap", "opencv", "anipose", "projection")
-#: Formats that store no image size: it comes from the media.
-SIZELESS_FORMATS = ("opencv", "projection")
+FORMATS = ("colmap", "opencv", "anipose", "projection", "qualisys")
+#: Formats whose readers take the image sizes of the media: opencv and projection store none, qualisys the
+#: sensor's (the videos may be recorded smaller, and marker-only cameras have none).
+SIZELESS_FORMATS = ("opencv", "projection", "qualisys")
 
 
 def _reader(fmt: str) -> ModuleType:
@@ -36,11 +38,12 @@ def load_rig(fmt: str, path: str | Path, *, image_sizes: Mapping[str, tuple[int,
 
     Parameters
     ----------
-    fmt : {"colmap", "opencv", "anipose", "projection"}
+    fmt : {"colmap", "opencv", "anipose", "projection", "qualisys"}
     path : str or Path
         colmap: the model directory; opencv: the directory holding ``intri.yml`` and ``extri.yml``
         (or ``intri.yml`` itself); anipose: ``calibration.toml`` or the directory holding it;
-        projection: the directory of one 3x4 matrix file per camera.
+        projection: the directory of one 3x4 matrix file per camera; qualisys: the ``.qca.txt`` file or the
+        directory holding it.
     image_sizes : mapping of camera name to (width, height), optional
         Sizes read from the media. opencv files (EasyMocap's ``W_``/``H_`` keys aside) and projection
         matrices do not store sizes, so they come from here. Formats that store sizes must agree with the given ones:

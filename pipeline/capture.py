@@ -45,7 +45,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-CALIBRATION_FORMATS = ("colmap", "opencv", "anipose", "projection")
+CALIBRATION_FORMATS = ("colmap", "opencv", "anipose", "projection", "qualisys")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 FRAME_FILE = re.compile(r"^(\d{6,})(\.[A-Za-z]+)$")

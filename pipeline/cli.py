@@ -37,6 +37,7 @@ SUBCOMMANDS: dict[str, str] = {
     "params": "pipeline.commands.params",
     "bench": "pipeline.commands.bench",
     "warmup": "pipeline.commands.warmup",
+    "calibrate": "pipeline.commands.calibrate",
 }
 
 #: Exit status for a user error (as argparse uses for a bad command line).

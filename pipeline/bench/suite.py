@@ -25,7 +25,7 @@ from pathlib import Path
 from pipeline import atomic
 from pipeline.bench import figures
 
-SUITES = ("speed", "unseen", "paper", "foreign", "exports")
+SUITES = ("speed", "unseen", "paper", "foreign", "exports", "calibration")
 RESULTS_JSON, RESULTS_MD = "results.json", "results.md"
 
 #: The project's targets (on this 2-core CPU).
@@ -50,6 +50,15 @@ PAPER_NOISY_MPJPE_MM = 35.0
 #: and the most the smoothing may raise the MPJPE while it lowers the wrists' acceleration error.
 EXPORT_AGREEMENT_MM = 0.1
 SMOOTHING_MPJPE_RISE_MM = 0.5
+#: Self-calibration from rendered board recordings (issue #17): the worst camera of the rig scenarios, and the
+#: taekwondo capture run on the self-calibrated rig against the true one; a phone's focal length from 7 views.
+CALIBRATION_FOCAL_PERCENT = 0.5
+CALIBRATION_PRINCIPAL_PX = 2.0
+CALIBRATION_CENTRE_MM = 10.0
+CALIBRATION_ROTATION_DEG = 0.2
+CALIBRATION_RMS_PX = 0.5
+CALIBRATION_MPJPE_MM = 2.0
+PHONE_FOCAL_PERCENT = 1.5
 
 
 class SuiteSkipped(Exception):
@@ -215,6 +224,38 @@ TARGETS: tuple[Target, ...] = (
            lambda s: _smoothing(s, lambda raw, smooth: smooth["mpjpe_mm"] - raw["mpjpe_mm"]),
            SMOOTHING_MPJPE_RISE_MM, False, "mm"),
 )
+
+
+def _calibration_worst(section: dict, key: str) -> float:
+    from pipeline.bench.calibration import board_rows
+
+    rows = board_rows(section)
+    if len(rows) < len([row for row in section["rows"] if "board" in row and row["scenario"] != "phone"]):
+        return float("nan")  # a scenario failed: no figure stands for it
+    return max(row[key] for row in rows)
+
+
+def _calibration_row(section: dict, scenario: str) -> dict:
+    from pipeline.bench.calibration import row_of
+
+    return row_of(section, scenario)
+
+
+TARGETS += tuple(Target("calibration", name, measure, threshold, False, unit) for name, measure, threshold, unit in (
+    ("focal length error, worst camera (rendered boards)", lambda s: _calibration_worst(s, "focal_percent"),
+     CALIBRATION_FOCAL_PERCENT, "%"),
+    ("principal point error, worst camera", lambda s: _calibration_worst(s, "principal_px"), CALIBRATION_PRINCIPAL_PX,
+     "px"),
+    ("camera centre error, worst camera (rigidly aligned)", lambda s: _calibration_worst(s, "aligned_centre_mm"),
+     CALIBRATION_CENTRE_MM, "mm"),
+    ("camera rotation error, worst camera (rigidly aligned)", lambda s: _calibration_worst(s, "aligned_rotation_deg"),
+     CALIBRATION_ROTATION_DEG, "°"),
+    ("reprojection RMS after bundle adjustment", lambda s: _calibration_worst(s, "rms_px"), CALIBRATION_RMS_PX, "px"),
+    ("taekwondo MPJPE, self-calibrated minus true rig", lambda s: _calibration_row(s, "taekwondo")[
+        "mpjpe_difference_mm"], CALIBRATION_MPJPE_MM, "mm"),
+    ("phone focal length error (1088x1920, 7 views)", lambda s: _calibration_row(s, "phone")["focal_percent"],
+     PHONE_FOCAL_PERCENT, "%"),
+))
 
 
 def judge_targets(results: dict) -> list[dict]:
@@ -484,15 +525,18 @@ def format_results(results: dict, figure_links: dict[str, str] | None = None, *,
     origin = f" from `{source}`" if source is not None else ""
     lines = ["# Benchmark results", "",
              f"Drawn by `python -m pipeline bench`{origin}; each section names the command that measured it. "
-             "`make bench` runs every suite (`ARGS=\"--suite speed|unseen|paper|foreign\"` for one, `--quick` for a "
-             "smoke run); `python -m pipeline bench --report-only --docs docs` redraws docs/results.md and "
-             "docs/figures/ from the stored results without measuring again.",
+             "`make bench` runs every suite (`ARGS=\"--suite speed|unseen|paper|foreign|calibration\"` for one, "
+             "`--quick` for a smoke run); `python -m pipeline bench --report-only --docs docs` redraws "
+             "docs/results.md and docs/figures/ from the stored results without measuring again.",
              "", "## Targets", "", format_targets(results)]
+    from pipeline.bench.calibration import CALIBRATION_NOTES, format_calibration
+
     sections = (("speed", "Speed", SPEED_NOTES, format_speed),
                 ("unseen", "Accuracy on unseen captures", UNSEEN_NOTES, format_unseen),
                 ("paper", "The paper's experiments (Horaud et al. 2009, Sec. 4.1, Fig. 4)", PAPER_NOTES, None),
                 ("foreign", "Accuracy on captures made by another program", FOREIGN_NOTES, format_foreign),
-                ("exports", "Exports: agreement, smoothing, confidence", EXPORTS_NOTES, format_exports))
+                ("exports", "Exports: agreement, smoothing, confidence", EXPORTS_NOTES, format_exports),
+                ("calibration", "Calibrating a studio from board recordings", CALIBRATION_NOTES, format_calibration))
     for suite, title, notes, body in sections:
         if suite not in results:
             continue
@@ -540,6 +584,7 @@ def peak_memory_mb() -> dict:
 
 def suite_runners() -> dict[str, Callable[..., dict]]:
     """Suite name -> ``run(out, captures, *, quick, workers) -> section`` (imported when needed)."""
+    from pipeline.bench.calibration import run_calibration
     from pipeline.bench.exports import run_exports
     from pipeline.bench.foreign import run_foreign
     from pipeline.bench.paper import run_paper
@@ -547,7 +592,7 @@ def suite_runners() -> dict[str, Callable[..., dict]]:
     from pipeline.bench.unseen import run_unseen
 
     return {"speed": run_speed, "unseen": run_unseen, "paper": run_paper, "foreign": run_foreign,
-            "exports": run_exports}
+            "exports": run_exports, "calibration": run_calibration}
 
 
 def draw_figures(results: dict, folder: Path) -> dict[str, Path]:

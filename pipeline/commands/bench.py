@@ -1,4 +1,4 @@
-"""Benchmark the pipeline: speed, accuracy on unseen synthetic captures, the paper's experiments, foreign captures.
+"""Benchmark the pipeline: speed, accuracy (unseen, paper, foreign captures) and calibration from boards.
 
 Examples:
   python -m pipeline bench --out runs/bench                      # every suite (make bench)
@@ -18,6 +18,8 @@ when the recipe changes. Suites:
           number of observations, points+normals vs points vs the algebraic distance (20 % outliers)
   foreign the whole pipeline on the captures in <repo>/../shared/foreign (made by another renderer), scored
           against their ground truth, with the tracker's statuses and speed (skipped when the folder is absent)
+  calibration  `python -m pipeline calibrate` on rendered board recordings (checkerboard, ChArUco, a phone),
+          scored against the true rig; taekwondo run on the self-calibrated rig against the true one
 """
 
 from __future__ import annotations

@@ -266,12 +266,24 @@ def results():
         "foreign": {"quick": False, "command": "python -m pipeline bench --suite foreign", "made": made,
                     "root": "/shared/foreign", "rows": [walk, {"capture": "odd", "error": "odd/capture.yaml: no fps"}],
                     "reference": {**walk, "capture": "data_samples/taekwondo", "tracker_vs_reference": 1.0}},
+        "calibration": {"quick": True, "command": "python -m pipeline bench --suite calibration --quick", "made": made,
+                        "rows": [{"scenario": name, "board": name, "returncode": 0, "focal_percent": 0.1,
+                                  "principal_px": 0.4, "aligned_centre_mm": centre, "aligned_rotation_deg": 0.05,
+                                  "rms_px": 0.07}
+                                 for name, centre in (("checkerboard", 2.0), ("charuco", 12.0))]
+                        + [{"scenario": "phone", "board": "checkerboard:4x7:0.025", "returncode": 0,
+                            "focal_percent": 0.3},
+                           {"scenario": "taekwondo", "true_mpjpe_mm": 16.6, "self_mpjpe_mm": 16.9,
+                            "mpjpe_difference_mm": 0.3}]},
     }
 
 
 def test_targets_are_judged_on_the_measured_numbers(results):
     verdicts = {(t["suite"], t["target"]): t for t in suite.judge_targets(results)}
     assert len(verdicts) == len([t for t in suite.TARGETS if t.suite in results])  # exports: test_bench_exports
+    centre = verdicts[("calibration", "camera centre error, worst camera (rigidly aligned)")]
+    assert not centre["met"] and centre["value"] == 12.0  # the worst of the board scenarios
+    assert verdicts[("calibration", "taekwondo MPJPE, self-calibrated minus true rig")]["met"]
     assert not verdicts[("speed", "end-to-end frames/s (6 cameras 780x580, video, 2 workers)")]["met"]
     tracker = verdicts[("speed", "tracker alone, frames/s at ~1000 observations")]
     assert tracker["met"] and tracker["value"] == 120.0  # over all frames, not the tracked ones only
