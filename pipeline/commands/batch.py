@@ -236,13 +236,42 @@ def _log_in_worker(name: str, level: int) -> None:
 # Running the captures
 
 
+class RenewedProcessPool(cf.Executor):
+    """A process pool (``spawn``) that starts afresh when one of its processes dies.
+
+    A ``ProcessPoolExecutor`` that loses a process (killed, out of memory, a crash in compiled code) is
+    broken for good: the calls running in it fail, and so would every later one. Here only those running
+    fail; the next call starts a new pool, so that one capture that ends its process does not fail the
+    rest of the study. Unlike :func:`~pipeline.executors.make_executor`'s pool, its processes keep the
+    parent's priority: the parent only waits.
+    """
+
+    def __init__(self, count: int) -> None:
+        self.count = count
+        self._pool = self._start()
+
+    def _start(self) -> cf.ProcessPoolExecutor:
+        return cf.ProcessPoolExecutor(max_workers=self.count, mp_context=multiprocessing.get_context("spawn"))
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> cf.Future:
+        try:
+            return self._pool.submit(fn, *args, **kwargs)
+        except BrokenProcessPool:
+            log.warning("a worker process was lost; starting %d new ones", self.count)
+            self._pool.shutdown(wait=True)
+            self._pool = self._start()
+            return self._pool.submit(fn, *args, **kwargs)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self._pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+
 @contextlib.contextmanager
 def capture_workers(scheduler: str) -> Iterator[Workers]:
     """Where whole captures run, and how many at once.
 
-    ``local:1``: one after the other in this process; ``local:N``: a pool of N processes started with
-    ``spawn`` (as :func:`~pipeline.executors.make_executor`'s, but at the parent's priority: the parent only
-    waits); anything else: the Dask scheduler at that address (:func:`~pipeline.executors.make_executor`).
+    ``local:1``: one after the other in this process; ``local:N``: N processes (:class:`RenewedProcessPool`);
+    anything else: the Dask scheduler at that address (:func:`~pipeline.executors.make_executor`).
     """
     if not scheduler.startswith("local:"):
         with make_executor(scheduler=scheduler) as workers:
@@ -252,57 +281,35 @@ def capture_workers(scheduler: str) -> Iterator[Workers]:
     if count == 1:
         yield Workers(InProcessExecutor(), 1, "one at a time, in this process")
         return
-    with cf.ProcessPoolExecutor(max_workers=count, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with RenewedProcessPool(count) as pool:
         yield Workers(pool, count, f"{count} at a time, in {count} local processes")
 
 
 def run_jobs(jobs: Sequence[CaptureJob], workers: Workers, on_done: Callable[[CaptureReport], None], *,
-             task: Callable[[CaptureJob], CaptureReport] = process_capture) -> list[CaptureJob]:
+             task: Callable[[CaptureJob], CaptureReport] = process_capture) -> None:
     """Run ``task`` on ``jobs`` with ``workers``, ``workers.count`` at a time, calling ``on_done`` with each
-    report as it comes; return the jobs left unstarted because the process pool broke.
+    report as it comes, in this thread.
 
-    A task whose worker is lost (killed, out of memory, crashed in compiled code) is reported failed. A
-    process pool that loses a worker is broken for good (every capture running in it fails); the captures
-    not started yet are handed back, to run in a fresh pool (:func:`run_batch`). Starting no more than
-    ``workers.count`` at once keeps the rest unstarted, and gives the in-process executor one at a time.
+    A job whose worker is lost (its process died, a Dask worker went away) is reported failed: its
+    task's own failures are reports already. Starting no more than ``workers.count`` at once keeps the
+    rest waiting in order (and gives the in-process executor one at a time).
     """
-    waiting = list(reversed(jobs))
+    waiting = iter(jobs)
     running: dict[cf.Future, CaptureJob] = {}
-    broken = False
-    while running or (waiting and not broken):
-        while waiting and not broken and len(running) < workers.count:
-            job = waiting.pop()
-            try:
-                running[workers.executor.submit(task, job)] = job
-            except BrokenProcessPool:
-                waiting.append(job)
-                broken = True
+    while True:
+        while len(running) < workers.count and (job := next(waiting, None)) is not None:
+            running[workers.executor.submit(task, job)] = job
         if not running:
-            break
+            return
         done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
         for future in done:
             job = running.pop(future)
             try:
                 report = future.result()
-            except Exception as error:  # the worker went, not the task's own failure (that one is a report)
-                broken = broken or isinstance(error, BrokenProcessPool)
+            except Exception as error:  # the worker went, not the task (whose failures are reports)
                 report = CaptureReport(job.name, "failed", error=f"its worker process was lost ({one_line(error)}; "
-                                                                 "it or a capture beside it ended the process)")
+                                                                 "this capture or one beside it ended it)")
             on_done(report)
-    return list(reversed(waiting))
-
-
-def run_batch(jobs: Sequence[CaptureJob], scheduler: str, on_done: Callable[[CaptureReport], None]) -> None:
-    """Run every job on ``scheduler``, starting a fresh process pool whenever one breaks (:func:`run_jobs`).
-
-    Each pool runs at least one job to its report before it can break, so this ends.
-    """
-    left = list(jobs)
-    while left:
-        with capture_workers(scheduler) as workers:
-            if len(left) == len(jobs):
-                log.info("%d captures, %s", len(jobs), workers.description)
-            left = run_jobs(left, workers, on_done)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -373,9 +380,10 @@ def main(args: argparse.Namespace) -> int:
     reports = {job.name: CaptureReport(job.name, "not run") for job in jobs}
     table_path = args.out / BATCH_CSV
     show_progress = not args.quiet and sys.stderr.isatty()
-    with output_lock(args.out), logging_redirect_tqdm(), tqdm(
+    with output_lock(args.out), capture_workers(args.scheduler) as workers, logging_redirect_tqdm(), tqdm(
             total=len(jobs), desc="batch", unit="capture", file=sys.stderr, disable=not show_progress,
             dynamic_ncols=True) as bar:
+        log.info("%d captures, %s", len(jobs), workers.description)
         atomic.write_text(table_path, format_csv(list(reports.values())))  # no row of an earlier batch stays
 
         def record(report: CaptureReport) -> None:
@@ -384,7 +392,7 @@ def main(args: argparse.Namespace) -> int:
             (log.info if report.ok else log.warning)(describe(report))
             bar.update(1)
 
-        run_batch(jobs, args.scheduler, record)
+        run_jobs(jobs, workers, record)
     print(format_table(list(reports.values())))
     failed = [report for report in reports.values() if not report.ok]
     if failed:
