@@ -25,7 +25,7 @@ from pathlib import Path
 from pipeline import atomic
 from pipeline.bench import figures
 
-SUITES = ("speed", "unseen", "paper", "foreign")
+SUITES = ("speed", "unseen", "paper", "foreign", "batch")
 RESULTS_JSON, RESULTS_MD = "results.json", "results.md"
 
 #: The project's targets (on this 2-core CPU).
@@ -46,6 +46,8 @@ FOREIGN_TRACKER_RATIO = 1.5
 #: masks were before their shadows were settled across views): points + normals' MPJPE must stay below this.
 PAPER_NOISY_STRENGTH = 0.75
 PAPER_NOISY_MPJPE_MM = 35.0
+#: A study of 4 captures on `batch --scheduler local:2` at least this many times faster than one after the other.
+BATCH_SPEEDUP = 1.7
 
 
 class SuiteSkipped(Exception):
@@ -189,6 +191,10 @@ TARGETS: tuple[Target, ...] = (
            lambda s: _noise_row(s, PAPER_NOISY_STRENGTH)["mpjpe_mm"], PAPER_NOISY_MPJPE_MM, False, "mm"),
     Target("paper", "points+normals frames off track at silhouette noise 0.75",
            lambda s: 100 * _noise_row(s, PAPER_NOISY_STRENGTH)["off_track"], 0.0, False, "%"),
+    Target("batch", "4 captures, local:2 vs one after the other (1 worker each), times faster",
+           lambda s: s["speedup"], BATCH_SPEEDUP, True, "×"),
+    Target("batch", "a broken capture among them reported, the others finished (1 = yes)",
+           lambda s: float(s["broken_reported"]), 1.0, True, ""),
 )
 
 
@@ -418,18 +424,21 @@ PAPER_NOTES = (
 
 def format_results(results: dict, figure_links: dict[str, str] | None = None, *, source: Path | None = None) -> str:
     """The whole results page from a results.json dictionary (``figure_links``: suite -> image path)."""
+    from pipeline.bench.batch import BATCH_NOTES, format_batch  # it imports this module
+
     links = figure_links or {}
     origin = f" from `{source}`" if source is not None else ""
     lines = ["# Benchmark results", "",
              f"Drawn by `python -m pipeline bench`{origin}; each section names the command that measured it. "
-             "`make bench` runs every suite (`ARGS=\"--suite speed|unseen|paper|foreign\"` for one, `--quick` for a "
-             "smoke run); `python -m pipeline bench --report-only --docs docs` redraws docs/results.md and "
+             "`make bench` runs every suite (`ARGS=\"--suite speed|unseen|paper|foreign|batch\"` for one, `--quick` "
+             "for a smoke run); `python -m pipeline bench --report-only --docs docs` redraws docs/results.md and "
              "docs/figures/ from the stored results without measuring again.",
              "", "## Targets", "", format_targets(results)]
     sections = (("speed", "Speed", SPEED_NOTES, format_speed),
                 ("unseen", "Accuracy on unseen captures", UNSEEN_NOTES, format_unseen),
                 ("paper", "The paper's experiments (Horaud et al. 2009, Sec. 4.1, Fig. 4)", PAPER_NOTES, None),
-                ("foreign", "Accuracy on captures made by another program", FOREIGN_NOTES, format_foreign))
+                ("foreign", "Accuracy on captures made by another program", FOREIGN_NOTES, format_foreign),
+                ("batch", "A study in one command: whole captures in parallel", BATCH_NOTES, format_batch))
     for suite, title, notes, body in sections:
         if suite not in results:
             continue
@@ -477,12 +486,14 @@ def peak_memory_mb() -> dict:
 
 def suite_runners() -> dict[str, Callable[..., dict]]:
     """Suite name -> ``run(out, captures, *, quick, workers) -> section`` (imported when needed)."""
+    from pipeline.bench.batch import run_batch_suite
     from pipeline.bench.foreign import run_foreign
     from pipeline.bench.paper import run_paper
     from pipeline.bench.speed import run_speed
     from pipeline.bench.unseen import run_unseen
 
-    return {"speed": run_speed, "unseen": run_unseen, "paper": run_paper, "foreign": run_foreign}
+    return {"speed": run_speed, "unseen": run_unseen, "paper": run_paper, "foreign": run_foreign,
+            "batch": run_batch_suite}
 
 
 def draw_figures(results: dict, folder: Path) -> dict[str, Path]:

@@ -18,6 +18,8 @@ when the recipe changes. Suites:
           number of observations, points+normals vs points vs the algebraic distance (20 % outliers)
   foreign the whole pipeline on the captures in <repo>/../shared/foreign (made by another renderer), scored
           against their ground truth, with the tracker's statuses and speed (skipped when the folder is absent)
+  batch   `python -m pipeline batch` on a study of 4 excerpts of the bundled samples and a broken capture:
+          local:N against one capture after the other, the broken one reported while the others finish
 """
 
 from __future__ import annotations
