@@ -16,6 +16,10 @@ import pytest
 from conftest import frame_image, make_capture
 
 from calib.errors import InputError
+from pipeline.bench.batch import BROKEN as BENCH_BROKEN
+from pipeline.bench.batch import BROKEN_IMAGE as BENCH_BROKEN_IMAGE
+from pipeline.bench.batch import broken_reported, excerpt_view
+from pipeline.capture import Capture
 from pipeline.cli import main
 from pipeline.commands.batch import (
     BATCH_CSV,
@@ -173,3 +177,14 @@ def test_a_capture_that_ends_its_worker_process_fails_alone_once_the_pool_is_ren
     assert [(report.capture, report.status) for report in reports] == [
         ("dies", "failed"), ("a", "ran"), ("b", "ran"), ("c", "ran")]
     assert "worker process was lost" in reports[0].error
+
+
+def test_the_bench_study_views_a_stretch_of_a_sample_and_judges_the_broken_capture(tmp_path):
+    view = excerpt_view(TINY, tmp_path / "view", 2, 6)
+    assert Capture.open(view).frame_numbers == (2, 3, 4, 5)
+    good = {"capture": "walk/first", "status": "ran"}
+    broken = {"capture": BENCH_BROKEN, "status": "failed", "error": f"x/{BENCH_BROKEN_IMAGE}: not a readable image"}
+    assert broken_reported({"returncode": SOME_FAILED, "rows": [good, broken]}, ["walk/first"])
+    assert not broken_reported({"returncode": 0, "rows": [good, broken]}, ["walk/first"])
+    assert not broken_reported({"returncode": SOME_FAILED, "rows": [{**good, "status": "failed"}, broken]},
+                               ["walk/first"])
