@@ -31,6 +31,7 @@ from pipeline.terminal import PrintableFormatter, printable
 #: Subcommand name -> import path of its module (see the module docstring). Add yours here.
 SUBCOMMANDS: dict[str, str] = {
     "run": "pipeline.commands.run",
+    "batch": "pipeline.commands.batch",
     "stages": "pipeline.commands.stages",
     "eval": "pipeline.evaluate",
     "synth": "pipeline.synth.cli",

@@ -150,6 +150,14 @@ def _import(modules: tuple[str, ...]) -> None:
         importlib.import_module(module)
 
 
+def local_count(scheduler: str) -> int:
+    """N of a ``--scheduler local:N``, checked."""
+    count = scheduler.removeprefix("local:")
+    if not count.isdigit() or int(count) < 1:
+        raise InputError(f"--scheduler {scheduler}: expected local:N with N a positive whole number")
+    return int(count)
+
+
 @contextlib.contextmanager
 def _dask_executor(scheduler: str) -> Iterator[Workers]:
     try:
@@ -159,10 +167,7 @@ def _dask_executor(scheduler: str) -> Iterator[Workers]:
                          "(expected `pip install 'hnmocap[dask]'`)") from None
     with contextlib.ExitStack() as stack:
         if scheduler.startswith("local:"):
-            count = scheduler.removeprefix("local:")
-            if not count.isdigit() or int(count) < 1:
-                raise InputError(f"--scheduler {scheduler}: expected local:N with N a positive whole number")
-            cluster = stack.enter_context(LocalCluster(n_workers=int(count), threads_per_worker=1,
+            cluster = stack.enter_context(LocalCluster(n_workers=local_count(scheduler), threads_per_worker=1,
                                                        processes=True, dashboard_address=None))
             client = stack.enter_context(Client(cluster))
         else:

@@ -1038,8 +1038,14 @@ def format_summary(outcomes: Sequence[StageOutcome]) -> str:
             f"{1000 * outcome.seconds / outcome.frames:.1f}" if per_frame else "-",
             f"{outcome.frames / outcome.seconds:.2f}" if per_frame and outcome.seconds > 0 else "-",
         ))
+    return format_columns(rows, right=range(2, len(rows[0])))
+
+
+def format_columns(rows: Sequence[Sequence[str]], *, right: Collection[int]) -> str:
+    """Rows of text cells as aligned columns: those numbered in ``right`` (numbers) to the right, the others
+    (names, words) to the left."""
     widths = [max(len(row[column]) for row in rows) for column in range(len(rows[0]))]
-    return "\n".join("  ".join(cell.ljust(width) if column < 2 else cell.rjust(width)
-                               for column, (cell, width) in enumerate(zip(row, widths, strict=True)))
+    return "\n".join("  ".join(cell.rjust(width) if column in right else cell.ljust(width)
+                               for column, (cell, width) in enumerate(zip(row, widths, strict=True))).rstrip()
                      for row in rows)
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from pipeline import atomic
 from pipeline.bench import figures
 
-SUITES = ("speed", "unseen", "paper", "foreign", "exports", "calibration")
+SUITES = ("speed", "unseen", "paper", "foreign", "exports", "calibration", "batch")
 RESULTS_JSON, RESULTS_MD = "results.json", "results.md"
 
 #: The project's targets (on this 2-core CPU).
@@ -59,6 +59,8 @@ CALIBRATION_ROTATION_DEG = 0.2
 CALIBRATION_RMS_PX = 0.5
 CALIBRATION_MPJPE_MM = 2.0
 PHONE_FOCAL_PERCENT = 1.5
+#: A study of 4 captures on `batch --scheduler local:2` at least this many times faster than one after the other.
+BATCH_SPEEDUP = 1.7
 
 
 class SuiteSkipped(Exception):
@@ -223,6 +225,10 @@ TARGETS: tuple[Target, ...] = (
     Target("exports", "smoothing at 6 Hz: MPJPE rise (worst capture)",
            lambda s: _smoothing(s, lambda raw, smooth: smooth["mpjpe_mm"] - raw["mpjpe_mm"]),
            SMOOTHING_MPJPE_RISE_MM, False, "mm"),
+    Target("batch", "4 captures, local:2 vs one after the other (1 worker each), times faster",
+           lambda s: s["speedup"], BATCH_SPEEDUP, True, "×"),
+    Target("batch", "a broken capture among them reported, the others finished (1 = yes)",
+           lambda s: float(s["broken_reported"]), 1.0, True, ""),
 )
 
 
@@ -521,13 +527,15 @@ PAPER_NOTES = (
 
 def format_results(results: dict, figure_links: dict[str, str] | None = None, *, source: Path | None = None) -> str:
     """The whole results page from a results.json dictionary (``figure_links``: suite -> image path)."""
+    from pipeline.bench.batch import BATCH_NOTES, format_batch  # it imports this module
+
     links = figure_links or {}
     origin = f" from `{source}`" if source is not None else ""
     lines = ["# Benchmark results", "",
              f"Drawn by `python -m pipeline bench`{origin}; each section names the command that measured it. "
-             "`make bench` runs every suite (`ARGS=\"--suite speed|unseen|paper|foreign|calibration\"` for one, "
-             "`--quick` for a smoke run); `python -m pipeline bench --report-only --docs docs` redraws "
-             "docs/results.md and docs/figures/ from the stored results without measuring again.",
+             "`make bench` runs every suite (`ARGS=\"--suite NAME\"` for one of "
+             f"{', '.join(SUITES)}, `--quick` for a smoke run); `python -m pipeline bench --report-only --docs "
+             "docs` redraws docs/results.md and docs/figures/ from the stored results without measuring again.",
              "", "## Targets", "", format_targets(results)]
     from pipeline.bench.calibration import CALIBRATION_NOTES, format_calibration
 
@@ -536,7 +544,8 @@ def format_results(results: dict, figure_links: dict[str, str] | None = None, *,
                 ("paper", "The paper's experiments (Horaud et al. 2009, Sec. 4.1, Fig. 4)", PAPER_NOTES, None),
                 ("foreign", "Accuracy on captures made by another program", FOREIGN_NOTES, format_foreign),
                 ("exports", "Exports: agreement, smoothing, confidence", EXPORTS_NOTES, format_exports),
-                ("calibration", "Calibrating a studio from board recordings", CALIBRATION_NOTES, format_calibration))
+                ("calibration", "Calibrating a studio from board recordings", CALIBRATION_NOTES, format_calibration),
+                ("batch", "A study in one command: whole captures in parallel", BATCH_NOTES, format_batch))
     for suite, title, notes, body in sections:
         if suite not in results:
             continue
@@ -584,6 +593,7 @@ def peak_memory_mb() -> dict:
 
 def suite_runners() -> dict[str, Callable[..., dict]]:
     """Suite name -> ``run(out, captures, *, quick, workers) -> section`` (imported when needed)."""
+    from pipeline.bench.batch import run_batch_suite
     from pipeline.bench.calibration import run_calibration
     from pipeline.bench.exports import run_exports
     from pipeline.bench.foreign import run_foreign
@@ -592,7 +602,7 @@ def suite_runners() -> dict[str, Callable[..., dict]]:
     from pipeline.bench.unseen import run_unseen
 
     return {"speed": run_speed, "unseen": run_unseen, "paper": run_paper, "foreign": run_foreign,
-            "exports": run_exports, "calibration": run_calibration}
+            "exports": run_exports, "calibration": run_calibration, "batch": run_batch_suite}
 
 
 def draw_figures(results: dict, folder: Path) -> dict[str, Path]:

@@ -1,4 +1,4 @@
-"""Benchmark the pipeline: speed, accuracy (unseen, paper, foreign captures) and calibration from boards.
+"""Benchmark the pipeline: speed, accuracy (unseen, paper, foreign captures), exports, calibration, batch.
 
 Examples:
   python -m pipeline bench --out runs/bench                      # every suite (make bench)
@@ -18,8 +18,12 @@ when the recipe changes. Suites:
           number of observations, points+normals vs points vs the algebraic distance (20 % outliers)
   foreign the whole pipeline on the captures in <repo>/../shared/foreign (made by another renderer), scored
           against their ground truth, with the tracker's statuses and speed (skipped when the folder is absent)
+  exports the foreign captures' exports read back by independent readers against joints.csv, smoothing's
+          effect on wrist acceleration and MPJPE, the per-joint confidence against the error
   calibration  `python -m pipeline calibrate` on rendered board recordings (checkerboard, ChArUco, a phone),
           scored against the true rig; taekwondo run on the self-calibrated rig against the true one
+  batch   `python -m pipeline batch` on a study of 4 excerpts of the bundled samples and a broken capture:
+          local:N against one capture after the other, the broken one reported while the others finish
 """
 
 from __future__ import annotations

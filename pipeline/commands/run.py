@@ -11,13 +11,15 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from calib.errors import InputError
 from pipeline import graph, run_warnings
 from pipeline.capture import Capture
-from pipeline.executors import make_executor
+from pipeline.executors import Workers, make_executor
 from pipeline.export_io import BVH_FILE, C3D_FILE, JOINTS_FILE, check_cutoff, read_joints_csv
 from pipeline.params import apply_overrides, default_params, parse_assignments, read_config
 from pipeline.report import REPORT_FILE
@@ -93,42 +95,77 @@ def closing_lines(out: Path, frames: Sequence[int], outcomes: Sequence[StageOutc
     return lines
 
 
+def read_params(config: Path | None, assignments: Sequence[str]) -> dict[str, Any]:
+    """Every stage's parameters: the defaults, then the ``--config`` file's, then each ``--set`` assignment."""
+    params = default_params(graph.STAGES)
+    if config is not None:
+        params = apply_overrides(params, read_config(config), source=f"{config}:")
+    return apply_overrides(params, parse_assignments(assignments), source="--set")
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """What one run of a capture did: each stage's outcome, the capture's frame numbers, how many warnings it
+    logged, and ``problem``, why the result is not usable in one line (:func:`unusable_result`; None when it
+    is, or no export was asked for)."""
+
+    outcomes: list[StageOutcome]
+    frame_numbers: list[int]
+    warnings: int
+    problem: str | None
+
+    @property
+    def frames(self) -> int:
+        return len(self.frame_numbers)
+
+
+def run_capture(capture_dir: Path, out: Path, params: Mapping[str, Any], workers: Workers, *,
+                selected: Collection[str] | None = None, force: bool = False, show_progress: bool = False,
+                allow_outside_paths: bool = False) -> RunResult:
+    """Run the ``selected`` stages (default all) of ``capture_dir`` into ``out``, holding its lock.
+
+    Raises
+    ------
+    InputError
+        For a mistake in the capture or the output folder, and for a full, read-only or forbidden disk
+        (:func:`~pipeline.runner.storage_error`), from this process or a worker.
+    """
+    try:
+        with run_warnings.collecting() as warnings:
+            capture = Capture.open(capture_dir, allow_outside_paths=allow_outside_paths)
+            step = capture.frame_numbers[1] - capture.frame_numbers[0] if len(capture.frame_numbers) > 1 else 1
+            check_cutoff(params["export"].filter_cutoff_hz, capture.fps / step)  # before any work
+            runner = Runner(graph.STAGES, capture, params, out, workers, show_progress,  # refuses --out in the capture
+                            record_facts={"allow_outside_paths": allow_outside_paths})
+            with output_lock(out):
+                warnings.attach(out)
+                outcomes = runner.run(selected, force=force)
+    except OSError as error:  # a full or read-only disk, from this process or a worker: the user's to fix
+        problem = storage_error(error, out)
+        if problem is None:
+            raise
+        raise problem from None
+    frames = list(capture.frame_numbers)
+    exported = any(outcome.name == "export" and outcome.action != "not selected" for outcome in outcomes)
+    problem = unusable_result(Path(out) / "export", len(frames)) if exported else None
+    return RunResult(outcomes, frames, len(warnings.records), problem)
+
+
 def main(args: argparse.Namespace) -> int:
     if args.only and args.end:
         raise InputError(f"--only {args.only} --to {args.end}: cannot be combined "
                          "(expected --only, or --from and/or --to)")
-    stages = graph.STAGES
-    params = default_params(stages)
-    if args.config is not None:
-        params = apply_overrides(params, read_config(args.config), source=f"{args.config}:")
-    params = apply_overrides(params, parse_assignments(args.assignments), source="--set")
-    selected = select_stages(stages, only=args.only, start=args.start, end=args.end)
-
-    show_progress = not args.quiet and sys.stderr.isatty()
-    try:
-        # The workers start first: their start-up overlaps the checks of the capture.
-        with run_warnings.collecting() as warnings, \
-                make_executor(args.workers, args.scheduler, preload=graph.WORKER_MODULES) as workers:
-            capture = Capture.open(args.capture, allow_outside_paths=args.allow_outside_paths)
-            step = capture.frame_numbers[1] - capture.frame_numbers[0] if len(capture.frame_numbers) > 1 else 1
-            check_cutoff(params["export"].filter_cutoff_hz, capture.fps / step)  # before any work
-            runner = Runner(stages, capture, params, args.out, workers, show_progress,  # refuses --out in the capture
-                            record_facts={"allow_outside_paths": args.allow_outside_paths})
-            with output_lock(args.out):
-                warnings.attach(args.out)
-                outcomes = runner.run(selected, force=args.force)
-    except OSError as error:  # a full or read-only disk, from this process or a worker: the user's to fix
-        problem = storage_error(error, args.out)
-        if problem is None:
-            raise
-        raise problem from None
-    print(format_summary(outcomes))
-    for line in closing_lines(Path(args.out), capture.frame_numbers, outcomes, len(warnings.records)):
+    params = read_params(args.config, args.assignments)
+    selected = select_stages(graph.STAGES, only=args.only, start=args.start, end=args.end)
+    # The workers start first: their start-up overlaps the checks of the capture.
+    with make_executor(args.workers, args.scheduler, preload=graph.WORKER_MODULES) as workers:
+        result = run_capture(args.capture, args.out, params, workers, selected=selected, force=args.force,
+                             show_progress=not args.quiet and sys.stderr.isatty(),
+                             allow_outside_paths=args.allow_outside_paths)
+    print(format_summary(result.outcomes))
+    for line in closing_lines(Path(args.out), result.frame_numbers, result.outcomes, result.warnings):
         print(printable(line))  # the report's path is the user's, which may hold anything
-    if not any(outcome.name == "export" and outcome.action != "not selected" for outcome in outcomes):
-        return 0  # no export asked for: nothing to judge
-    problem = unusable_result(Path(args.out) / "export", len(capture.frame_numbers))
-    if problem is not None:
-        print(f"error: {problem}", file=sys.stderr)
+    if result.problem is not None:
+        print(f"error: {result.problem}", file=sys.stderr)
         return UNUSABLE_RESULT
     return 0

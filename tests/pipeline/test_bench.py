@@ -275,6 +275,16 @@ def results():
                             "focal_percent": 0.3},
                            {"scenario": "taekwondo", "true_mpjpe_mm": 16.6, "self_mpjpe_mm": 16.9,
                             "mpjpe_difference_mm": 0.3}]},
+        "batch": {"quick": False, "command": "python -m pipeline bench --suite batch", "made": made, "workers": 2,
+                  "captures": [{"capture": "walk/first", "frames": 56}],
+                  "parallel": {"seconds": 20.0, "returncode": 3, "load": 0.5, "rows": [
+                      {"capture": "walk/first", "frames": 56, "status": "ran", "estimated": 56, "mpjpe_mm": 18.0,
+                       "seconds": 9.5, "error": ""},
+                      {"capture": "tiny/broken", "frames": None, "status": "failed", "estimated": None,
+                       "mpjpe_mm": None, "seconds": 0.2, "error": "tiny/broken/images/cam2/000004.png: unreadable"}]},
+                  "sequential": {"seconds": 36.0, "returncode": 3, "load": 0.6, "rows": []},
+                  "runs": {"seconds": 40.0, "load": 0.7, "ok": ["walk/first"]},
+                  "speedup": 1.8, "speedup_vs_runs": 2.0, "broken_reported": True, "same_joints": True},
     }
 
 
@@ -304,6 +314,7 @@ def test_targets_are_judged_on_the_measured_numbers(results):
     assert verdicts[("foreign", "tracker ms/frame, worst capture / data_samples/taekwondo")]["met"]
     iou = verdicts[("foreign", "silhouette IoU, median over frames and cameras (worst capture)")]
     assert iou["met"] and iou["digits"] == 2  # shown as 0.95, not rounded to 0.9 or 1.0 against 0.93
+    assert verdicts[("batch", "4 captures, local:2 vs one after the other (1 worker each), times faster")]["met"]
 
 
 def test_a_missing_number_is_a_miss_not_a_crash(results):
@@ -321,7 +332,7 @@ def test_format_table_aligns_numbers_and_shows_missing_values():
 def test_results_markdown_has_every_section_command_and_verdict(results):
     text = suite.format_results(results, {"paper": "figures/paper_fig4.png"})
     for heading in ("## Targets", "## Speed", "## Accuracy on unseen captures", "## The paper's experiments",
-                    "## Accuracy on captures made by another program"):
+                    "## Accuracy on captures made by another program", "## A study in one command"):
         assert heading in text
     for section in results.values():
         assert section["command"] in text
@@ -331,6 +342,8 @@ def test_results_markdown_has_every_section_command_and_verdict(results):
     walk = "| walk | 5 | 640x480 | 120 | 100 % | 22.0 | 60.0 | 0.950 | 15.0 | 30.0 | 1.20 | 114 | 6 | 0 | 0 | 2 | 5 % |"
     assert walk in text
     assert "| data_samples/taekwondo (reference) |" in text and "`odd` was not scored: odd/capture.yaml" in text
+    assert "| walk/first | 56 | ran | 56 | 18.0 | 9.5 | – | – |" in text
+    assert "| `batch --scheduler local:1` | 36.0 | 1.8 | 0.6 |" in text
 
 
 def test_results_round_trip_through_strict_json(results, tmp_path):

@@ -1,0 +1,403 @@
+"""Run the pipeline on every capture under a folder (a study), whole captures in parallel; a table of how each went.
+
+Examples:
+  python -m pipeline batch study --out runs/study                       # one capture after the other
+  python -m pipeline batch study --out runs/study --scheduler local:2   # two at a time on this machine
+  python -m pipeline batch study --out runs/study --scheduler tcp://10.0.0.5:8786 --set tracking.distance=points
+
+A capture is any folder under ROOT holding a capture.yaml, at any depth (session/participant/trial...); the
+folders inside a capture, hidden folders and --out are not searched. Each capture runs as `python -m pipeline
+run` would, with the same cache and parameters, into OUT/<its path under ROOT>: what is up to date is skipped,
+what a failed or interrupted batch left is resumed. A capture that fails does not stop the others; the batch
+ends with a table on stdout and OUT/batch.csv (capture, status, frames, estimated, mpjpe_mm where the capture
+has groundtruth/joints.csv, seconds, error), and exits with status 3 if any capture failed.
+
+--scheduler local:N runs N captures at a time in N processes of this machine (default local:1: one after the
+other, in this process); an address runs each capture as one task on that Dask cluster, whose workers must
+see ROOT and OUT at the same paths and have this package installed (`pip install 'hnmocap[dask]'`). A
+capture's own per-frame stages run in its task's process, one frame after the other.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import contextlib
+import csv
+import io
+import logging
+import math
+import multiprocessing
+import os
+import sys
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+from calib.errors import InputError
+from pipeline import atomic
+from pipeline.commands.run import UNUSABLE_RESULT, read_params, run_capture
+from pipeline.evaluate import evaluate_run
+from pipeline.executors import InProcessExecutor, Workers, local_count, make_executor
+from pipeline.export_io import JOINTS_FILE, read_joints_csv
+from pipeline.runner import check_output_folder, format_columns, output_lock
+from pipeline.terminal import PrintableFormatter, printable
+
+log = logging.getLogger(__name__)
+
+#: What makes a folder a capture.
+CAPTURE_YAML = "capture.yaml"
+#: The batch's table of captures, in OUT.
+BATCH_CSV = "batch.csv"
+#: A capture's ground truth, scored when present.
+TRUTH = Path("groundtruth") / JOINTS_FILE
+#: Exit status when some capture failed (the batch finished, not every result is usable: as for `run`).
+SOME_FAILED = UNUSABLE_RESULT
+#: Top-level packages whose log lines a worker process shows (see :func:`_log_in_worker`).
+LOGGED_PACKAGES = ("calib", "stages", "pipeline")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("root", type=Path, help="folder of captures (each a folder with capture.yaml), at any depth")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="output folder: one run folder per capture at its path under ROOT, and batch.csv")
+    parser.add_argument("--scheduler", default="local:1", metavar="ADDRESS",
+                        help="local:N for N captures at a time on this machine (default local:1), or the address "
+                             "of a Dask scheduler (tcp://host:port) for one task per capture on its workers")
+    parser.add_argument("--config", type=Path, help="YAML file of parameters: {stage: {param: value}}")
+    parser.add_argument("--set", dest="assignments", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                        help="set one parameter for every capture (repeatable; applied after --config)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--allow-outside-paths", action="store_true",
+                        help="let a capture.yaml's calibration.path lead outside its capture folder "
+                             "(a calibration shared by a session's trials, say)")
+
+
+# ---------------------------------------------------------------------------------------------
+# Finding the captures
+
+
+def find_captures(root: Path, *, skip: Path | None = None) -> list[Path]:
+    """Every folder under ``root`` holding a capture.yaml, in order of their paths.
+
+    The search does not enter a capture (its videos and calibration are not captures of their own), a
+    hidden folder (``.git``), or ``skip`` (the batch's output folder when it lies under ``root``: its run
+    folders hold no capture.yaml, but a study can be large). Links to folders are followed, each real
+    folder visited once, so that a study assembled from links works and a link cycle ends.
+
+    Raises
+    ------
+    InputError
+        When ``root`` is not a folder, is itself a capture (``python -m pipeline run`` is for one), or holds none.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(f"{root}: not a folder (expected a folder of captures, each a folder holding a "
+                         f"{CAPTURE_YAML})")
+    if (root / CAPTURE_YAML).is_file():
+        raise InputError(f"{root}: is itself a capture (expected a folder of captures; "
+                         "`python -m pipeline run` processes one capture)")
+    skipped = Path(skip).resolve() if skip is not None else None
+    found, visited = [], set()
+    for folder, subfolders, files in os.walk(root, followlinks=True):
+        real = Path(folder).resolve()
+        if real in visited or real == skipped:
+            subfolders.clear()
+            continue
+        visited.add(real)
+        if CAPTURE_YAML in files:
+            found.append(Path(folder))
+            subfolders.clear()
+        else:
+            subfolders[:] = sorted(name for name in subfolders if not name.startswith("."))
+    if not found:
+        raise InputError(f"{root}: no capture found (expected folders holding a {CAPTURE_YAML}, at any depth)")
+    return sorted(found, key=lambda path: path.relative_to(root).parts)
+
+
+# ---------------------------------------------------------------------------------------------
+# One capture: the task a worker runs
+
+
+@dataclass(frozen=True)
+class CaptureJob:
+    """One capture to run: everything its task needs, picklable (it may travel to a Dask worker).
+
+    ``name`` is its path under the batch's root (the row's name); ``capture`` and ``out`` are absolute, so
+    that a worker started elsewhere finds them; ``worker_log_level`` is None when the task runs in the
+    batch's own process, whose logging is set already.
+    """
+
+    name: str
+    capture: Path
+    out: Path
+    params: Mapping[str, Any]
+    allow_outside_paths: bool = False
+    worker_log_level: int | None = None
+
+
+@dataclass(frozen=True)
+class CaptureReport:
+    """How one capture went: a row of the batch's table.
+
+    ``status`` is "ran" (some stage ran), "up to date" (every stage was), "failed" (``error`` says why, in one
+    line) or "not run" (the batch ended before it). ``frames``: the frames the capture selects; ``estimated``:
+    those exported; ``mpjpe_mm``: the mean joint error against the capture's ground truth, when it has one.
+    """
+
+    capture: str
+    status: str
+    frames: int | None = None
+    estimated: int | None = None
+    mpjpe_mm: float | None = None
+    seconds: float | None = None
+    error: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.status in ("ran", "up to date")
+
+
+def one_line(error: BaseException) -> str:
+    """An error as the one line the table shows: an InputError's message, else its type and first line."""
+    text = str(error).strip()
+    first = text.splitlines()[0] if text else ""
+    if isinstance(error, InputError):
+        return first
+    return f"{type(error).__name__}: {first}" if first else type(error).__name__
+
+
+def process_capture(job: CaptureJob) -> CaptureReport:
+    """Run one capture as ``python -m pipeline run`` does (1 worker), then count and score its export.
+
+    Never raises for the capture's own failure: a user mistake, an unusable result or a bug is reported
+    in the row (a bug's traceback in the log), so that the captures beside it carry on.
+    """
+    started = time.perf_counter()
+    if job.worker_log_level is not None:
+        _log_in_worker(job.name, job.worker_log_level)
+    log.info("%s: started", job.name)
+    try:
+        with make_executor(1) as workers:
+            result = run_capture(job.capture, job.out, job.params, workers,
+                                 allow_outside_paths=job.allow_outside_paths)
+        if result.problem is not None:
+            raise InputError(result.problem)
+        estimated = len(read_joints_csv(job.out / "export" / JOINTS_FILE)[0])
+        truth = job.capture / TRUTH
+        mpjpe = float(evaluate_run(job.out, truth=truth)["mpjpe_mm"]) if truth.is_file() else None
+    except Exception as error:  # this capture's failure, whatever it is, must not end the batch
+        if not isinstance(error, InputError):
+            log.error("%s: failed with a bug", job.name, exc_info=error)
+        return CaptureReport(job.name, "failed", seconds=time.perf_counter() - started, error=one_line(error))
+    status = "up to date" if all(outcome.action == "up to date" for outcome in result.outcomes) else "ran"
+    return CaptureReport(job.name, status, result.frames, estimated, mpjpe, time.perf_counter() - started)
+
+
+class _CaptureName(logging.Filter):
+    """Puts the name of the capture a worker process runs now into its log records (``%(capture)s``)."""
+
+    current = ""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        record.capture = self.current
+        return True
+
+
+_capture_name = _CaptureName()
+
+
+def _log_in_worker(name: str, level: int) -> None:
+    """In a worker process: log the project's lines at ``level`` to stderr, each naming the capture ``name``.
+
+    A process pool's worker starts with no logging set up, and a Dask worker's is Dask's own: the handler goes
+    on the project's packages (:data:`LOGGED_PACKAGES`), not on the root logger, so that Dask's lines are not
+    shown twice. Set up once per process; later captures only change the name.
+    """
+    _capture_name.current = name
+    for package in LOGGED_PACKAGES:
+        logger = logging.getLogger(package)
+        if not any(_capture_name in handler.filters for handler in logger.handlers):
+            handler = logging.StreamHandler(sys.stderr)
+            handler.addFilter(_capture_name)
+            handler.setFormatter(PrintableFormatter("%(levelname)s %(name)s: %(capture)s: %(message)s"))
+            logger.addHandler(handler)
+            logger.propagate = False
+        logger.setLevel(level)
+
+
+# ---------------------------------------------------------------------------------------------
+# Running the captures
+
+
+class RenewedProcessPool(cf.Executor):
+    """A process pool (``spawn``) that starts afresh when one of its processes dies.
+
+    A ``ProcessPoolExecutor`` that loses a process (killed, out of memory, a crash in compiled code) is
+    broken for good: the calls running in it fail, and so would every later one. Here only those running
+    fail; the next call starts a new pool, so that one capture that ends its process does not fail the
+    rest of the study. Unlike :func:`~pipeline.executors.make_executor`'s pool, its processes keep the
+    parent's priority: the parent only waits.
+    """
+
+    def __init__(self, count: int) -> None:
+        self.count = count
+        self._pool = self._start()
+
+    def _start(self) -> cf.ProcessPoolExecutor:
+        return cf.ProcessPoolExecutor(max_workers=self.count, mp_context=multiprocessing.get_context("spawn"))
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> cf.Future:
+        try:
+            return self._pool.submit(fn, *args, **kwargs)
+        except BrokenProcessPool:
+            log.warning("a worker process was lost; starting %d new ones", self.count)
+            self._pool.shutdown(wait=True)
+            self._pool = self._start()
+            return self._pool.submit(fn, *args, **kwargs)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self._pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+
+@contextlib.contextmanager
+def capture_workers(scheduler: str) -> Iterator[Workers]:
+    """Where whole captures run, and how many at once.
+
+    ``local:1``: one after the other in this process; ``local:N``: N processes (:class:`RenewedProcessPool`);
+    anything else: the Dask scheduler at that address (:func:`~pipeline.executors.make_executor`).
+    """
+    if not scheduler.startswith("local:"):
+        with make_executor(scheduler=scheduler) as workers:
+            yield workers
+        return
+    count = local_count(scheduler)
+    if count == 1:
+        yield Workers(InProcessExecutor(), 1, "one at a time, in this process")
+        return
+    with RenewedProcessPool(count) as pool:
+        yield Workers(pool, count, f"{count} at a time, in {count} local processes")
+
+
+def run_jobs(jobs: Sequence[CaptureJob], workers: Workers, on_done: Callable[[CaptureReport], None], *,
+             task: Callable[[CaptureJob], CaptureReport] = process_capture) -> None:
+    """Run ``task`` on ``jobs`` with ``workers``, ``workers.count`` at a time, calling ``on_done`` with each
+    report as it comes, in this thread.
+
+    A job whose worker is lost (its process died, a Dask worker went away) is reported failed: its
+    task's own failures are reports already. Starting no more than ``workers.count`` at once keeps the
+    rest waiting in order (and gives the in-process executor one at a time).
+    """
+    waiting = iter(jobs)
+    running: dict[cf.Future, CaptureJob] = {}
+    while True:
+        while len(running) < workers.count and (job := next(waiting, None)) is not None:
+            running[workers.executor.submit(task, job)] = job
+        if not running:
+            return
+        done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+        for future in done:
+            job = running.pop(future)
+            try:
+                report = future.result()
+            except Exception as error:  # the worker went, not the task (whose failures are reports)
+                report = CaptureReport(job.name, "failed", error=f"its worker process was lost ({one_line(error)}; "
+                                                                 "this capture or one beside it ended it)")
+            on_done(report)
+
+
+# ---------------------------------------------------------------------------------------------
+# The table
+
+
+def _cell(value: Any, digits: int = 1) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return "" if not math.isfinite(value) else f"{value:.{digits}f}"
+    return str(value)
+
+
+def format_csv(reports: Sequence[CaptureReport]) -> str:
+    """batch.csv: one row per capture, the fields of :class:`CaptureReport`; empty cells for unknown values."""
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator="\n")
+    writer.writerow([field.name for field in fields(CaptureReport)])
+    writer.writerows([_cell(getattr(report, field.name)) for field in fields(CaptureReport)] for report in reports)
+    return text.getvalue()
+
+
+def format_table(reports: Sequence[CaptureReport]) -> str:
+    """The table the batch prints: the rows of batch.csv, aligned, "-" for unknown values."""
+    header = ("capture", "status", "frames", "estimated", "MPJPE mm", "seconds", "error")
+    rows = [header] + [tuple(printable(_cell(getattr(report, field.name))) or "-" for field in fields(CaptureReport))
+                       for report in reports]
+    return format_columns(rows, right=range(2, 6))
+
+
+def describe(report: CaptureReport) -> str:
+    """One capture's log line: ``"s1/p01/t2: ran in 12.3 s, 56 of 56 frames estimated, MPJPE 21.4 mm"``."""
+    if not report.ok:
+        return f"{report.capture}: failed: {report.error}"
+    scored = f", MPJPE {report.mpjpe_mm:.1f} mm" if report.mpjpe_mm is not None else ""
+    return (f"{report.capture}: {report.status} in {report.seconds:.1f} s, {report.estimated} of {report.frames} "
+            f"frames estimated{scored}")
+
+
+# ---------------------------------------------------------------------------------------------
+# The command
+
+
+def make_jobs(root: Path, captures: Sequence[Path], out: Path, params: Mapping[str, Any], *,
+              allow_outside_paths: bool, worker_log_level: int | None) -> list[CaptureJob]:
+    """One job per capture, into ``out/<its path under root>``; refuses, before any run, an ``out`` that
+    overlaps a capture (see :func:`~pipeline.runner.check_output_folder`)."""
+    if Path(out).resolve() == Path(root).resolve():
+        raise InputError(f"--out {out}: is the folder of captures (expected a separate output folder)")
+    jobs = []
+    for capture in captures:
+        relative = capture.relative_to(root)
+        check_output_folder(out / relative, capture)
+        jobs.append(CaptureJob(relative.as_posix(), capture.absolute(), (out / relative).absolute(), params,
+                               allow_outside_paths, worker_log_level))
+    return jobs
+
+
+def main(args: argparse.Namespace) -> int:
+    params = read_params(args.config, args.assignments)
+    in_process = args.scheduler.startswith("local:") and local_count(args.scheduler) == 1
+    # Workers show warnings only (-v: everything): the lines of several captures at once would bury the bar.
+    worker_level = logging.DEBUG if log.isEnabledFor(logging.DEBUG) else logging.WARNING
+    jobs = make_jobs(args.root, find_captures(args.root, skip=args.out), args.out, params,
+                     allow_outside_paths=args.allow_outside_paths,
+                     worker_log_level=None if in_process else worker_level)
+    reports = {job.name: CaptureReport(job.name, "not run") for job in jobs}
+    table_path = args.out / BATCH_CSV
+    show_progress = not args.quiet and sys.stderr.isatty()
+    with output_lock(args.out), capture_workers(args.scheduler) as workers, logging_redirect_tqdm(), tqdm(
+            total=len(jobs), desc="batch", unit="capture", file=sys.stderr, disable=not show_progress,
+            dynamic_ncols=True) as bar:
+        log.info("%d captures, %s", len(jobs), workers.description)
+        atomic.write_text(table_path, format_csv(list(reports.values())))  # no row of an earlier batch stays
+
+        def record(report: CaptureReport) -> None:
+            reports[report.capture] = report
+            atomic.write_text(table_path, format_csv(list(reports.values())))
+            (log.info if report.ok else log.warning)(describe(report))
+            bar.update(1)
+
+        run_jobs(jobs, workers, record)
+    print(format_table(list(reports.values())))
+    failed = [report for report in reports.values() if not report.ok]
+    if failed:
+        print(f"error: {len(failed)} of {len(reports)} captures failed (the error column says why; "
+              f"rerunning the batch retries them): {table_path}", file=sys.stderr)
+        return SOME_FAILED
+    print(f"written: {table_path}")
+    return 0
