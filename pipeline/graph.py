@@ -57,6 +57,7 @@ from pipeline.frame_tasks import (
     silhouettes_task,
 )
 from pipeline.runner import Stage, StageContext
+from stages.background import BackgroundEstimate, estimate_backgrounds, sample_camera, sample_count, working_size
 from stages.export import ExportParams
 from stages.joints import JOINT_NAMES
 from stages.reconstruction import Observations, ReconstructionParams
@@ -108,7 +109,12 @@ def spread_frames(frames: Sequence[int], count: int) -> list[int]:
 
 
 def background_image(capture: Capture, camera: str) -> np.ndarray:
-    """The camera's background: its clean plate, else the temporal median of frames spread over the capture."""
+    """The camera's clean plate, else the temporal median of frames spread over the capture.
+
+    A quick background for a look at a few frames (``up: auto``'s floor search, benchmarks); the silhouette
+    stage estimates backgrounds without plates from every camera together (:func:`estimated_backgrounds`),
+    which leaves out a subject who stands still.
+    """
     plate = capture.background(camera)
     if plate is not None:
         return plate
@@ -117,22 +123,67 @@ def background_image(capture: Capture, camera: str) -> np.ndarray:
     return median_background(image for _, image in capture.iter_images(camera, picks))
 
 
+#: An estimated background whose unresolved share (never seen without the subject) reaches this is a warning.
+UNRESOLVED_WARNING_SHARE = 0.001
+
+
+def estimated_backgrounds(capture: Capture, params: SilhouetteParams) -> dict[str, BackgroundEstimate]:
+    """Every camera's background, estimated from frames sampled over the whole capture when a camera has no
+    clean plate (:func:`stages.background.estimate_backgrounds`; the cameras with a plate keep theirs).
+
+    The samples of one camera at full resolution are held at a time; each camera's video is decoded once.
+    Logs what was done, and warns for each camera where part of the image was never seen without the subject.
+    """
+    frames = capture.frame_numbers
+    picks = spread_frames(frames, min(sample_count(len(frames), (height, width, 3))
+                                      for width, height in (camera.size for camera in capture.rig)))
+    samples = [sample_camera((image for _, image in capture.iter_images(camera.name, picks)), working_size(camera.size),
+                             plate=capture.background(camera.name))
+               for camera in capture.rig]
+    estimates = estimate_backgrounds(samples, list(capture.rig), capture.volume, params)
+    found = dict(zip(capture.rig.names, estimates, strict=True))
+    missing = [name for name, s in zip(capture.rig.names, samples, strict=True) if not s.plate]
+    rounds = estimates[0].rounds
+    log.info("silhouettes: no clean plate for camera(s) %s; backgrounds from %d frames spread over the capture, "
+             "the subject left out where the cameras' visual hull puts him (%d rounds)",
+             ", ".join(missing), len(picks), rounds)
+    for name in missing:
+        estimate = found[name]
+        if estimate.unresolved_share >= UNRESOLVED_WARNING_SHARE:
+            log.warning("silhouettes: camera %s: %.1f %% of the image could not be separated from the subject "
+                        "(covered in nearly every sampled frame); its background there is inpainted from around "
+                        "it, and the silhouettes may be wrong there (a clean plate in background/ avoids this)",
+                        name, 100 * estimate.unresolved_share)
+    return found
+
+
 def _backgrounds(ctx: StageContext) -> None:
-    """Write one background image per camera (:func:`background_image`).
+    """Write one background image per camera: its clean plate, else :func:`estimated_backgrounds`.
 
     Computed once in this process, before the per-frame work, so every worker reads the same model.
     A clean plate that is a PNG already is copied byte for byte: decoding and encoding it again cost
     about 25 ms per camera, more than a tenth of a second on a six-camera rig.
     """
-    for camera in ctx.capture.rig.names:
+    capture = ctx.capture
+    pending = [camera for camera in capture.rig.names if not _intact(background_path(ctx.out_dir, camera))]
+    if not pending:  # all kept from an interrupted run, intact
+        return
+    estimates = None
+    if any(camera not in capture.background_paths for camera in pending):
+        estimates = estimated_backgrounds(capture, ctx.params)  # every camera votes, so all are sampled
+    for camera in pending:
         path = background_path(ctx.out_dir, camera)
-        if path.exists() and frames_io.file_problem(path) is None:  # kept from an interrupted run, intact
-            continue
-        plate = ctx.capture.background_paths.get(camera)
+        plate = capture.background_paths.get(camera)
         if plate is not None and plate.suffix.lower() == ".png":
             atomic.write_bytes(path, plate.read_bytes())
+        elif plate is not None:
+            frames_io.write_image(path, capture.background(camera))
         else:
-            frames_io.write_image(path, background_image(ctx.capture, camera))
+            frames_io.write_image(path, estimates[camera].image)
+
+
+def _intact(path: Path) -> bool:
+    return path.exists() and frames_io.file_problem(path) is None
 
 
 def run_silhouettes(ctx: StageContext) -> int:
@@ -278,8 +329,8 @@ STAGES: tuple[Stage, ...] = (
           code=("calib", "pipeline.capture", "pipeline.auto_frame", "stages.silhouettes", *FILES_CODE)),
     Stage("silhouettes", run_silhouettes, inputs=("calibration",), params_type=SilhouetteParams,
           capture_parts=("frames", "images", "background", "silhouettes"),
-          code=("stages.silhouettes", "stages.checks", "pipeline.frame_tasks", "pipeline.capture", "calib",
-                *FILES_CODE)),
+          code=("stages.silhouettes", "stages.background", "stages.checks", "pipeline.frame_tasks",
+                "pipeline.capture", "calib", *FILES_CODE)),
     Stage("reconstruction", run_reconstruction, inputs=("calibration", "silhouettes"),
           params_type=ReconstructionParams, capture_parts=("config", "frames"),
           code=("stages.reconstruction", "stages.checks", "pipeline.frame_tasks", "pipeline.capture", "calib",

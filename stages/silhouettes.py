@@ -65,6 +65,9 @@ CHI2_3_LOWER_QUARTILE = 1.2125
 # the person (or a change of lighting) covers most of the image, and the quartile is no longer noise.
 NOISE_SIGMA_MIN = 0.5
 NOISE_SIGMA_MAX = 6.0
+# Fewest sampled pixels that differ from the background for a noise estimate; with fewer, the frame is a
+# copy of the background (a still scene from a video codec) and its noise is the lower bound.
+MIN_NOISE_SAMPLES = 100
 # The search for the person looks at blocks of COARSE_FACTOR x COARSE_FACTOR working pixels (a sixteenth of
 # the cost), then works on the box around what it found plus COARSE_MARGIN blocks (parts of the person too
 # faint to show on blocks lie next to parts that do).
@@ -637,7 +640,15 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     gains = tuple(_clip_ratio(float(IB / BB)) if BB > 0 else float(g)
                   for IB, BB in zip(products @ background, model.sample_B2 @ background, strict=True))
     D = I - np.array(gains, np.float32)[:, None] * B
-    quartile = _quantile(_dot(D, D), 0.25)
+    distance2 = _dot(D, D)
+    # A pixel equal to the background in every channel is a copy, not a noisy measurement of it: a video
+    # codec repeats static blocks from frame to frame, so a background taken from the same video (a
+    # temporal median, or a plate cut from it) matches them exactly, while the blocks it encodes again,
+    # around the moving person, carry the codec's noise. Only the others tell the noise level.
+    measured = np.flatnonzero((I != B).any(axis=0))
+    if len(measured) < MIN_NOISE_SAMPLES:
+        return _Noise(gains, NOISE_SIGMA_MIN**2)
+    quartile = _quantile(distance2.take(measured), 0.25)
     return _Noise(gains, min(max(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2), NOISE_SIGMA_MAX**2))
 
 
