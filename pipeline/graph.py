@@ -51,6 +51,7 @@ from pipeline.capture import Capture, capture_summary
 from pipeline.export_io import JOINTS_FILE, write_exports, write_joints_csv, write_overlay_video
 from pipeline.frame_tasks import (
     background_path,
+    noise_floors_path,
     observations_path,
     reconstruction_task,
     silhouette_path,
@@ -138,7 +139,7 @@ def estimated_backgrounds(capture: Capture, params: SilhouetteParams) -> dict[st
     picks = spread_frames(frames, min(sample_count(len(frames), (height, width, 3))
                                       for width, height in (camera.size for camera in capture.rig)))
     samples = [sample_camera((image for _, image in capture.iter_images(camera.name, picks)), working_size(camera.size),
-                             plate=capture.background(camera.name))
+                             plate=capture.background(camera.name), downsample=params.downsample)
                for camera in capture.rig]
     estimates = estimate_backgrounds(samples, list(capture.rig), capture.volume, params)
     found = dict(zip(capture.rig.names, estimates, strict=True))
@@ -157,20 +158,23 @@ def estimated_backgrounds(capture: Capture, params: SilhouetteParams) -> dict[st
     return found
 
 
-def _backgrounds(ctx: StageContext) -> None:
-    """Write one background image per camera: its clean plate, else :func:`estimated_backgrounds`.
+def _backgrounds(ctx: StageContext) -> dict[str, float]:
+    """Write one background image per camera: its clean plate, else :func:`estimated_backgrounds`; and the
+    estimated ones' noise floors (JSON). Returns the noise floors.
 
     Computed once in this process, before the per-frame work, so every worker reads the same model.
     A clean plate that is a PNG already is copied byte for byte: decoding and encoding it again cost
     about 25 ms per camera, more than a tenth of a second on a six-camera rig.
     """
     capture = ctx.capture
+    estimated = [camera for camera in capture.rig.names if camera not in capture.background_paths]
+    floors_path = noise_floors_path(ctx.out_dir)
     pending = [camera for camera in capture.rig.names if not _intact(background_path(ctx.out_dir, camera))]
+    if estimated and not _intact(floors_path):
+        pending = list(capture.rig.names)  # the floors come with the estimate (which is deterministic)
     if not pending:  # all kept from an interrupted run, intact
-        return
-    estimates = None
-    if any(camera not in capture.background_paths for camera in pending):
-        estimates = estimated_backgrounds(capture, ctx.params)  # every camera votes, so all are sampled
+        return frames_io.read_json(floors_path) if estimated else {}
+    estimates = estimated_backgrounds(capture, ctx.params) if estimated else {}  # every camera votes: all sampled
     for camera in pending:
         path = background_path(ctx.out_dir, camera)
         plate = capture.background_paths.get(camera)
@@ -180,6 +184,10 @@ def _backgrounds(ctx: StageContext) -> None:
             frames_io.write_image(path, capture.background(camera))
         else:
             frames_io.write_image(path, estimates[camera].image)
+    floors = {camera: estimates[camera].noise for camera in estimated}
+    if estimated:
+        frames_io.write_json(floors_path, floors)
+    return floors
 
 
 def _intact(path: Path) -> bool:
@@ -188,10 +196,10 @@ def _intact(path: Path) -> bool:
 
 def run_silhouettes(ctx: StageContext) -> int:
     """Per frame and camera, the person's mask: given ones as they are, else background subtraction."""
-    if not ctx.capture.silhouettes_given:
-        _backgrounds(ctx)
+    floors = {} if ctx.capture.silhouettes_given else _backgrounds(ctx)
     names = ctx.capture.rig.names
-    task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir)
+    task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
+                             noise_floors=floors)
 
     def outputs_of(frame: int) -> list[Path]:
         return [silhouette_path(ctx.out_dir, camera, frame) for camera in names]

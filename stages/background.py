@@ -48,7 +48,14 @@ import numpy as np
 
 from calib.camera import Camera
 from calib.errors import InputError
-from stages.silhouettes import SilhouetteParams, background_model, extract_silhouette
+from stages.silhouettes import (
+    NOISE_SIGMA_MAX,
+    NOISE_SIGMA_MIN,
+    SAMPLE_STRIDE,
+    SilhouetteParams,
+    background_model,
+    extract_silhouette,
+)
 
 #: Frames sampled per camera, spread over the whole sequence: every pixel the subject leaves for a few
 #: tenths of the sequence then has a handful of bare samples.
@@ -86,12 +93,23 @@ COARSE_FACTOR = 4
 #: A sample's own silhouette is widened by this many working pixels before it marks what the subject
 #: covers: the outline's mixed pixels must not enter the median.
 OWN_MARGIN_PX = 1
-#: Rounds of silhouettes, hulls and medians at most; fewer when the covered pixels settle (fewer than
-#: SETTLED_SHARE of the covered working pixels change from one round to the next).
+#: A sample whose hull holds fewer voxels than this share of the upper quartile of all the samples' hull
+#: sizes is one in which the subject was not found.
+HIDDEN_SHARE = 0.5
+#: A hull smaller than this (cubic metres, a fist) is no subject.
+MIN_SUBJECT_M3 = 0.002
+#: A fresh start without the samples in which the subject was not found is kept when it finds him in at
+#: least this share of them.
+RECOVERED_SHARE = 0.5
+#: Rounds of silhouettes, hulls and medians at most (a fresh start's trial counts); fewer when the covered
+#: pixels settle (fewer than SETTLED_SHARE of the covered working pixels change from one round to the next).
 MAX_ROUNDS = 4
 SETTLED_SHARE = 0.01
 #: Depths (metres) in front of a camera below which a voxel counts as behind it.
 MIN_DEPTH_M = 1e-3
+# The median of a χ² variable with 3 degrees of freedom: ‖I − B‖² / σ² of background pixels under Gaussian
+# noise of σ per channel.
+CHI2_3_MEDIAN = 2.366
 # cv2.transform's matrix summing the three channels of each pixel.
 _CHANNEL_SUM = np.ones((1, 3), np.float32)
 
@@ -113,6 +131,9 @@ class CameraSamples:
         The samples at those pixels.
     plate : bool
         Whether ``median`` is a clean plate: the background is then given, not estimated.
+    noise : float or None
+        How much the samples scatter about the median (σ per channel, 8-bit levels) at the silhouette
+        stage's working resolution (:func:`_scatter`); None with a plate.
     """
 
     shape: tuple[int, int, int]
@@ -121,6 +142,7 @@ class CameraSamples:
     contested: np.ndarray
     contested_values: np.ndarray
     plate: bool
+    noise: float | None
 
 
 @dataclass(frozen=True, eq=False)
@@ -136,15 +158,27 @@ class BackgroundEstimate:
     covered_share : float
         Share of the image that the subject covers in at least one sample (his footprint over the sequence).
     samples : int
+    found_samples : int
+        Samples in which the cameras' hull found a subject (none: nobody in view, or a subject who never
+        moved, whom no background estimate can tell from the room).
+    hidden_samples : int
+        Samples in which the subject stood where his ghost in the first estimate hid him: left out of the
+        median.
     rounds : int
         Rounds of the iteration that ran.
+    noise : float or None
+        The samples' scatter about the background (σ, 8-bit levels, at the silhouette stage's working
+        resolution; :func:`_scatter`): the noise floor of the silhouettes cut against it. None with a plate.
     """
 
     image: np.ndarray
     unresolved_share: float
     covered_share: float
     samples: int
+    found_samples: int
+    hidden_samples: int
     rounds: int
+    noise: float | None
 
 
 def sample_count(frames: int, shape: tuple[int, ...]) -> int:
@@ -161,8 +195,8 @@ def working_size(size: tuple[int, int]) -> tuple[int, int]:
     return max(1, round(width / factor)), max(1, round(height / factor))
 
 
-def sample_camera(frames: Iterable[np.ndarray], size: tuple[int, int], *,
-                  plate: np.ndarray | None = None) -> CameraSamples:
+def sample_camera(frames: Iterable[np.ndarray], size: tuple[int, int], *, plate: np.ndarray | None = None,
+                  downsample: int = 2) -> CameraSamples:
     """One camera's :class:`CameraSamples` from its sampled ``frames`` ((H, W, 3) uint8 each).
 
     Parameters
@@ -174,6 +208,9 @@ def sample_camera(frames: Iterable[np.ndarray], size: tuple[int, int], *,
     plate : (H, W, 3) uint8 or None
         The camera's clean plate, if any: its background is then the plate, and only the working copies of
         the samples are kept (its silhouettes still vote in every sample's hull).
+    downsample : int
+        The silhouette stage's working resolution (``SilhouetteParams.downsample``), at which the samples'
+        scatter is measured.
     """
     stack = _stack(frames)
     small = np.stack([cv2.resize(frame, size, interpolation=cv2.INTER_AREA) for frame in stack])
@@ -183,7 +220,7 @@ def sample_camera(frames: Iterable[np.ndarray], size: tuple[int, int], *,
             raise InputError(f"clean plate: expected a uint8 image of the frames' shape {stack.shape[1:]}, "
                              f"got {plate.dtype} {plate.shape}")
         return CameraSamples(stack.shape[1:], plate, small, np.zeros(0, np.int64),
-                             np.zeros((len(stack), 0, 3), np.uint8), True)
+                             np.zeros((len(stack), 0, 3), np.uint8), True, None)
     median = _median(stack[np.unique(np.linspace(0, len(stack) - 1, min(len(stack), MEDIAN_SAMPLES)).round()
                                      .astype(int))])
     # (K, H, W) uint8 each sample's L1 distance to the median, saturated at 255 (far above the thresholds).
@@ -192,7 +229,37 @@ def sample_camera(frames: Iterable[np.ndarray], size: tuple[int, int], *,
     differing = (deviation > DEVIATION_FACTOR * max(typical, 1.0)).mean(axis=0)  # (H, W) share of samples
     contested = np.flatnonzero(differing > CONTESTED_SHARE)
     values = stack.reshape(len(stack), -1, 3)[:, contested]  # (K, P, 3)
-    return CameraSamples(stack.shape[1:], median, small, contested, values, False)
+    return CameraSamples(stack.shape[1:], median, small, contested, values, False,
+                         _scatter(stack, median, downsample))
+
+
+def _scatter(stack: np.ndarray, median: np.ndarray, downsample: int) -> float:
+    """σ per channel (8-bit levels) of the samples about their median at the silhouette stage's working
+    resolution, within [NOISE_SIGMA_MIN, NOISE_SIGMA_MAX].
+
+    Each sample is reduced as the silhouette stage reduces a frame, scaled by its exposure ratio to the
+    median (the median of I·B / B·B: flicker), and compared with it on every SAMPLE_STRIDE-th pixel that it
+    does not copy exactly (a codec repeats static blocks, which tell nothing of the noise). The median of
+    ‖I − gB‖² over them, divided by that of a χ²₃ variable, is σ²: the subject covers a small part of the
+    samples, and the median, unlike the lower quartile a single frame's estimate uses, also counts the
+    heavier tail that a codec leaves where it encodes a block again.
+    """
+    height, width = median.shape[:2]
+    shape = (max(1, round(width / downsample)), max(1, round(height / downsample)))
+    B = cv2.resize(median, shape, interpolation=cv2.INTER_AREA)[::SAMPLE_STRIDE, ::SAMPLE_STRIDE].reshape(-1, 3)
+    B = B.astype(np.float32)
+    distances = []
+    for frame in stack:
+        I = cv2.resize(frame, shape, interpolation=cv2.INTER_AREA)[::SAMPLE_STRIDE, ::SAMPLE_STRIDE].reshape(-1, 3)
+        I = I.astype(np.float32)
+        measured = (I != B).any(axis=1)
+        gain = np.median((I * B).sum(axis=1) / ((B * B).sum(axis=1) + 1.0))
+        distances.append(((I - gain * B) ** 2).sum(axis=1)[measured])
+    distances = np.concatenate(distances)
+    if not len(distances):
+        return NOISE_SIGMA_MIN
+    sigma = float(np.sqrt(np.median(distances) / CHI2_3_MEDIAN))
+    return min(max(sigma, NOISE_SIGMA_MIN), NOISE_SIGMA_MAX)
 
 
 def _stack(frames: Iterable[np.ndarray]) -> np.ndarray:
@@ -345,9 +412,9 @@ def _occupied(masks: Sequence[np.ndarray], pixels: np.ndarray, radius: Sequence[
     return (outside <= tolerated) & (inside >= max(2, len(masks) - 1 - tolerated))
 
 
-def _hull_cover(masks: Sequence[np.ndarray], grid: _Grid, tolerated: int) -> list[np.ndarray]:
+def _hull_cover(masks: Sequence[np.ndarray], grid: _Grid, tolerated: int) -> tuple[list[np.ndarray], int]:
     """Per camera, (h, w) bool: the pixels onto which one sample's visual hull (see :func:`_occupied`)
-    projects, each occupied fine voxel drawn as a disc of its footprint."""
+    projects, each occupied fine voxel drawn as a disc of its footprint; and the hull's size in voxels."""
     cells = np.flatnonzero(_occupied(masks, grid.coarse_pixels, grid.coarse_radius, tolerated))
     pixels = grid.fine(cells)  # (C, M', F)
     occupied = _occupied(masks, pixels, grid.fine_radius, tolerated)
@@ -357,7 +424,7 @@ def _hull_cover(masks: Sequence[np.ndarray], grid: _Grid, tolerated: int) -> lis
         where = pixels[c][occupied]
         cover[where[where >= 0]] = 255
         covers.append(cv2.dilate(cover.reshape(mask.shape), _disk(grid.fine_radius[c])) > 0)
-    return covers
+    return covers, int(occupied.sum())
 
 
 @functools.cache
@@ -386,6 +453,61 @@ def _working_background(samples: CameraSamples, cover: np.ndarray, first: np.nda
     if unresolved.any():
         background = cv2.inpaint(background, unresolved.astype(np.uint8), INPAINT_RADIUS_PX, cv2.INPAINT_TELEA)
     return background, unresolved
+
+
+@dataclass(frozen=True, eq=False)
+class _Round:
+    """What one round of the iteration found in every sample."""
+
+    covers: list[np.ndarray]  # per camera (K, h, w) bool: the pixels the subject covers in each sample
+    sizes: np.ndarray  # (K,) int each sample's hull size, voxels
+
+    def left_out(self, hidden: np.ndarray) -> list[np.ndarray]:
+        """The covers with the ``hidden`` (K,) bool samples covered everywhere."""
+        return [cover | hidden[:, None, None] for cover in self.covers]
+
+
+def _round(samples: Sequence[CameraSamples], backgrounds: Sequence[np.ndarray], grid: _Grid, tolerated: int,
+           params: SilhouetteParams, *, fresh: bool) -> _Round:
+    """Silhouettes, hulls and covers of every sample against the current working ``backgrounds``.
+
+    A fresh start's backgrounds may hold ghosts, which hide the subject from a view's own silhouette: the
+    hull alone says where he is. Later rounds' backgrounds are free of them, and the own silhouette, tighter
+    than any hull, marks him, where the hull agrees (what the hull does not explain is not him).
+    """
+    models = [background_model(b, params) for b in backgrounds]
+    count = len(samples[0].small)
+    covers = [np.zeros(s.small.shape[:3], bool) for s in samples]
+    sizes = np.zeros(count, np.int64)
+    for k in range(count):
+        masks = [extract_silhouette(s.small[k], model, params) for s, model in zip(samples, models, strict=True)]
+        hull, sizes[k] = _hull_cover(masks, grid, tolerated)
+        for c, (mask, cover) in enumerate(zip(masks, hull, strict=True)):
+            if not fresh:
+                cover &= _filled(cv2.dilate(mask, _disk(OWN_MARGIN_PX)))
+            covers[c][k] = _filled(cover.view(np.uint8))
+    return _Round(covers, sizes)
+
+
+def _filled(mask: np.ndarray) -> np.ndarray:
+    """(h, w) bool the (h, w) uint8 or bool-as-uint8 ``mask`` with the holes it encloses filled.
+
+    What the subject encloses is covered too: a part of him that matches a ghost in the background shows
+    as a hole in his silhouette (and a cavity in the hull), and the gap between an arm and the body, which
+    this covers as well, is seen bare in other samples.
+    """
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    filled = np.zeros(mask.shape, np.uint8)
+    cv2.drawContours(filled, contours, -1, 1, cv2.FILLED)
+    return filled > 0
+
+
+def _hidden(sizes: np.ndarray, minimum: float) -> np.ndarray:
+    """(K,) bool the samples whose hull is much smaller than the others' (below ``HIDDEN_SHARE`` of their
+    upper quartile, and below ``minimum`` voxels): the subject was not found there; none when fewer than
+    MIN_SAMPLES others remain."""
+    hidden = sizes < max(HIDDEN_SHARE * np.quantile(sizes, 0.75), minimum)
+    return hidden if (~hidden).sum() >= MIN_SAMPLES else np.zeros_like(hidden)
 
 
 def estimate_backgrounds(samples: Sequence[CameraSamples], cameras: Sequence[Camera], volume: np.ndarray,
@@ -418,7 +540,6 @@ def estimate_backgrounds(samples: Sequence[CameraSamples], cameras: Sequence[Cam
         if s.shape[1::-1] != tuple(camera.size):
             raise InputError(f"estimate_backgrounds: camera {camera.name!r} is {camera.size[0]}x{camera.size[1]}, "
                              f"its samples {s.shape[1]}x{s.shape[0]}")
-    count = counts.pop()
     small = [working_camera(camera, s.small.shape[2:0:-1]) for s, camera in zip(samples, cameras, strict=True)]
     grid = _Grid(small, np.asarray(volume, dtype=float))
     tolerated = tolerated_views(len(cameras))
@@ -426,52 +547,61 @@ def estimate_backgrounds(samples: Sequence[CameraSamples], cameras: Sequence[Cam
     first = [cv2.resize(s.median, camera.size, interpolation=cv2.INTER_AREA)
              for s, camera in zip(samples, small, strict=True)]
     backgrounds = list(first)
-    covers = [np.zeros(s.small.shape[:3], bool) for s in samples]
+    minimum = MIN_SUBJECT_M3 / grid.voxel**3
+    found = _round(samples, backgrounds, grid, tolerated, working_params, fresh=True)
+    hidden = _hidden(found.sizes, minimum)
+    if hidden.any():
+        # Samples in which the subject was not found: he may have stood still long enough to be a ghost in
+        # most views, and vanish where he stands as it does. In the other samples he stands elsewhere, so
+        # their plain median shows the ghost's place bare. A fresh start from it is kept if it finds him in
+        # those samples again; otherwise nobody was there (a subject who walks in later), and they stay.
+        trial = [b if s.plate else _median(s.small[~hidden]) for s, b in zip(samples, backgrounds, strict=True)]
+        again = _round(samples, trial, grid, tolerated, working_params, fresh=True)
+        rounds = 2
+        if (again.sizes[hidden] >= minimum).mean() >= RECOVERED_SHARE:
+            backgrounds, found, hidden = trial, again, _hidden(again.sizes, minimum)
+        else:
+            hidden = np.zeros_like(hidden)
+    else:
+        rounds = 1
+    covers = found.left_out(hidden)
     unresolved = [np.zeros(s.small.shape[1:3], bool) for s in samples]
-    rounds = 0
-    for rounds in range(1, MAX_ROUNDS + 1):
-        models = [background_model(b, working_params) for b in backgrounds]
-        new_covers = [np.zeros_like(cover) for cover in covers]
-        for k in range(count):
-            masks = [extract_silhouette(s.small[k], model, working_params)
-                     for s, model in zip(samples, models, strict=True)]
-            hull = _hull_cover(masks, grid, tolerated)
-            for c, (mask, cover) in enumerate(zip(masks, hull, strict=True)):
-                # The first round's backgrounds may hold ghosts, which hide the subject from a view's own
-                # silhouette: the hull alone says where he is. Later rounds' backgrounds are free of them,
-                # and the own silhouette, tighter than any hull, marks him, where the hull agrees.
-                if rounds > 1:
-                    cover &= cv2.dilate(mask, _disk(OWN_MARGIN_PX)) > 0
-                new_covers[c][k] = cover
-        changed = sum(int((new ^ old).sum()) for new, old in zip(new_covers, covers, strict=True))
-        total = max(sum(int(new.sum()) for new in new_covers), 1)
-        covers = new_covers
+    while True:
         for c, s in enumerate(samples):
             if not s.plate:
                 backgrounds[c], unresolved[c] = _working_background(s, covers[c], first[c])
-        if rounds > 1 and changed <= SETTLED_SHARE * total:
+        if rounds >= MAX_ROUNDS:
             break
-    return [_full_background(s, cover, background, gaps, rounds)
+        rounds += 1
+        found = _round(samples, backgrounds, grid, tolerated, working_params, fresh=False)
+        previous, covers = covers, found.left_out(hidden)
+        changed = sum(int((new ^ old).sum()) for new, old in zip(covers, previous, strict=True))
+        if changed <= SETTLED_SHARE * max(sum(int(cover.sum()) for cover in covers), 1):
+            break
+    found_samples = int((found.sizes >= minimum).sum())
+    return [_full_background(s, cover, hidden, background, gaps, rounds, found_samples)
             for s, cover, background, gaps in zip(samples, covers, backgrounds, unresolved, strict=True)]
 
 
-def _full_background(samples: CameraSamples, cover: np.ndarray, working: np.ndarray, unresolved: np.ndarray,
-                     rounds: int) -> BackgroundEstimate:
-    """The full-resolution background of one camera from its working-resolution cover (K, h, w) bool, its
-    working background (h, w, 3) and unresolved pixels (h, w) bool (see the module's docstring)."""
+def _full_background(samples: CameraSamples, cover: np.ndarray, hidden: np.ndarray, working: np.ndarray,
+                     unresolved: np.ndarray, rounds: int, found: int) -> BackgroundEstimate:
+    """The full-resolution background of one camera from its working-resolution cover (K, h, w) bool, the
+    samples left out everywhere (``hidden`` (K,) bool), its working background (h, w, 3) and unresolved
+    pixels (h, w) bool (see the module's docstring)."""
     height, width = samples.shape[:2]
-    covered_share = float(cv2.resize(cover.any(axis=0).astype(np.uint8), (width, height),
+    seen = cover[~hidden] if (~hidden).any() else cover  # (K', h, w) the samples in which the subject was found
+    covered_share = float(cv2.resize(seen.any(axis=0).astype(np.uint8), (width, height),
                                      interpolation=cv2.INTER_NEAREST).mean())
     if samples.plate:
-        return BackgroundEstimate(samples.median, 0.0, covered_share, len(cover), rounds)
+        return BackgroundEstimate(samples.median, 0.0, covered_share, len(cover), found, int(hidden.sum()), rounds,
+                                  None)
     h, w = cover.shape[1:]
     # The working pixel of each full-resolution pixel (nearest), as flat indices.
     rows = np.minimum((np.arange(height) + 0.5) * h / height, h - 1).astype(np.int64)
     cols = np.minimum((np.arange(width) + 0.5) * w / width, w - 1).astype(np.int64)
     image = samples.median.copy()
     flat = image.reshape(-1, 3)
-    shares = cover.mean(axis=0)
-    majority = cv2.resize((shares >= MAJORITY_SHARE).astype(np.uint8), (width, height),
+    majority = cv2.resize((seen.mean(axis=0) >= MAJORITY_SHARE).astype(np.uint8), (width, height),
                           interpolation=cv2.INTER_NEAREST) > 0
     if majority.any():
         upsampled = cv2.resize(working, (width, height), interpolation=cv2.INTER_LINEAR)
@@ -486,4 +616,5 @@ def _full_background(samples: CameraSamples, cover: np.ndarray, working: np.ndar
     if gaps.any():
         radius = max(INPAINT_RADIUS_PX, round(INPAINT_RADIUS_PX * width / w))
         image = cv2.inpaint(image, gaps.astype(np.uint8), radius, cv2.INPAINT_TELEA)
-    return BackgroundEstimate(image, float(gaps.mean()), covered_share, len(cover), rounds)
+    return BackgroundEstimate(image, float(gaps.mean()), covered_share, len(cover), found, int(hidden.sum()),
+                              rounds, samples.noise)

@@ -216,13 +216,22 @@ class BackgroundModel:
     sample_divisor: np.ndarray  # (m,) float32 B·B + BACKGROUND_ENERGY_FLOOR there
     coarse_B: np.ndarray  # (3, h / COARSE_FACTOR, w / COARSE_FACTOR) float32 B_sharp averaged over blocks
     coarse_texture_variance: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR) float32 the same for the texture
+    noise_floor: float  # σ (8-bit levels) below which a frame's noise estimate is not believed
 
 
-def background_model(background: np.ndarray, params: SilhouetteParams) -> BackgroundModel:
-    """The per-camera part of :func:`extract_silhouette`, for a background (H, W, 3) uint8."""
+def background_model(background: np.ndarray, params: SilhouetteParams, *,
+                     noise_floor: float = NOISE_SIGMA_MIN) -> BackgroundModel:
+    """The per-camera part of :func:`extract_silhouette`, for a background (H, W, 3) uint8.
+
+    ``noise_floor`` is the lowest noise σ (8-bit levels, at the working resolution) a frame's estimate may
+    give: by default the quantisation's; a background estimated from the frames themselves knows how much
+    they scatter about it (:func:`stages.background.sample_camera`), where a single frame's estimate, made
+    on the pixels that match the background best, may see less than the frames' codec leaves near the person.
+    """
     background = np.asarray(background)
     if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:
         raise InputError(f"background: expected an (H, W, 3) uint8 array, got {background.dtype} {background.shape}")
+    check_number("background noise floor", noise_floor, NOISE_SIGMA_MIN, NOISE_SIGMA_MAX)
     B_sharp = _downsample(background, params.downsample)
     B = _blur(B_sharp, params.blur_kernel_px)  # (h, w, 3) uint8
     # A shift of the background by κ pixels changes a pixel by about κ times the gradient, which the
@@ -246,6 +255,7 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
         sample_divisor=_dot(sample_B, sample_B) + np.float32(BACKGROUND_ENERGY_FLOOR),
         coarse_B=_channels_first(_block_mean(B_sharp, COARSE_FACTOR)),
         coarse_texture_variance=_block_mean(texture_variance, COARSE_FACTOR),
+        noise_floor=float(noise_floor),
     )
 
 
@@ -647,9 +657,9 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     # around the moving person, carry the codec's noise. Only the others tell the noise level.
     measured = np.flatnonzero((I != B).any(axis=0))
     if len(measured) < MIN_NOISE_SAMPLES:
-        return _Noise(gains, NOISE_SIGMA_MIN**2)
+        return _Noise(gains, model.noise_floor**2)
     quartile = _quantile(distance2.take(measured), 0.25)
-    return _Noise(gains, min(max(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2), NOISE_SIGMA_MAX**2))
+    return _Noise(gains, min(max(quartile / CHI2_3_LOWER_QUARTILE, model.noise_floor**2), NOISE_SIGMA_MAX**2))
 
 
 def _clip_ratio(ratio: float) -> float:
