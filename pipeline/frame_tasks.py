@@ -28,6 +28,8 @@ import numpy as np
 from calib.camera import Rig
 from pipeline import frames_io
 from pipeline.capture import Capture
+from stages.background import tolerated_views
+from stages.consistency import consistent_silhouettes
 from stages.silhouettes import (
     NOISE_SIGMA_MIN,
     BackgroundModel,
@@ -129,10 +131,9 @@ def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: Silhouet
     names = capture.rig.names
     with single_threaded_opencv():
         if capture.silhouettes_given:
-            for camera in names:
-                for frame in chunk:
-                    mask = capture.read_silhouette(camera, frame)
-                    frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
+            for frame in chunk:
+                masks = [capture.read_silhouette(camera, frame) for camera in names]
+                _write_masks(out_dir, names, frame, _checked(masks, capture, params))
             return
         backgrounds = [cached_background_model(background_path(out_dir, camera), params,
                                                floors.get(camera, NOISE_SIGMA_MIN)) for camera in names]
@@ -140,8 +141,19 @@ def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: Silhouet
         streams = [capture.iter_images(camera, chunk) for camera in names]
         for frame, views in zip(chunk, zip(*streams, strict=True), strict=True):
             masks = extract_silhouettes([image for _, image in views], backgrounds, floor, params)
-            for camera, mask in zip(names, masks, strict=True):
-                frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
+            _write_masks(out_dir, names, frame, _checked(masks, capture, params))
+
+
+def _checked(masks: list[np.ndarray], capture: Capture, params: SilhouetteParams) -> list[np.ndarray]:
+    """The masks of one frame without the parts the other views do not confirm (``params.multiview_check``)."""
+    if not params.multiview_check:
+        return masks
+    return consistent_silhouettes(masks, list(capture.rig), capture.volume, tolerated=tolerated_views(len(masks)))
+
+
+def _write_masks(out_dir: Path, names: Sequence[str], frame: int, masks: Sequence[np.ndarray]) -> None:
+    for camera, mask in zip(names, masks, strict=True):
+        frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
 
 
 def reconstruction_task(chunk: Sequence[int], *, capture: Capture, params: ReconstructionParams,

@@ -150,6 +150,10 @@ class SilhouetteParams:
     max_hole_fraction : float
         Background holes smaller than this fraction of the foreground area are filled (holes from
         clothing that matches the background); larger ones (the gap between an arm and the body) stay.
+    multiview_check : bool
+        Drop the connected parts of a view's silhouette that the other views do not confirm (a bystander
+        seen by one or two cameras, a reflection, a phantom): see :mod:`stages.consistency`. Applies to
+        given silhouettes too (a person segmenter marks every person).
     """
 
     downsample: int = 2
@@ -165,8 +169,11 @@ class SilhouetteParams:
     min_component_fraction: float = 0.05
     min_component_area_fraction: float = 2e-4
     max_hole_fraction: float = 0.01
+    multiview_check: bool = True
 
     def __post_init__(self) -> None:
+        if not isinstance(self.multiview_check, bool):
+            raise InputError(f"silhouettes.multiview_check: expected true or false, got {self.multiview_check!r}")
         check_int("silhouettes.downsample", self.downsample, 1)
         for name in ("opening_px", "closing_px"):
             check_int(f"silhouettes.{name}", getattr(self, name), 0)

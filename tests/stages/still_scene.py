@@ -40,11 +40,17 @@ def rooms(rig: Rig, seed: int = 0) -> list[np.ndarray]:
 
 def subject_mask(camera: Camera, centre) -> np.ndarray:
     """(H, W) uint8 255 inside the silhouette of the subject standing with its middle at ``centre`` (x, y)."""
+    return ellipsoid_mask(camera, [centre[0], centre[1], SEMI_AXES[2]], SEMI_AXES)
+
+
+def ellipsoid_mask(camera: Camera, centre, semi_axes) -> np.ndarray:
+    """(H, W) uint8 255 inside the silhouette of an axis-aligned ellipsoid (world ``centre`` (3,) and
+    ``semi_axes`` (3,), metres)."""
     theta, phi = np.meshgrid(np.linspace(0, np.pi, 24), np.linspace(0, 2 * np.pi, 48))
     unit = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1).reshape(-1, 3)
-    points = unit * SEMI_AXES + [centre[0], centre[1], SEMI_AXES[2]]
-    uv = camera.project(points).astype(np.float32)
-    mask = np.zeros((SIZE[1], SIZE[0]), np.uint8)
+    uv = camera.project(unit * np.asarray(semi_axes) + centre).astype(np.float32)
+    width, height = camera.size
+    mask = np.zeros((height, width), np.uint8)
     cv2.fillConvexPoly(mask, np.round(cv2.convexHull(uv)).astype(np.int32), 255)
     return mask
 
