@@ -144,10 +144,17 @@ def estimated_backgrounds(capture: Capture, params: SilhouetteParams) -> dict[st
     estimates = estimate_backgrounds(samples, list(capture.rig), capture.volume, params)
     found = dict(zip(capture.rig.names, estimates, strict=True))
     missing = [name for name, s in zip(capture.rig.names, samples, strict=True) if not s.plate]
-    rounds = estimates[0].rounds
+    first = estimates[0]
     log.info("silhouettes: no clean plate for camera(s) %s; backgrounds from %d frames spread over the capture, "
-             "the subject left out where the cameras' visual hull puts him (%d rounds)",
-             ", ".join(missing), len(picks), rounds)
+             "the subject left out where the cameras' visual hull puts him (%d rounds)", ", ".join(missing), len(picks),
+             first.rounds)
+    if first.ghost_samples:
+        log.info("silhouettes: the subject stood still in %d of the sampled frames, where a plain median kept a "
+                 "ghost of him; the backgrounds started again from the other frames", first.ghost_samples)
+    if first.found_samples == 0:
+        log.warning("silhouettes: no subject found in any of the %d sampled frames: nobody is in view, or the subject "
+                    "never moves, and then no background estimate can tell him from the room (a clean plate in "
+                    "background/ can)", len(picks))
     for name in missing:
         estimate = found[name]
         if estimate.unresolved_share >= UNRESOLVED_WARNING_SHARE:

@@ -94,13 +94,16 @@ COARSE_FACTOR = 4
 #: covers: the outline's mixed pixels must not enter the median.
 OWN_MARGIN_PX = 1
 #: A sample whose hull holds fewer voxels than this share of the upper quartile of all the samples' hull
-#: sizes is one in which the subject was not found.
-HIDDEN_SHARE = 0.5
+#: sizes is one in which nobody was found.
+ABSENT_SHARE = 0.5
 #: A hull smaller than this (cubic metres, a fist) is no subject.
 MIN_SUBJECT_M3 = 0.002
-#: A fresh start without the samples in which the subject was not found is kept when it finds him in at
-#: least this share of them.
-RECOVERED_SHARE = 0.5
+#: Of two candidate backgrounds, one is the room when its outlines (:func:`_outlines`) are weaker than the
+#: other's by this factor; a ghost's outline makes them several times stronger.
+OUTLINE_RATIO = 0.7
+#: Two candidate backgrounds differ where the sum of their channels' absolute differences exceeds this
+#: (8-bit levels): far above two medians' noise, below a person's contrast with a room.
+REGION_LEVELS = 30
 #: Rounds of silhouettes, hulls and medians at most (a fresh start's trial counts); fewer when the covered
 #: pixels settle (fewer than SETTLED_SHARE of the covered working pixels change from one round to the next).
 MAX_ROUNDS = 4
@@ -161,9 +164,10 @@ class BackgroundEstimate:
     found_samples : int
         Samples in which the cameras' hull found a subject (none: nobody in view, or a subject who never
         moved, whom no background estimate can tell from the room).
-    hidden_samples : int
-        Samples in which the subject stood where his ghost in the first estimate hid him: left out of the
-        median.
+    ghost_samples : int
+        Samples that showed nobody where the others showed the subject, because the first estimate held a
+        ghost of him (he stood still in them): the estimate started again from the others' median. 0 when
+        it did not.
     rounds : int
         Rounds of the iteration that ran.
     noise : float or None
@@ -176,7 +180,7 @@ class BackgroundEstimate:
     covered_share: float
     samples: int
     found_samples: int
-    hidden_samples: int
+    ghost_samples: int
     rounds: int
     noise: float | None
 
@@ -462,9 +466,9 @@ class _Round:
     covers: list[np.ndarray]  # per camera (K, h, w) bool: the pixels the subject covers in each sample
     sizes: np.ndarray  # (K,) int each sample's hull size, voxels
 
-    def left_out(self, hidden: np.ndarray) -> list[np.ndarray]:
-        """The covers with the ``hidden`` (K,) bool samples covered everywhere."""
-        return [cover | hidden[:, None, None] for cover in self.covers]
+    def left_out(self, samples: np.ndarray) -> list[np.ndarray]:
+        """The covers with ``samples`` (K,) bool covered everywhere: left out of every pixel's median."""
+        return [cover | samples[:, None, None] for cover in self.covers]
 
 
 def _round(samples: Sequence[CameraSamples], backgrounds: Sequence[np.ndarray], grid: _Grid, tolerated: int,
@@ -502,12 +506,12 @@ def _filled(mask: np.ndarray) -> np.ndarray:
     return filled > 0
 
 
-def _hidden(sizes: np.ndarray, minimum: float) -> np.ndarray:
-    """(K,) bool the samples whose hull is much smaller than the others' (below ``HIDDEN_SHARE`` of their
-    upper quartile, and below ``minimum`` voxels): the subject was not found there; none when fewer than
+def _absent(sizes: np.ndarray, minimum: float) -> np.ndarray:
+    """(K,) bool the samples whose hull is much smaller than the others' (below ``ABSENT_SHARE`` of their
+    upper quartile, and below ``minimum`` voxels): nobody was found there; none when fewer than
     MIN_SAMPLES others remain."""
-    hidden = sizes < max(HIDDEN_SHARE * np.quantile(sizes, 0.75), minimum)
-    return hidden if (~hidden).sum() >= MIN_SAMPLES else np.zeros_like(hidden)
+    absent = sizes < max(ABSENT_SHARE * np.quantile(sizes, 0.75), minimum)
+    return absent if (~absent).sum() >= MIN_SAMPLES else np.zeros_like(absent)
 
 
 def estimate_backgrounds(samples: Sequence[CameraSamples], cameras: Sequence[Camera], volume: np.ndarray,
@@ -549,22 +553,23 @@ def estimate_backgrounds(samples: Sequence[CameraSamples], cameras: Sequence[Cam
     backgrounds = list(first)
     minimum = MIN_SUBJECT_M3 / grid.voxel**3
     found = _round(samples, backgrounds, grid, tolerated, working_params, fresh=True)
-    hidden = _hidden(found.sizes, minimum)
-    if hidden.any():
-        # Samples in which the subject was not found: he may have stood still long enough to be a ghost in
-        # most views, and vanish where he stands as it does. In the other samples he stands elsewhere, so
-        # their plain median shows the ghost's place bare. A fresh start from it is kept if it finds him in
-        # those samples again; otherwise nobody was there (a subject who walks in later), and they stay.
-        trial = [b if s.plate else _median(s.small[~hidden]) for s, b in zip(samples, backgrounds, strict=True)]
-        again = _round(samples, trial, grid, tolerated, working_params, fresh=True)
-        rounds = 2
-        if (again.sizes[hidden] >= minimum).mean() >= RECOVERED_SHARE:
-            backgrounds, found, hidden = trial, again, _hidden(again.sizes, minimum)
-        else:
-            hidden = np.zeros_like(hidden)
-    else:
-        rounds = 1
-    covers = found.left_out(hidden)
+    absent = _absent(found.sizes, minimum)
+    ghost_samples, left_out = 0, np.zeros_like(absent)
+    if absent.any():
+        # Samples in which the hull finds nobody while the others find someone: either nobody was in view
+        # then, or the subject stood still long enough to be a ghost in most views and vanishes where he
+        # stands as it does; in the other samples he stands elsewhere, and their plain median shows the
+        # ghost's place bare. Which of the two medians is the room is told by its outlines (_outlines);
+        # when neither is clearly the room, the samples that found nobody cannot say where he is not.
+        trial = [b if s.plate else _median(s.small[~absent]) for s, b in zip(samples, backgrounds, strict=True)]
+        ratio = _outlines(trial, backgrounds) / max(_outlines(backgrounds, trial), 1e-6)
+        if ratio < OUTLINE_RATIO:
+            backgrounds, first, ghost_samples = trial, list(trial), int(absent.sum())
+            found = _round(samples, backgrounds, grid, tolerated, working_params, fresh=True)
+        elif ratio <= 1 / OUTLINE_RATIO:
+            left_out = absent
+    rounds = 1
+    covers = found.left_out(left_out)
     unresolved = [np.zeros(s.small.shape[1:3], bool) for s in samples]
     while True:
         for c, s in enumerate(samples):
@@ -574,27 +579,48 @@ def estimate_backgrounds(samples: Sequence[CameraSamples], cameras: Sequence[Cam
             break
         rounds += 1
         found = _round(samples, backgrounds, grid, tolerated, working_params, fresh=False)
-        previous, covers = covers, found.left_out(hidden)
+        previous, covers = covers, found.left_out(left_out)
         changed = sum(int((new ^ old).sum()) for new, old in zip(covers, previous, strict=True))
         if changed <= SETTLED_SHARE * max(sum(int(cover.sum()) for cover in covers), 1):
             break
     found_samples = int((found.sizes >= minimum).sum())
-    return [_full_background(s, cover, hidden, background, gaps, rounds, found_samples)
+    return [_full_background(s, cover, left_out, background, gaps, rounds, found_samples, ghost_samples)
             for s, cover, background, gaps in zip(samples, covers, backgrounds, unresolved, strict=True)]
 
 
-def _full_background(samples: CameraSamples, cover: np.ndarray, hidden: np.ndarray, working: np.ndarray,
-                     unresolved: np.ndarray, rounds: int, found: int) -> BackgroundEstimate:
-    """The full-resolution background of one camera from its working-resolution cover (K, h, w) bool, the
-    samples left out everywhere (``hidden`` (K,) bool), its working background (h, w, 3) and unresolved
-    pixels (h, w) bool (see the module's docstring)."""
+def _outlines(backgrounds: Sequence[np.ndarray], others: Sequence[np.ndarray]) -> float:
+    """How strongly ``backgrounds`` (working resolution, one per camera) show an outline along the border of
+    the region where they differ from ``others``: the mean gradient magnitude there, over all cameras.
+
+    Of two candidate backgrounds that differ where a person stood, the one that shows him has his outline
+    all along that border (a person is not the colour of the room), the one that shows the room has only
+    the room's own texture there, which goes on across the border.
+    """
+    total, count = 0.0, 0
+    for background, other in zip(backgrounds, others, strict=True):
+        difference = cv2.transform(cv2.absdiff(background, other), _CHANNEL_SUM)
+        region = cv2.morphologyEx((difference > REGION_LEVELS).astype(np.uint8), cv2.MORPH_OPEN, _disk(1))
+        border = cv2.morphologyEx(region, cv2.MORPH_GRADIENT, _disk(1)) > 0
+        if not border.any():
+            continue
+        grey = cv2.cvtColor(background, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        magnitude = np.abs(cv2.Sobel(grey, cv2.CV_32F, 1, 0)) + np.abs(cv2.Sobel(grey, cv2.CV_32F, 0, 1))
+        total += float(magnitude[border].sum())
+        count += int(border.sum())
+    return total / max(count, 1)
+
+
+def _full_background(samples: CameraSamples, cover: np.ndarray, left_out: np.ndarray, working: np.ndarray,
+                     unresolved: np.ndarray, rounds: int, found: int, ghost_samples: int) -> BackgroundEstimate:
+    """The full-resolution background of one camera from its working-resolution cover (K, h, w) bool (the
+    ``left_out`` (K,) bool samples covered everywhere), its working background (h, w, 3) and unresolved pixels
+    (h, w) bool (see the module's docstring)."""
     height, width = samples.shape[:2]
-    seen = cover[~hidden] if (~hidden).any() else cover  # (K', h, w) the samples in which the subject was found
+    seen = cover[~left_out]  # (K', h, w) the samples that say where the subject is
     covered_share = float(cv2.resize(seen.any(axis=0).astype(np.uint8), (width, height),
                                      interpolation=cv2.INTER_NEAREST).mean())
     if samples.plate:
-        return BackgroundEstimate(samples.median, 0.0, covered_share, len(cover), found, int(hidden.sum()), rounds,
-                                  None)
+        return BackgroundEstimate(samples.median, 0.0, covered_share, len(cover), found, ghost_samples, rounds, None)
     h, w = cover.shape[1:]
     # The working pixel of each full-resolution pixel (nearest), as flat indices.
     rows = np.minimum((np.arange(height) + 0.5) * h / height, h - 1).astype(np.int64)
@@ -616,5 +642,5 @@ def _full_background(samples: CameraSamples, cover: np.ndarray, hidden: np.ndarr
     if gaps.any():
         radius = max(INPAINT_RADIUS_PX, round(INPAINT_RADIUS_PX * width / w))
         image = cv2.inpaint(image, gaps.astype(np.uint8), radius, cv2.INPAINT_TELEA)
-    return BackgroundEstimate(image, float(gaps.mean()), covered_share, len(cover), found, int(hidden.sum()),
-                              rounds, samples.noise)
+    return BackgroundEstimate(image, float(gaps.mean()), covered_share, len(cover), found, ghost_samples, rounds,
+                              samples.noise)
