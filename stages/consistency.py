@@ -24,11 +24,14 @@ import numpy as np
 from calib.camera import Camera
 from calib.errors import InputError
 
+#: Parts are told apart on square blocks of pixels, about this many across the image's width (4 pixels a
+#: side on a 780 x 580 image): a sixteenth of the pixels to label.
+CELLS_ACROSS = 200
 #: Pixels of a part whose rays are tested (spread evenly over the part), ...
 RAYS_PER_PART = 16
 #: ... points sampled along each ray's stretch in the working volume (a few centimetres apart: a limb is
 #: thicker), ...
-POINTS_PER_RAY = 64
+POINTS_PER_RAY = 48
 #: ... and the share of the rays that must meet the other views' silhouettes for the part to be kept: parts of
 #: the subject meet them with nearly all their rays, a part no other view sees with none.
 EXPLAINED_SHARE = 0.25
@@ -54,33 +57,58 @@ def consistent_silhouettes(masks: Sequence[np.ndarray], cameras: Sequence[Camera
     volume = np.asarray(volume, dtype=float)
     kept = []
     for c, (mask, camera) in enumerate(zip(masks, cameras, strict=True)):
-        count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        cell = max(1, round(mask.shape[1] / CELLS_ACROSS))
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(_cells(mask, cell), connectivity=8)
         if count <= 2 or len(cameras) < 2:
             kept.append(mask)
             continue
         others = [(camera, masks[o]) for o, camera in enumerate(cameras) if o != c]
-        parts = range(1, count)
-        pixels = [_spread_pixels(labels, stats[part], part) for part in parts]
+        pixels = [_spread_pixels(mask, labels, stats[part], part, cell) for part in range(1, count)]
         explained = _explained(camera, np.concatenate(pixels), others, volume, tolerated)  # (rays,) bool
-        cleaned = mask.copy()
-        start = 0
-        for part, part_pixels in zip(parts, pixels, strict=True):
-            share = explained[start : start + len(part_pixels)].mean()
-            start += len(part_pixels)
-            if share < EXPLAINED_SHARE:
-                x, y, w, h = stats[part, :4]
-                box = cleaned[y : y + h, x : x + w]
-                box[labels[y : y + h, x : x + w] == part] = 0
-        kept.append(cleaned)
+        starts = np.cumsum([0] + [len(part) for part in pixels[:-1]])
+        shares = np.add.reduceat(explained, starts) / np.array([len(part) for part in pixels])
+        dropped = np.flatnonzero(shares < EXPLAINED_SHARE) + 1  # labels of the parts to drop
+        if not len(dropped):
+            kept.append(mask)
+            continue
+        gone = np.isin(labels, dropped).repeat(cell, axis=0).repeat(cell, axis=1)
+        kept.append(np.where(gone[: mask.shape[0], : mask.shape[1]], np.uint8(0), mask))
     return kept
 
 
-def _spread_pixels(labels: np.ndarray, stats: np.ndarray, part: int) -> np.ndarray:
-    """(n, 2) float (u, v) of at most RAYS_PER_PART pixels of ``part``, evenly spread in its raster order."""
+def _cells(mask: np.ndarray, cell: int) -> np.ndarray:
+    """(h, w) uint8 1 for the ``cell`` x ``cell`` blocks of ``mask`` that hold a foreground pixel (the last,
+    partial blocks included). Parts less than a block apart merge, and are kept or dropped together."""
+    height, width = mask.shape
+    rows, cols = -(-height // cell), -(-width // cell)
+    padded = np.zeros((rows * cell, cols * cell), np.uint8)
+    padded[:height, :width] = mask
+    # Area averaging by a whole factor is the exact mean of each block: above 0 where a pixel is set.
+    return (cv2.resize(padded, (cols, rows), interpolation=cv2.INTER_AREA) > 0).astype(np.uint8)
+
+
+def _spread_pixels(mask: np.ndarray, labels: np.ndarray, stats: np.ndarray, part: int, cell: int) -> np.ndarray:
+    """(n, 2) float (u, v): at most RAYS_PER_PART foreground pixels of ``mask`` in the blocks (``cell`` pixels
+    a side) of ``part``, evenly spread in their raster order."""
     x, y, w, h = stats[:4]
-    rows, cols = np.nonzero(labels[y : y + h, x : x + w] == part)
+    blocks = (labels[y : y + h, x : x + w] == part).repeat(cell, axis=0).repeat(cell, axis=1)
+    box = mask[y * cell : (y + h) * cell, x * cell : (x + w) * cell]
+    rows, cols = np.nonzero(blocks[: box.shape[0], : box.shape[1]] & (box > 0))
     chosen = np.unique(np.linspace(0, len(rows) - 1, min(RAYS_PER_PART, len(rows))).round().astype(int))
-    return np.column_stack([cols[chosen] + x, rows[chosen] + y]).astype(float)
+    return np.column_stack([cols[chosen] + x * cell, rows[chosen] + y * cell]).astype(float)
+
+
+def _stretch(origin: np.ndarray, directions: np.ndarray, volume: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ray parameters (enter (n,), leave (n,)) where rays ``origin + t directions`` (n, 3) cross the box
+    ``volume`` (2, 3), t >= 0; enter >= leave for a ray that misses it (the slab method, as
+    ``stages.reconstruction.views.box_interval``, which the silhouette workers do not import: the
+    reconstruction package brings scipy along)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        low = (volume[0] - origin) / directions
+        high = (volume[1] - origin) / directions
+    near = np.nan_to_num(np.minimum(low, high), nan=-np.inf)
+    far = np.nan_to_num(np.maximum(low, high), nan=np.inf)
+    return np.maximum(near.max(axis=1), 0.0), far.min(axis=1)
 
 
 def _explained(camera: Camera, uv: np.ndarray, others: Sequence[tuple[Camera, np.ndarray]], volume: np.ndarray,
@@ -88,13 +116,10 @@ def _explained(camera: Camera, uv: np.ndarray, others: Sequence[tuple[Camera, np
     """(n,) bool: which rays of ``camera`` through pixels ``uv`` (n, 2) meet a point that the ``others``
     (camera, mask) see inside their silhouettes (see the module's docstring)."""
     directions = camera.pixel_rays(uv)  # (n, 3)
-    # Every ray's stretch in the volume lies between the camera's nearest and farthest distance to its corners.
-    corners = np.array(np.meshgrid(*volume.T, indexing="ij")).reshape(3, -1).T  # (8, 3)
-    reach = np.linalg.norm(corners - camera.centre, axis=1)
-    near = 0.0 if np.all((camera.centre >= volume[0]) & (camera.centre <= volume[1])) else reach.min()
-    t = near + (reach.max() - near) * (np.arange(POINTS_PER_RAY) + 0.5) / POINTS_PER_RAY  # (S,)
-    X = (camera.centre + t[None, :, None] * directions[:, None, :]).reshape(-1, 3)  # (n S, 3)
-    in_volume = np.all((X >= volume[0]) & (X <= volume[1]), axis=1)
+    enter, leave = _stretch(camera.centre, directions, volume)
+    t = enter[:, None] + (leave - enter)[:, None] * (np.arange(POINTS_PER_RAY) + 0.5) / POINTS_PER_RAY  # (n, S)
+    X = (camera.centre + t[..., None] * directions[:, None, :]).reshape(-1, 3)  # (n S, 3)
+    in_volume = np.repeat(enter < leave, POINTS_PER_RAY)
     inside = np.zeros(len(X), np.int32)
     seen = np.zeros(len(X), np.int32)
     for other, mask in others:
