@@ -101,10 +101,10 @@ OUTLINE_RATIO = 0.7
 #: Two candidate backgrounds differ where the sum of their channels' absolute differences exceeds this
 #: (8-bit levels): far above two medians' noise, below a person's contrast with a room.
 REGION_LEVELS = 30
-#: Rounds of silhouettes, hulls and medians at most (a fresh start's trial counts); fewer when the covered
+#: Rounds of silhouettes, hulls and medians at most; fewer when the covered
 #: pixels settle (fewer than SETTLED_SHARE of the covered working pixels change from one round to the next).
-MAX_ROUNDS = 4
-SETTLED_SHARE = 0.02
+MAX_ROUNDS = 5
+SETTLED_SHARE = 0.01
 #: Depths (metres) in front of a camera below which a voxel counts as behind it.
 MIN_DEPTH_M = 1e-3
 # The samples' scatter is measured on at most about this many of them (each gives thousands of pixels).
@@ -602,18 +602,18 @@ def estimate_backgrounds(samples: Sequence[CameraSamples], cameras: Sequence[Cam
     rounds = 1
     covers = found.left_out(left_out)
     unresolved = [np.zeros(s.small.shape[1:3], bool) for s in samples]
+    settled = False
     while True:
         for c, s in enumerate(samples):
             if not s.plate:
                 backgrounds[c], unresolved[c] = _working_background(s, covers[c], first[c])
-        if rounds >= MAX_ROUNDS:
+        if settled or rounds >= MAX_ROUNDS:
             break
         rounds += 1
         found = _round(samples, backgrounds, grid, tolerated, working_params, fresh=False)
         previous, covers = covers, found.left_out(left_out)
         changed = sum(int((new ^ old).sum()) for new, old in zip(covers, previous, strict=True))
-        if changed <= SETTLED_SHARE * max(sum(int(cover.sum()) for cover in covers), 1):
-            break
+        settled = changed <= SETTLED_SHARE * max(sum(int(cover.sum()) for cover in covers), 1)
     found_samples = int((found.sizes >= minimum).sum())
     return [_full_background(s, cover, left_out, background, gaps, rounds, found_samples, ghost_samples)
             for s, cover, background, gaps in zip(samples, covers, backgrounds, unresolved, strict=True)]
