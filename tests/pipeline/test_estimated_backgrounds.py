@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import logging
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+import still_scene as scene
 import yaml
 
 from calib.formats import save_rig
@@ -16,9 +16,6 @@ from pipeline import frames_io, graph
 from pipeline.capture import Capture
 from pipeline.frame_tasks import background_path, noise_floors_path
 from stages.silhouettes import SilhouetteParams
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "stages"))
-import still_scene as scene  # noqa: E402  (the scene the stage tests use)
 
 
 def _write_capture(root: Path, path: np.ndarray, *, plates: bool = False) -> tuple[Path, list[np.ndarray]]:
