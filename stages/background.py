@@ -18,14 +18,27 @@ views), while the subject is where the views agree. So the estimate iterates (:f
    it lies in the silhouette of every camera that sees it but ``tolerated`` ones (one, from four cameras
    on), so a view whose ghost hides the subject does not carve him away, while what one view alone sees
    is carved;
-4. the hull, projected into each view and widened by a margin, marks the pixels the subject covers in
-   that frame; each pixel's background becomes the median of its samples that are not covered;
+4. the hull, projected into each view, marks the pixels the subject covers in that frame (the first round
+   the hull alone, since the views' own silhouettes may miss him where a ghost matches him; later rounds
+   the view's own silhouette where the hull agrees, which is tighter; holes that a cover encloses are
+   covered too); each pixel's background becomes the median of its samples that are not covered;
 5. back to 2 with the new backgrounds, until the covered pixels settle.
+
+A subject who stood still long enough to be a ghost in most views vanishes from the samples where he stands
+as the ghost does: their hulls are empty while the others' are not. Those samples are told from samples in
+which nobody was in view (a subject who walks in later) by the outlines of the two candidate backgrounds,
+the median of all the samples and the median of the others (:func:`_outlines`): the one that shows the room
+has no person's outline along the border where they differ. The estimate then starts again from that one,
+or, when neither is clearly the room, leaves those samples out.
 
 A pixel covered in (nearly) every sample is never seen bare: its background is inpainted from the pixels
 around it (:func:`cv2.inpaint`), and its share of the image is reported
 (:attr:`BackgroundEstimate.unresolved_share`); the subject then stays foreground there, which is right
-as long as he stays there.
+as long as he stays there. A part of him that never changes colour in any view (he never moves at all)
+looks to every sample like the room, and no estimate from the frames can tell it from the room.
+
+Each estimate also measures how much the samples scatter about it (:func:`_scatter`): the silhouettes cut
+against it take that as the lowest noise level a frame can have (``BackgroundModel.noise_floor``).
 
 Memory stays flat in the sequence's length: at most ``MAX_SAMPLES`` frames per camera are sampled
 (fewer for large images, ``SAMPLE_BYTES``). The working-resolution copies of every camera's samples are

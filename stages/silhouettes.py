@@ -643,7 +643,8 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     the image); the half of the sample closest to gB is then surely background, and on it each channel's
     ratio is the least-squares g_k = Σ I_k B_k / Σ B_k². Medians of per-channel ratios would be pulled by the
     person's colour, each channel its own way, and tint the model. σ² is the lower quartile of ‖I − GB‖²
-    over χ²₃'s. Both are clipped to plausible ranges (see the constants).
+    over χ²₃'s, on the pixels that are not exact copies of the background. Both are clipped to plausible
+    ranges (see the constants; σ from below by the model's ``noise_floor``).
     """
     I = _channels_first(I).reshape(3, -1)  # (3, m)
     B = model.sample_B
