@@ -151,7 +151,7 @@ def estimated_backgrounds(capture: Capture, params: SilhouetteParams) -> dict[st
     if first.ghost_samples:
         log.info("silhouettes: the subject stood still in %d of the sampled frames, where a plain median kept a "
                  "ghost of him; the backgrounds started again from the other frames", first.ghost_samples)
-    if first.found_samples == 0:
+    if first.found_samples == 0 and len(capture.rig) >= 2:  # one camera makes no hull: its plain median stays
         log.warning("silhouettes: no subject found in any of the %d sampled frames: nobody is in view, or the subject "
                     "never moves, and then no background estimate can tell him from the room (a clean plate in "
                     "background/ can)", len(picks))
