@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -69,13 +70,9 @@ def test_the_stage_writes_backgrounds_and_the_noise_floors_of_estimated_ones(tmp
     root, rooms = _write_capture(tmp_path / "capture", scene.still_then_moving(16, 6), plates=plates)
     out = tmp_path / "run"
 
-    class Context:  # what _backgrounds reads of a StageContext
-        capture = Capture.open(root)
-        out_dir = out
-        params = SilhouetteParams()
-
-    floors = graph._backgrounds(Context)
-    names = Context.capture.rig.names
+    context = SimpleNamespace(capture=Capture.open(root), out_dir=out, params=SilhouetteParams())  # what it reads
+    floors = graph._backgrounds(context)
+    names = context.capture.rig.names
     assert all(frames_io.file_problem(background_path(out, camera)) is None for camera in names)
     if plates:
         assert floors == {} and not noise_floors_path(out).exists()
@@ -85,4 +82,4 @@ def test_the_stage_writes_backgrounds_and_the_noise_floors_of_estimated_ones(tmp
     assert frames_io.read_json(noise_floors_path(out)) == floors and set(floors) == set(names)
     assert all(0.5 <= floor <= 6.0 for floor in floors.values())
     monkeypatch.setattr(graph, "estimated_backgrounds", None)  # a resumed run reads what is there
-    assert graph._backgrounds(Context) == floors
+    assert graph._backgrounds(context) == floors
