@@ -18,7 +18,7 @@ import functools
 import hashlib
 import logging
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -28,7 +28,10 @@ import numpy as np
 from calib.camera import Rig
 from pipeline import frames_io
 from pipeline.capture import Capture
+from stages.background import tolerated_views
+from stages.consistency import consistent_silhouettes
 from stages.silhouettes import (
+    NOISE_SIGMA_MIN,
     BackgroundModel,
     FloorGeometry,
     SilhouetteParams,
@@ -56,6 +59,11 @@ def background_path(out_dir: Path, camera: str) -> Path:
     return out_dir / "background" / f"{camera}.png"
 
 
+def noise_floors_path(out_dir: Path) -> Path:
+    """Where the noise floors of the estimated backgrounds are kept (JSON: camera -> σ, 8-bit levels)."""
+    return out_dir / "background" / "noise_floors.json"
+
+
 def observations_path(out_dir: Path, frame: int) -> Path:
     return out_dir / frames_io.frame_name(frame, ".ply")
 
@@ -71,19 +79,21 @@ def single_threaded_opencv() -> Iterator[None]:
         cv2.setNumThreads(threads)
 
 
-def cached_background_model(path: Path, params: SilhouetteParams) -> BackgroundModel:
-    """The background model of the image at ``path``, read and built once per worker.
+def cached_background_model(path: Path, params: SilhouetteParams,
+                            noise_floor: float = NOISE_SIGMA_MIN) -> BackgroundModel:
+    """The background model of the image at ``path`` (with its ``noise_floor``), read and built once per worker.
 
     Reading a colour PNG and building the model cost as much as segmenting a few frames, per camera;
     the file's modification time and size are part of the key, so a rewritten background is read again.
     """
     status = os.stat(path)
-    return _background_model(str(path), status.st_mtime_ns, status.st_size, params)
+    return _background_model(str(path), status.st_mtime_ns, status.st_size, params, noise_floor)
 
 
 @functools.lru_cache(maxsize=CACHED_BACKGROUNDS)
-def _background_model(path: str, mtime_ns: int, size: int, params: SilhouetteParams) -> BackgroundModel:
-    return background_model(frames_io.read_image(path), params)
+def _background_model(path: str, mtime_ns: int, size: int, params: SilhouetteParams,
+                      noise_floor: float) -> BackgroundModel:
+    return background_model(frames_io.read_image(path), params, noise_floor=noise_floor)
 
 
 def cached_floor_geometry(rig: Rig, volume: np.ndarray, params: SilhouetteParams) -> FloorGeometry:
@@ -108,27 +118,41 @@ def cached_floor_geometry(rig: Rig, volume: np.ndarray, params: SilhouetteParams
 _FLOOR_GEOMETRIES: dict[str, FloorGeometry] = {}
 
 
-def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: SilhouetteParams, out_dir: Path) -> None:
+def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: SilhouetteParams, out_dir: Path,
+                     noise_floors: Mapping[str, float] | None = None) -> None:
     """Worker: masks of every camera for a chunk of consecutive frames (one decoder per camera).
 
     The cameras of a frame are segmented together: whether a darker patch is the person's shadow on the
-    floor is settled across the views (:func:`stages.silhouettes.extract_silhouettes`).
+    floor is settled across the views (:func:`stages.silhouettes.extract_silhouettes`). ``noise_floors``
+    holds the noise floor of each camera whose background was estimated from the frames.
     """
+    floors = noise_floors or {}
     names = capture.rig.names
     with single_threaded_opencv():
         if capture.silhouettes_given:
-            for camera in names:
-                for frame in chunk:
-                    mask = capture.read_silhouette(camera, frame)
-                    frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
+            for frame in chunk:
+                masks = [capture.read_silhouette(camera, frame) for camera in names]
+                _write_masks(out_dir, names, frame, _checked(masks, capture, params))
             return
-        backgrounds = [cached_background_model(background_path(out_dir, camera), params) for camera in names]
+        backgrounds = [cached_background_model(background_path(out_dir, camera), params,
+                                               floors.get(camera, NOISE_SIGMA_MIN)) for camera in names]
         floor = cached_floor_geometry(capture.rig, capture.volume, params)
         streams = [capture.iter_images(camera, chunk) for camera in names]
         for frame, views in zip(chunk, zip(*streams, strict=True), strict=True):
             masks = extract_silhouettes([image for _, image in views], backgrounds, floor, params)
-            for camera, mask in zip(names, masks, strict=True):
-                frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
+            _write_masks(out_dir, names, frame, _checked(masks, capture, params))
+
+
+def _checked(masks: list[np.ndarray], capture: Capture, params: SilhouetteParams) -> list[np.ndarray]:
+    """The masks of one frame without the parts the other views do not confirm (``params.multiview_check``)."""
+    if not params.multiview_check:
+        return masks
+    return consistent_silhouettes(masks, list(capture.rig), capture.volume, tolerated=tolerated_views(len(masks)))
+
+
+def _write_masks(out_dir: Path, names: Sequence[str], frame: int, masks: Sequence[np.ndarray]) -> None:
+    for camera, mask in zip(names, masks, strict=True):
+        frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
 
 
 def reconstruction_task(chunk: Sequence[int], *, capture: Capture, params: ReconstructionParams,

@@ -56,6 +56,7 @@ from pipeline.export_io import (
 )
 from pipeline.frame_tasks import (
     background_path,
+    noise_floors_path,
     observations_path,
     reconstruction_task,
     silhouette_path,
@@ -64,6 +65,7 @@ from pipeline.frame_tasks import (
 from pipeline.overlay_video import overlay_video_name, write_overlay_video
 from pipeline.report import write_report
 from pipeline.runner import Stage, StageContext
+from stages.background import BackgroundEstimate, estimate_backgrounds, sample_camera, sample_count, working_size
 from stages.export import ExportParams
 from stages.export.quality import FrameQuality
 from stages.joints import JOINT_NAMES
@@ -117,7 +119,12 @@ def spread_frames(frames: Sequence[int], count: int) -> list[int]:
 
 
 def background_image(capture: Capture, camera: str) -> np.ndarray:
-    """The camera's background: its clean plate, else the temporal median of frames spread over the capture."""
+    """The camera's clean plate, else the temporal median of frames spread over the capture.
+
+    A quick background for a look at a few frames (``up: auto``'s floor search, benchmarks); the silhouette
+    stage estimates backgrounds without plates from every camera together (:func:`estimated_backgrounds`),
+    which leaves out a subject who stands still.
+    """
     plate = capture.background(camera)
     if plate is not None:
         return plate
@@ -126,30 +133,89 @@ def background_image(capture: Capture, camera: str) -> np.ndarray:
     return median_background(image for _, image in capture.iter_images(camera, picks))
 
 
-def _backgrounds(ctx: StageContext) -> None:
-    """Write one background image per camera (:func:`background_image`).
+#: An estimated background whose unresolved share (never seen without the subject) reaches this is a warning.
+UNRESOLVED_WARNING_SHARE = 0.001
+
+
+def estimated_backgrounds(capture: Capture, params: SilhouetteParams) -> dict[str, BackgroundEstimate]:
+    """Every camera's background, estimated from frames sampled over the whole capture when a camera has no
+    clean plate (:func:`stages.background.estimate_backgrounds`; the cameras with a plate keep theirs).
+
+    The samples of one camera at full resolution are held at a time; each camera's video is decoded once.
+    Logs what was done, and warns for each camera where part of the image was never seen without the subject.
+    """
+    frames = capture.frame_numbers
+    picks = spread_frames(frames, min(sample_count(len(frames), (height, width, 3))
+                                      for width, height in (camera.size for camera in capture.rig)))
+    samples = [sample_camera((image for _, image in capture.iter_images(camera.name, picks)), working_size(camera.size),
+                             plate=capture.background(camera.name), downsample=params.downsample)
+               for camera in capture.rig]
+    estimates = estimate_backgrounds(samples, list(capture.rig), capture.volume, params)
+    found = dict(zip(capture.rig.names, estimates, strict=True))
+    missing = [name for name, s in zip(capture.rig.names, samples, strict=True) if not s.plate]
+    first = estimates[0]
+    log.info("silhouettes: no clean plate for camera(s) %s; backgrounds from %d frames spread over the capture, "
+             "the subject left out where the cameras' visual hull puts him (%d rounds)", ", ".join(missing), len(picks),
+             first.rounds)
+    if first.ghost_samples:
+        log.info("silhouettes: the subject stood still in %d of the sampled frames, where a plain median kept a "
+                 "ghost of him; the backgrounds started again from the other frames", first.ghost_samples)
+    if first.found_samples == 0 and len(capture.rig) >= 2:  # one camera makes no hull: its plain median stays
+        log.warning("silhouettes: no subject found in any of the %d sampled frames: nobody is in view, or the subject "
+                    "never moves, and then no background estimate can tell him from the room (a clean plate in "
+                    "background/ can)", len(picks))
+    for name in missing:
+        estimate = found[name]
+        if estimate.unresolved_share >= UNRESOLVED_WARNING_SHARE:
+            log.warning("silhouettes: camera %s: %.1f %% of the image could not be separated from the subject "
+                        "(covered in nearly every sampled frame); its background there is inpainted from around "
+                        "it, and the silhouettes may be wrong there (a clean plate in background/ avoids this)",
+                        name, 100 * estimate.unresolved_share)
+    return found
+
+
+def _backgrounds(ctx: StageContext) -> dict[str, float]:
+    """Write one background image per camera: its clean plate, else :func:`estimated_backgrounds`; and the
+    estimated ones' noise floors (JSON). Returns the noise floors.
 
     Computed once in this process, before the per-frame work, so every worker reads the same model.
     A clean plate that is a PNG already is copied byte for byte: decoding and encoding it again would
     only cost time, once per camera.
     """
-    for camera in ctx.capture.rig.names:
+    capture = ctx.capture
+    estimated = [camera for camera in capture.rig.names if camera not in capture.background_paths]
+    floors_path = noise_floors_path(ctx.out_dir)
+    pending = [camera for camera in capture.rig.names if not _intact(background_path(ctx.out_dir, camera))]
+    if estimated and not _intact(floors_path):
+        pending = list(capture.rig.names)  # the floors come with the estimate (which is deterministic)
+    if not pending:  # all kept from an interrupted run, intact
+        return frames_io.read_json(floors_path) if estimated else {}
+    estimates = estimated_backgrounds(capture, ctx.params) if estimated else {}  # every camera votes: all sampled
+    for camera in pending:
         path = background_path(ctx.out_dir, camera)
-        if path.exists() and frames_io.file_problem(path) is None:  # kept from an interrupted run, intact
-            continue
-        plate = ctx.capture.background_paths.get(camera)
+        plate = capture.background_paths.get(camera)
         if plate is not None and plate.suffix.lower() == ".png":
             atomic.write_bytes(path, plate.read_bytes())
+        elif plate is not None:
+            frames_io.write_image(path, capture.background(camera))
         else:
-            frames_io.write_image(path, background_image(ctx.capture, camera))
+            frames_io.write_image(path, estimates[camera].image)
+    floors = {camera: estimates[camera].noise for camera in estimated}
+    if estimated:
+        frames_io.write_json(floors_path, floors)
+    return floors
+
+
+def _intact(path: Path) -> bool:
+    return path.exists() and frames_io.file_problem(path) is None
 
 
 def run_silhouettes(ctx: StageContext) -> int:
     """Per frame and camera, the person's mask: given ones as they are, else background subtraction."""
-    if not ctx.capture.silhouettes_given:
-        _backgrounds(ctx)
+    floors = {} if ctx.capture.silhouettes_given else _backgrounds(ctx)
     names = ctx.capture.rig.names
-    task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir)
+    task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
+                             noise_floors=floors)
 
     def outputs_of(frame: int) -> list[Path]:
         return [silhouette_path(ctx.out_dir, camera, frame) for camera in names]
@@ -316,8 +382,8 @@ STAGES: tuple[Stage, ...] = (
           code=("calib", "pipeline.capture", "pipeline.auto_frame", "stages.silhouettes", *FILES_CODE)),
     Stage("silhouettes", run_silhouettes, inputs=("calibration",), params_type=SilhouetteParams,
           capture_parts=("frames", "images", "background", "silhouettes"),
-          code=("stages.silhouettes", "stages.checks", "pipeline.frame_tasks", "pipeline.capture", "calib",
-                *FILES_CODE)),
+          code=("stages.silhouettes", "stages.background", "stages.consistency", "stages.checks",
+                "pipeline.frame_tasks", "pipeline.capture", "calib", *FILES_CODE)),
     Stage("reconstruction", run_reconstruction, inputs=("calibration", "silhouettes"),
           params_type=ReconstructionParams, capture_parts=("config", "frames"),
           code=("stages.reconstruction", "stages.checks", "pipeline.frame_tasks", "pipeline.capture", "calib",

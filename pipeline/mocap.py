@@ -230,7 +230,18 @@ class Motion:
                 f"time span: [{t0}, {t1}) s holds no frame of a {self.duration:.2f} s clip; "
                 f"expected 0 <= start < end within the clip"
             )
-        keep = slice(first, stop)
+        return self._frames(slice(first, stop))
+
+    def held(self, seconds: float) -> Motion:
+        """The motion with its first pose held still for ``seconds`` before it starts (a subject standing
+        still, then moving): that many frames at ``fps`` are prepended."""
+        if not (seconds >= 0 and math.isfinite(seconds)):
+            raise InputError(f"hold: expected a duration >= 0 seconds, got {seconds}")
+        count = round(seconds * self.fps)
+        return self._frames(np.concatenate([np.zeros(count, int), np.arange(self.n_frames)]))
+
+    def _frames(self, keep: slice | np.ndarray) -> Motion:
+        """The frames ``keep`` (a slice or indices), renumbered from 0; same skeleton and world frame."""
         return Motion(
             self.fps,
             self.bone_names,

@@ -65,6 +65,9 @@ CHI2_3_LOWER_QUARTILE = 1.2125
 # the person (or a change of lighting) covers most of the image, and the quartile is no longer noise.
 NOISE_SIGMA_MIN = 0.5
 NOISE_SIGMA_MAX = 6.0
+# Fewest sampled pixels that differ from the background for a noise estimate; with fewer, the frame is a
+# copy of the background (a still scene from a video codec) and its noise is the lower bound.
+MIN_NOISE_SAMPLES = 100
 # The search for the person looks at blocks of COARSE_FACTOR x COARSE_FACTOR working pixels (a sixteenth of
 # the cost), then works on the box around what it found plus COARSE_MARGIN blocks (parts of the person too
 # faint to show on blocks lie next to parts that do).
@@ -147,6 +150,10 @@ class SilhouetteParams:
     max_hole_fraction : float
         Background holes smaller than this fraction of the foreground area are filled (holes from
         clothing that matches the background); larger ones (the gap between an arm and the body) stay.
+    multiview_check : bool
+        Drop the connected parts of a view's silhouette that the other views do not confirm (a bystander
+        seen by one or two cameras, a reflection, a phantom): see :mod:`stages.consistency`. Applies to
+        given silhouettes too (a person segmenter marks every person).
     """
 
     downsample: int = 2
@@ -162,8 +169,11 @@ class SilhouetteParams:
     min_component_fraction: float = 0.05
     min_component_area_fraction: float = 2e-4
     max_hole_fraction: float = 0.01
+    multiview_check: bool = True
 
     def __post_init__(self) -> None:
+        if not isinstance(self.multiview_check, bool):
+            raise InputError(f"silhouettes.multiview_check: expected true or false, got {self.multiview_check!r}")
         check_int("silhouettes.downsample", self.downsample, 1)
         for name in ("opening_px", "closing_px"):
             check_int(f"silhouettes.{name}", getattr(self, name), 0)
@@ -213,13 +223,22 @@ class BackgroundModel:
     sample_divisor: np.ndarray  # (m,) float32 B·B + BACKGROUND_ENERGY_FLOOR there
     coarse_B: np.ndarray  # (3, h / COARSE_FACTOR, w / COARSE_FACTOR) float32 B_sharp averaged over blocks
     coarse_texture_variance: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR) float32 the same for the texture
+    noise_floor: float  # σ (8-bit levels) below which a frame's noise estimate is not believed
 
 
-def background_model(background: np.ndarray, params: SilhouetteParams) -> BackgroundModel:
-    """The per-camera part of :func:`extract_silhouette`, for a background (H, W, 3) uint8."""
+def background_model(background: np.ndarray, params: SilhouetteParams, *,
+                     noise_floor: float = NOISE_SIGMA_MIN) -> BackgroundModel:
+    """The per-camera part of :func:`extract_silhouette`, for a background (H, W, 3) uint8.
+
+    ``noise_floor`` is the lowest noise σ (8-bit levels, at the working resolution) a frame's estimate may
+    give: by default the quantisation's; a background estimated from the frames themselves knows how much
+    they scatter about it (:func:`stages.background.sample_camera`), where a single frame's estimate, made
+    on the pixels that match the background best, may see less than the frames' codec leaves near the person.
+    """
     background = np.asarray(background)
     if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:
         raise InputError(f"background: expected an (H, W, 3) uint8 array, got {background.dtype} {background.shape}")
+    check_number("background noise floor", noise_floor, NOISE_SIGMA_MIN, NOISE_SIGMA_MAX)
     B_sharp = _downsample(background, params.downsample)
     B = _blur(B_sharp, params.blur_kernel_px)  # (h, w, 3) uint8
     # A shift of the background by κ pixels changes a pixel by about κ times the gradient, which the
@@ -243,6 +262,7 @@ def background_model(background: np.ndarray, params: SilhouetteParams) -> Backgr
         sample_divisor=_dot(sample_B, sample_B) + np.float32(BACKGROUND_ENERGY_FLOOR),
         coarse_B=_channels_first(_block_mean(B_sharp, COARSE_FACTOR)),
         coarse_texture_variance=_block_mean(texture_variance, COARSE_FACTOR),
+        noise_floor=float(noise_floor),
     )
 
 
@@ -623,7 +643,8 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     the image); the half of the sample closest to gB is then surely background, and on it each channel's
     ratio is the least-squares g_k = Σ I_k B_k / Σ B_k². Medians of per-channel ratios would be pulled by the
     person's colour, each channel its own way, and tint the model. σ² is the lower quartile of ‖I − GB‖²
-    over χ²₃'s. Both are clipped to plausible ranges (see the constants).
+    over χ²₃'s, on the pixels that are not exact copies of the background. Both are clipped to plausible
+    ranges (see the constants; σ from below by the model's ``noise_floor``).
     """
     I = _channels_first(I).reshape(3, -1)  # (3, m)
     B = model.sample_B
@@ -637,8 +658,16 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     gains = tuple(_clip_ratio(float(IB / BB)) if BB > 0 else float(g)
                   for IB, BB in zip(products @ background, model.sample_B2 @ background, strict=True))
     D = I - np.array(gains, np.float32)[:, None] * B
-    quartile = _quantile(_dot(D, D), 0.25)
-    return _Noise(gains, min(max(quartile / CHI2_3_LOWER_QUARTILE, NOISE_SIGMA_MIN**2), NOISE_SIGMA_MAX**2))
+    distance2 = _dot(D, D)
+    # A pixel equal to the background in every channel is a copy, not a noisy measurement of it: a video
+    # codec repeats static blocks from frame to frame, so a background taken from the same video (a
+    # temporal median, or a plate cut from it) matches them exactly, while the blocks it encodes again,
+    # around the moving person, carry the codec's noise. Only the others tell the noise level.
+    measured = np.flatnonzero((I != B).any(axis=0))
+    if len(measured) < MIN_NOISE_SAMPLES:
+        return _Noise(gains, model.noise_floor**2)
+    quartile = _quantile(distance2.take(measured), 0.25)
+    return _Noise(gains, min(max(quartile / CHI2_3_LOWER_QUARTILE, model.noise_floor**2), NOISE_SIGMA_MAX**2))
 
 
 def _clip_ratio(ratio: float) -> float:

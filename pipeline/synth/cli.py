@@ -46,6 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--skeleton", type=Path, help="ASF skeleton of an AMC clip")
     parser.add_argument("--start", type=float, default=0.0, help="start of the span in the clip, seconds")
     parser.add_argument("--seconds", type=float, help="length of the span (default: to the end of the clip)")
+    parser.add_argument("--hold", type=float, default=0.0, metavar="SECONDS",
+                        help="hold the span's first pose still for this long before the motion starts")
     parser.add_argument("--fps", type=float, default=28.0, help="frame rate of the capture")
     parser.add_argument("--body", choices=BODY_KINDS, default="mesh", help="rendered body surface")
     parser.add_argument("--cameras", type=int, default=6, help="number of cameras in the ring")
@@ -95,6 +97,7 @@ def main(args: argparse.Namespace) -> int:
         skeleton=None if (skeleton := _skeleton_for(args.clip, args.skeleton)) is None else str(skeleton),
         start_s=args.start,
         seconds=args.seconds,
+        hold_s=args.hold,
         fps=args.fps,
         body=args.body,
         n_cameras=args.cameras,

@@ -72,6 +72,9 @@ class SynthParams:
         Start of the rendered span in the clip, seconds.
     seconds : float or None
         Length of the span; None for the rest of the clip.
+    hold_s : float
+        The span's first pose is held still for this long before the motion starts (a subject who stands
+        still, then moves: a temporal median of the frames keeps a ghost of him).
     fps : float
         Frame rate of the capture (the clip is resampled).
     body : str
@@ -98,6 +101,7 @@ class SynthParams:
     skeleton: str | None = None
     start_s: float = 0.0
     seconds: float | None = None
+    hold_s: float = 0.0
     fps: float = 28.0
     body: str = "mesh"
     n_cameras: int = 6
@@ -116,7 +120,8 @@ def prepare_motion(params: SynthParams) -> Motion:
     """The clip resampled to the capture's frame rate and cut to the requested span."""
     motion = load_clip(params.clip, skeleton=params.skeleton).resample(params.fps)
     end = motion.duration + 1.0 / params.fps if params.seconds is None else params.start_s + params.seconds
-    return motion.slice_seconds(params.start_s, end)
+    motion = motion.slice_seconds(params.start_s, end)
+    return motion.held(params.hold_s) if params.hold_s else motion
 
 
 def standing_height(body: Body, motion: Motion) -> float:
@@ -207,6 +212,8 @@ def _check_params(params: SynthParams) -> None:
         raise InputError(f"--noise {params.noise_sigma}: expected a non-negative sigma (grey levels)")
     if params.distractors < 0:
         raise InputError(f"--distractors {params.distractors}: expected a non-negative count")
+    if not params.hold_s >= 0:
+        raise InputError(f"--hold {params.hold_s}: expected a duration >= 0 seconds")
     if params.seconds is not None and not params.seconds > 0:
         raise InputError(f"--seconds {params.seconds}: expected a positive duration")
 

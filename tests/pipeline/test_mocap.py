@@ -234,3 +234,14 @@ def test_bvh_bad_channel_names_line(tmp_path):
     )
     with pytest.raises(InputError, match=r"chan\.bvh:5: unknown channel 'Wrotation'"):
         load_clip(bvh)
+
+
+def test_held_prepends_the_first_pose_still(kicks):
+    span = kicks.slice_seconds(1.0, 1.5)
+    held = span.held(0.25)
+    still = round(0.25 * span.fps)
+    assert held.n_frames == span.n_frames + still
+    assert np.array_equal(held.joints[:still + 1], np.broadcast_to(span.joints[0], (still + 1, *span.joints.shape[1:])))
+    assert np.array_equal(held.joints[still:], span.joints)
+    with pytest.raises(InputError, match="hold"):
+        span.held(-1.0)

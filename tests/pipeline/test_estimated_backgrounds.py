@@ -1,0 +1,85 @@
+"""The silhouette stage without clean plates, on captures the tests write: a subject who stands still."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+import still_scene as scene
+import yaml
+
+from calib.formats import save_rig
+from pipeline import frames_io, graph
+from pipeline.capture import Capture
+from pipeline.frame_tasks import background_path, noise_floors_path
+from stages.silhouettes import SilhouetteParams
+
+
+def _write_capture(root: Path, path: np.ndarray, *, plates: bool = False) -> tuple[Path, list[np.ndarray]]:
+    """A capture of the still scene's subject walking ``path`` (F, 2); returns it and the true rooms."""
+    rig = scene.ring()
+    rooms = scene.rooms(rig, seed=2)
+    save_rig(rig, "anipose", root / "calibration" / "calibration.toml")
+    config = {"fps": 25.0, "calibration": {"format": "anipose", "path": "calibration/calibration.toml"},
+              "volume": {"min": scene.VOLUME[0].tolist(), "max": scene.VOLUME[1].tolist()}}
+    (root / "capture.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+    for camera, room, images in zip(rig, rooms, scene.frames(rig, rooms, path), strict=True):
+        folder = root / "images" / camera.name
+        folder.mkdir(parents=True)
+        for frame, image in enumerate(images):
+            cv2.imwrite(str(folder / f"{frame:06d}.png"), image)
+        if plates:
+            (root / "background").mkdir(exist_ok=True)
+            cv2.imwrite(str(root / "background" / f"{camera.name}.png"), room)
+    return root, rooms
+
+
+def test_a_subject_who_stood_still_leaves_no_ghost_and_the_log_says_how(tmp_path, caplog):
+    root, rooms = _write_capture(tmp_path / "capture", scene.still_then_moving())
+    capture = Capture.open(root)
+    with caplog.at_level(logging.INFO, logger="pipeline.graph"):
+        estimates = graph.estimated_backgrounds(capture, SilhouetteParams())
+    for camera, room in zip(capture.rig, rooms, strict=True):
+        ghost = scene.subject_mask(camera, (0.0, 0.0)) > 0
+        assert np.abs(estimates[camera.name].image.astype(int) - room)[ghost].max(axis=1).mean() < 4
+    assert "the subject left out" in caplog.text and "WARNING" not in caplog.text
+
+
+def test_a_subject_who_never_leaves_his_spot_is_a_warning_naming_each_camera(tmp_path, caplog):
+    swaying = np.column_stack([0.15 * np.sin(np.arange(24)), np.zeros(24)])
+    capture = Capture.open(_write_capture(tmp_path / "capture", swaying)[0])
+    with caplog.at_level(logging.WARNING, logger="pipeline.graph"):
+        graph.estimated_backgrounds(capture, SilhouetteParams())
+    warned = [record.getMessage() for record in caplog.records if "could not be separated" in record.getMessage()]
+    assert {message.split(":")[1].strip().split()[1] for message in warned} == set(capture.rig.names)
+
+
+def test_a_subject_who_never_moves_is_a_warning(tmp_path, caplog):
+    capture = Capture.open(_write_capture(tmp_path / "capture", np.zeros((12, 2)))[0])
+    with caplog.at_level(logging.WARNING, logger="pipeline.graph"):
+        graph.estimated_backgrounds(capture, SilhouetteParams())
+    assert "no subject found in any of the 12 sampled frames" in caplog.text
+
+
+@pytest.mark.parametrize("plates", [False, True])
+def test_the_stage_writes_backgrounds_and_the_noise_floors_of_estimated_ones(tmp_path, monkeypatch, plates):
+    root, rooms = _write_capture(tmp_path / "capture", scene.still_then_moving(16, 6), plates=plates)
+    out = tmp_path / "run"
+
+    context = SimpleNamespace(capture=Capture.open(root), out_dir=out, params=SilhouetteParams())  # what it reads
+    floors = graph._backgrounds(context)
+    names = context.capture.rig.names
+    assert all(frames_io.file_problem(background_path(out, camera)) is None for camera in names)
+    if plates:
+        assert floors == {} and not noise_floors_path(out).exists()
+        assert all(np.array_equal(frames_io.read_image(background_path(out, c)), room)
+                   for c, room in zip(names, rooms, strict=True))
+        return
+    assert frames_io.read_json(noise_floors_path(out)) == floors and set(floors) == set(names)
+    assert all(0.5 <= floor <= 6.0 for floor in floors.values())
+    monkeypatch.setattr(graph, "estimated_backgrounds", None)  # a resumed run reads what is there
+    assert graph._backgrounds(context) == floors

@@ -1,0 +1,55 @@
+import cv2
+import numpy as np
+import pytest
+from still_scene import VOLUME, ellipsoid_mask, ring
+
+from calib.errors import InputError
+from stages.consistency import consistent_silhouettes
+
+
+def render_spheres(camera, centres, radii):
+    masks = [ellipsoid_mask(camera, centre, [radius] * 3) for centre, radius in zip(centres, radii, strict=True)]
+    return np.maximum.reduce(masks)
+
+BODY = np.array([0.1, -0.05, 1.0])
+HAND = np.array([0.1, 0.45, 1.3])  # 25 cm from the body's surface: a separate part in most views
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rig = ring(6)
+    masks = [render_spheres(camera, [BODY, HAND], [0.25, 0.08]) for camera in rig]
+    return rig, masks
+
+
+def test_parts_every_view_confirms_are_kept(scene):
+    rig, masks = scene
+    checked = consistent_silhouettes(masks, list(rig), VOLUME, tolerated=1)
+    assert all(np.array_equal(a, b) for a, b in zip(checked, masks, strict=True))
+
+
+def test_a_bystander_seen_by_two_cameras_is_dropped_from_both(scene):
+    rig, masks = scene
+    bystander = np.array([-1.0, 0.9, 0.9])  # inside the volume, seen by every camera, drawn into two
+    seen = [render_spheres(camera, [bystander], [0.25]) for camera in rig]
+    with_bystander = [np.maximum(mask, blob) if index in (0, 3) else mask
+                      for index, (mask, blob) in enumerate(zip(masks, seen, strict=True))]
+    assert all((with_bystander[index] > masks[index]).sum() > 100 for index in (0, 3))  # separate blobs
+    checked = consistent_silhouettes(with_bystander, list(rig), VOLUME, tolerated=1)
+    assert all(np.array_equal(a, b) for a, b in zip(checked, masks, strict=True))
+
+
+def test_a_blob_in_one_view_goes_and_the_subject_stays_when_that_view_misses_a_part(scene):
+    rig, masks = scene
+    masks = [mask.copy() for mask in masks]
+    cv2.circle(masks[2], (20, 20), 8, 255, -1)  # a reflection
+    masks[4][render_spheres(rig[4], [HAND], [0.08]) > 0] = 0  # one view misses the hand: tolerated
+    checked = consistent_silhouettes(masks, list(rig), VOLUME, tolerated=1)
+    assert checked[2][20, 20] == 0 and (checked[2] > 0).sum() == (masks[2] > 0).sum() - (masks[2][5:36, 5:36] > 0).sum()
+    assert all(np.array_equal(checked[index], masks[index]) for index in (0, 1, 3, 4, 5))
+
+
+def test_one_mask_per_camera():
+    rig = ring(3)
+    with pytest.raises(InputError, match="2 masks for 3 cameras"):
+        consistent_silhouettes([np.zeros((120, 160), np.uint8)] * 2, list(rig), VOLUME, tolerated=0)
