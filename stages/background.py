@@ -254,7 +254,8 @@ def _scatter(stack: np.ndarray, median: np.ndarray, downsample: int) -> float:
 
     Each sample is reduced as the silhouette stage reduces a frame, scaled by its exposure ratio to the
     median (the median of I·B / B·B: flicker), and compared with it on every SAMPLE_STRIDE-th pixel that it
-    does not copy exactly (a codec repeats static blocks, which tell nothing of the noise). The median of
+    does not copy exactly (a codec repeats static blocks, which tell nothing of the noise; when copies are
+    most of the pixels, the samples are noiseless and what differs is the subject). The median of
     ‖I − gB‖² over them, divided by that of a χ²₃ variable, is σ²: the subject covers a small part of the
     samples, and the median, unlike the lower quartile a single frame's estimate uses, also counts the
     heavier tail that a codec leaves where it encodes a block again.
@@ -263,15 +264,16 @@ def _scatter(stack: np.ndarray, median: np.ndarray, downsample: int) -> float:
     shape = (max(1, round(width / downsample)), max(1, round(height / downsample)))
     B = cv2.resize(median, shape, interpolation=cv2.INTER_AREA)[::SAMPLE_STRIDE, ::SAMPLE_STRIDE].reshape(-1, 3)
     B = B.astype(np.float32)
-    distances = []
+    distances, sampled = [], 0
     for frame in stack[:: max(1, len(stack) // SCATTER_SAMPLES)]:
         I = cv2.resize(frame, shape, interpolation=cv2.INTER_AREA)[::SAMPLE_STRIDE, ::SAMPLE_STRIDE].reshape(-1, 3)
         I = I.astype(np.float32)
         measured = (I != B).any(axis=1)
         gain = np.median((I * B).sum(axis=1) / ((B * B).sum(axis=1) + 1.0))
         distances.append(((I - gain * B) ** 2).sum(axis=1)[measured])
+        sampled += len(I)
     distances = np.concatenate(distances)
-    if not len(distances):
+    if len(distances) < sampled / 2:  # mostly exact copies (a noiseless render): what differs is the subject
         return NOISE_SIGMA_MIN
     sigma = float(np.sqrt(np.median(distances) / CHI2_3_MEDIAN))
     return min(max(sigma, NOISE_SIGMA_MIN), NOISE_SIGMA_MAX)

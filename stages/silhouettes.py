@@ -65,8 +65,9 @@ CHI2_3_LOWER_QUARTILE = 1.2125
 # the person (or a change of lighting) covers most of the image, and the quartile is no longer noise.
 NOISE_SIGMA_MIN = 0.5
 NOISE_SIGMA_MAX = 6.0
-# Fewest sampled pixels that differ from the background for a noise estimate; with fewer, the frame is a
-# copy of the background (a still scene from a video codec) and its noise is the lower bound.
+# Fewest sampled pixels that differ from the background for a noise estimate; with fewer, or fewer than half
+# of the sample, the frame is mostly an exact copy of the background (a still scene from a video codec, a
+# noiseless render) and its noise is the lower bound: what differs is then mostly the person, not noise.
 MIN_NOISE_SAMPLES = 100
 # The search for the person looks at blocks of COARSE_FACTOR x COARSE_FACTOR working pixels (a sixteenth of
 # the cost), then works on the box around what it found plus COARSE_MARGIN blocks (parts of the person too
@@ -664,7 +665,7 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     # temporal median, or a plate cut from it) matches them exactly, while the blocks it encodes again,
     # around the moving person, carry the codec's noise. Only the others tell the noise level.
     measured = np.flatnonzero((I != B).any(axis=0))
-    if len(measured) < MIN_NOISE_SAMPLES:
+    if len(measured) < max(MIN_NOISE_SAMPLES, len(distance2) // 2):
         return _Noise(gains, model.noise_floor**2)
     quartile = _quantile(distance2.take(measured), 0.25)
     return _Noise(gains, min(max(quartile / CHI2_3_LOWER_QUARTILE, model.noise_floor**2), NOISE_SIGMA_MAX**2))

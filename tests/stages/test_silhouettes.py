@@ -93,6 +93,17 @@ def test_frame_entirely_different_from_background_gives_full_mask():
     assert (mask == 255).all()
 
 
+def test_a_faint_person_in_a_noiseless_frame_is_found():
+    # Every background pixel is an exact copy (a render, a still scene): what differs is the person, whose
+    # own contrast must not be taken for the noise level.
+    background = _textured_background(np.random.default_rng(7))
+    truth = _person_mask()
+    image = background.astype(int)
+    image[truth > 0] += 20
+    mask = extract_silhouette(np.clip(image, 0, 255).astype(np.uint8), background, SilhouetteParams())
+    assert _iou(mask, truth) > 0.9
+
+
 def test_clothing_a_few_noise_levels_from_a_plain_wall_is_found():
     rng = np.random.default_rng(6)
     stains = rng.uniform(-8, 8, (HEIGHT // 60 + 1, WIDTH // 60 + 1, 1))
