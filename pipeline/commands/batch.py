@@ -24,6 +24,7 @@ import argparse
 import concurrent.futures as cf
 import contextlib
 import csv
+import importlib
 import io
 import logging
 import math
@@ -42,10 +43,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 from calib.errors import InputError
 from pipeline import atomic
-from pipeline.commands.run import UNUSABLE_RESULT, read_params, run_capture
-from pipeline.evaluate import evaluate_run
 from pipeline.executors import InProcessExecutor, Workers, local_count, make_executor
-from pipeline.export_io import JOINTS_FILE, read_joints_csv
 from pipeline.runner import check_output_folder, format_columns, output_lock
 from pipeline.terminal import PrintableFormatter, printable
 
@@ -56,9 +54,15 @@ CAPTURE_YAML = "capture.yaml"
 #: The batch's table of captures, in OUT.
 BATCH_CSV = "batch.csv"
 #: A capture's ground truth, scored when present.
-TRUTH = Path("groundtruth") / JOINTS_FILE
-#: Exit status when some capture failed (the batch finished, not every result is usable: as for `run`).
-SOME_FAILED = UNUSABLE_RESULT
+TRUTH = Path("groundtruth") / "joints.csv"
+#: Exit status when some capture failed: the batch finished, not every result is usable (as `run`'s 3).
+SOME_FAILED = 3
+#: A capture's folders of media (see docs/capture_format.md), whose size says how long it takes.
+MEDIA_FOLDERS = ("images", "videos", "silhouettes")
+#: What a capture's task runs: the stages and the scoring. This module imports it only where a capture runs or
+#: the parameters are checked, so that worker processes start importing it before the batch's own process does
+#: (:func:`main`); their start-up then overlaps its checks.
+TASK_MODULES = ("pipeline.commands.run", "pipeline.evaluate")
 #: Top-level packages whose log lines a worker process shows (see :func:`_log_in_worker`).
 LOGGED_PACKAGES = ("calib", "stages", "pipeline")
 
@@ -179,10 +183,13 @@ def process_capture(job: CaptureJob) -> CaptureReport:
     Never raises for the capture's own failure: a user mistake, an unusable result or a bug is reported
     in the row (a bug's traceback in the log), so that the captures beside it carry on.
     """
+    from pipeline.commands.run import run_capture  # see TASK_MODULES
+    from pipeline.evaluate import evaluate_run
+    from pipeline.export_io import JOINTS_FILE, read_joints_csv
+
     started = time.perf_counter()
     if job.worker_log_level is not None:
         _log_in_worker(job.name, job.worker_log_level)
-    log.info("%s: started", job.name)
     try:
         with make_executor(1) as workers:
             result = run_capture(job.capture, job.out, job.params, workers,
@@ -236,6 +243,11 @@ def _log_in_worker(name: str, level: int) -> None:
 # Running the captures
 
 
+def _import(modules: Sequence[str]) -> None:
+    for module in modules:
+        importlib.import_module(module)
+
+
 class RenewedProcessPool(cf.Executor):
     """A process pool (``spawn``) that starts afresh when one of its processes dies.
 
@@ -251,7 +263,12 @@ class RenewedProcessPool(cf.Executor):
         self._pool = self._start()
 
     def _start(self) -> cf.ProcessPoolExecutor:
-        return cf.ProcessPoolExecutor(max_workers=self.count, mp_context=multiprocessing.get_context("spawn"))
+        """A pool whose processes start now, each importing :data:`TASK_MODULES` first."""
+        pool = cf.ProcessPoolExecutor(max_workers=self.count, mp_context=multiprocessing.get_context("spawn"),
+                                      initializer=_import, initargs=(TASK_MODULES,))
+        for _ in range(self.count):  # a spawn pool starts a process per call while none is idle, up to count
+            pool.submit(int)
+        return pool
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> cf.Future:
         try:
@@ -298,6 +315,7 @@ def run_jobs(jobs: Sequence[CaptureJob], workers: Workers, on_done: Callable[[Ca
     running: dict[cf.Future, CaptureJob] = {}
     while True:
         while len(running) < workers.count and (job := next(waiting, None)) is not None:
+            log.info("%s: started", job.name)
             running[workers.executor.submit(task, job)] = job
         if not running:
             return
@@ -369,30 +387,51 @@ def make_jobs(root: Path, captures: Sequence[Path], out: Path, params: Mapping[s
     return jobs
 
 
+def media_bytes(capture: Path) -> int:
+    """Bytes of a capture's media (:data:`MEDIA_FOLDERS`), links followed: roughly how much work it is."""
+    return sum(os.stat(Path(parent) / name).st_size for folder in MEDIA_FOLDERS
+               for parent, _, files in os.walk(capture / folder, followlinks=True)
+               for name in files if os.path.exists(Path(parent) / name))
+
+
+def largest_first(jobs: Sequence[CaptureJob]) -> list[CaptureJob]:
+    """``jobs`` in the order to start them: the captures with the most media first (ties in their order).
+
+    Started last, a long capture would run alone at the end while the other workers idle; largest first, the
+    short ones fill in around the long ones. A capture's time grows with its frames, cameras and pixels, and so
+    do its media's bytes, roughly (a capture.yaml that selects a part of its frames is not looked at).
+    """
+    return sorted(jobs, key=lambda job: media_bytes(job.capture), reverse=True)
+
+
 def main(args: argparse.Namespace) -> int:
-    params = read_params(args.config, args.assignments)
-    in_process = args.scheduler.startswith("local:") and local_count(args.scheduler) == 1
-    # Workers show warnings only (-v: everything): the lines of several captures at once would bury the bar.
-    worker_level = logging.DEBUG if log.isEnabledFor(logging.DEBUG) else logging.WARNING
-    jobs = make_jobs(args.root, find_captures(args.root, skip=args.out), args.out, params,
-                     allow_outside_paths=args.allow_outside_paths,
-                     worker_log_level=None if in_process else worker_level)
-    reports = {job.name: CaptureReport(job.name, "not run") for job in jobs}
-    table_path = args.out / BATCH_CSV
-    show_progress = not args.quiet and sys.stderr.isatty()
-    with output_lock(args.out), capture_workers(args.scheduler) as workers, logging_redirect_tqdm(), tqdm(
-            total=len(jobs), desc="batch", unit="capture", file=sys.stderr, disable=not show_progress,
-            dynamic_ncols=True) as bar:
-        log.info("%d captures, %s", len(jobs), workers.description)
-        atomic.write_text(table_path, format_csv(list(reports.values())))  # no row of an earlier batch stays
+    # The workers start first: their start-up overlaps the checks below.
+    with capture_workers(args.scheduler) as workers:
+        from pipeline.commands.run import read_params  # see TASK_MODULES
 
-        def record(report: CaptureReport) -> None:
-            reports[report.capture] = report
-            atomic.write_text(table_path, format_csv(list(reports.values())))
-            (log.info if report.ok else log.warning)(describe(report))
-            bar.update(1)
+        params = read_params(args.config, args.assignments)
+        # Workers show warnings only (-v: everything): the lines of several captures at once would bury the bar.
+        worker_level = logging.DEBUG if log.isEnabledFor(logging.DEBUG) else logging.WARNING
+        in_process = isinstance(workers.executor, InProcessExecutor)
+        jobs = make_jobs(args.root, find_captures(args.root, skip=args.out), args.out, params,
+                         allow_outside_paths=args.allow_outside_paths,
+                         worker_log_level=None if in_process else worker_level)
+        reports = {job.name: CaptureReport(job.name, "not run") for job in jobs}
+        table_path = args.out / BATCH_CSV
+        show_progress = not args.quiet and sys.stderr.isatty()
+        with output_lock(args.out), logging_redirect_tqdm(), tqdm(
+                total=len(jobs), desc="batch", unit="capture", file=sys.stderr, disable=not show_progress,
+                dynamic_ncols=True) as bar:
+            log.info("%d captures, %s", len(jobs), workers.description)
+            atomic.write_text(table_path, format_csv(list(reports.values())))  # no row of an earlier batch stays
 
-        run_jobs(jobs, workers, record)
+            def record(report: CaptureReport) -> None:
+                reports[report.capture] = report
+                atomic.write_text(table_path, format_csv(list(reports.values())))
+                (log.info if report.ok else log.warning)(describe(report))
+                bar.update(1)
+
+            run_jobs(largest_first(jobs), workers, record)
     print(format_table(list(reports.values())))
     failed = [report for report in reports.values() if not report.ok]
     if failed:

@@ -28,6 +28,7 @@ from pipeline.commands.batch import (
     CaptureReport,
     RenewedProcessPool,
     find_captures,
+    largest_first,
     make_jobs,
     run_jobs,
 )
@@ -188,3 +189,16 @@ def test_the_bench_study_views_a_stretch_of_a_sample_and_judges_the_broken_captu
     assert not broken_reported({"returncode": 0, "rows": [good, broken]}, ["walk/first"])
     assert not broken_reported({"returncode": SOME_FAILED, "rows": [{**good, "status": "failed"}, broken]},
                                ["walk/first"])
+
+
+def test_the_captures_with_the_most_media_start_first(tmp_path):
+    sizes = {"short": 10, "long": 1000, "middle": 100, "none": 0}
+    jobs = []
+    for name, size in sizes.items():
+        capture = touch_capture(tmp_path / name)
+        if size:
+            (capture / "videos").mkdir()
+            (capture / "videos" / "cam1.mp4").write_bytes(b"x" * size)
+            (capture / "calibration.toml").write_bytes(b"x" * 5000)  # not media
+        jobs.append(CaptureJob(name, capture, tmp_path / "out" / name, {}))
+    assert [job.name for job in largest_first(jobs)] == ["long", "middle", "short", "none"]
