@@ -6,6 +6,7 @@ import ezc3d
 import numpy as np
 import pytest
 from conftest import make_capture, stick_figure
+from export_testing import read_bvh_positions
 from trc import TRCData
 
 from calib.errors import InputError
@@ -18,7 +19,6 @@ from pipeline.export_io import (
 from pipeline.runner import MANIFEST
 from stages.export import ExportParams
 from stages.export.angles import ANGLE_NAMES
-from stages.export.bvh import WORLD_TO_BVH
 from stages.export.quality import FrameQuality
 from stages.joints import JOINT_NAMES
 
@@ -46,18 +46,6 @@ def test_read_joints_csv_errors_name_the_file(tmp_path):
     (tmp_path / "short.csv").write_text("frame,joint,x,y,z\n0,pelvis,1\n")
     with pytest.raises(InputError, match="short.csv:2: 3 fields"):
         read_joints_csv(tmp_path / "short.csv")
-
-
-def _bvh_world(path, n_frames: int, scale: float) -> dict[str, np.ndarray]:
-    """BVH joint positions per joint name (metres, world +z up) read by bvhio; ``scale``: file units per metre."""
-    root = bvhio.readAsHierarchy(str(path))
-    joints = {joint.Name: joint for joint, _, _ in root.layout()}
-    positions = {name: np.empty((n_frames, 3)) for name in joints}
-    for frame in range(n_frames):
-        root.loadPose(frame)
-        for name, joint in joints.items():
-            positions[name][frame] = np.array(joint.PositionWorld) @ WORLD_TO_BVH / scale
-    return positions
 
 
 def _tracked_like(n_frames: int) -> np.ndarray:
@@ -88,7 +76,7 @@ def test_every_export_reproduces_joints_csv_in_every_frame(tmp_path):
     assert np.abs(exported[0] - joints[0]).max() > 0.01  # the first frame took the settled size
 
     grid_index = (csv_frames - 30) // 2
-    bvh = _bvh_world(paths["motion.bvh"], 24, 100.0)  # centimetres by default
+    bvh, _ = read_bvh_positions(paths["motion.bvh"], 24)  # centimetres by default
     trc = TRCData()
     trc.load(str(paths["joints.trc"]))
     assert trc["Frame#"] == frames.tolist() and trc["OrigDataStartFrame"] == 30
@@ -168,7 +156,7 @@ def test_filtering_smooths_every_export_alike_and_keeps_the_skeleton(tmp_path):
     for a, b in bones:  # rigid bones keep one length through the smoothing
         lengths = np.linalg.norm(filtered[:, b] - filtered[:, a], axis=1)
         assert np.ptp(lengths) < 1e-6  # joints.csv's 0.1 micrometre rounding
-    bvh = _bvh_world(paths["motion.bvh"], 60, 100.0)
+    bvh, _ = read_bvh_positions(paths["motion.bvh"], 60)
     for j, name in enumerate(names):
         assert np.abs(bvh[name] - filtered[:, j]).max() < 1e-4, name
 
