@@ -166,22 +166,17 @@ _THORAX = ("pelvis", "neck", "l_shoulder", "r_shoulder")
 
 #: name -> (joints it needs, function of {joint: (F, 3) positions} -> (F,) degrees), in angles.csv order.
 ANGLE_DEFINITIONS: dict[str, tuple[tuple[str, ...], Callable]] = {}
+_SWING_TWIST = ("flexion", "abduction", "rotation")
 for _s in _SIDES:
-    ANGLE_DEFINITIONS.update({
-        f"{_s}_hip_flexion": ((*_PELVIS, f"{_s}_knee", f"{_s}_ankle"), _hip("flexion", _s)),
-        f"{_s}_hip_abduction": ((*_PELVIS, f"{_s}_knee", f"{_s}_ankle"), _hip("abduction", _s)),
-        f"{_s}_hip_rotation": ((*_PELVIS, f"{_s}_knee", f"{_s}_ankle"), _hip("rotation", _s)),
-    })
+    ANGLE_DEFINITIONS.update({f"{_s}_hip_{part}": ((*_PELVIS, f"{_s}_knee", f"{_s}_ankle"), _hip(part, _s))
+                              for part in _SWING_TWIST})
 for _s in _SIDES:
     ANGLE_DEFINITIONS[f"{_s}_knee_flexion"] = ((*_PELVIS, f"{_s}_knee", f"{_s}_ankle"), _hip("hinge", _s))
 for _s in _SIDES:
     ANGLE_DEFINITIONS[f"{_s}_ankle_dorsiflexion"] = ((f"{_s}_knee", f"{_s}_ankle", f"{_s}_toe"), _ankle(_s))
 for _s in _SIDES:
-    ANGLE_DEFINITIONS.update({
-        f"{_s}_shoulder_flexion": ((*_THORAX, f"{_s}_elbow", f"{_s}_wrist"), _shoulder("flexion", _s)),
-        f"{_s}_shoulder_abduction": ((*_THORAX, f"{_s}_elbow", f"{_s}_wrist"), _shoulder("abduction", _s)),
-        f"{_s}_shoulder_rotation": ((*_THORAX, f"{_s}_elbow", f"{_s}_wrist"), _shoulder("rotation", _s)),
-    })
+    ANGLE_DEFINITIONS.update({f"{_s}_shoulder_{part}": ((*_THORAX, f"{_s}_elbow", f"{_s}_wrist"), _shoulder(part, _s))
+                              for part in _SWING_TWIST})
 for _s in _SIDES:
     ANGLE_DEFINITIONS[f"{_s}_elbow_flexion"] = ((*_THORAX, f"{_s}_elbow", f"{_s}_wrist"), _shoulder("hinge", _s))
 for _s in _SIDES:
