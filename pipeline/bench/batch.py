@@ -179,10 +179,10 @@ def format_batch(section: dict) -> str:
                            f"s (local:{section['workers']})", "s (local:1)", "error"), rows), ""]
     lines.append(format_table(
         ("how", "wall s", f"local:{section['workers']} faster by ×", "load before"),
-        [(f"`batch --scheduler local:{section['workers']}`", parallel["seconds"], 1.0, parallel["load"]),
-         ("`batch --scheduler local:1`", sequential["seconds"], section["speedup"], sequential["load"]),
+        [(f"`batch --scheduler local:{section['workers']}`", parallel["seconds"], "1.00", parallel["load"]),
+         ("`batch --scheduler local:1`", sequential["seconds"], f"{section['speedup']:.2f}", sequential["load"]),
          ("`run --workers 1` per capture, one after the other", section["runs"]["seconds"],
-          section["speedup_vs_runs"], section["runs"]["load"])]))
+          f"{section['speedup_vs_runs']:.2f}", section["runs"]["load"])]))
     tries = "; ".join(f"{mode} {', '.join(f'{seconds:.1f}' for seconds in times)} s"
                       for mode, times in section["trial_seconds"].items())
     lines += ["", f"Every batch run: {tries}. Broken capture reported failed "

@@ -332,7 +332,7 @@ def test_results_markdown_has_every_section_command_and_verdict(results):
     assert walk in text
     assert "| data_samples/taekwondo (reference) |" in text and "`odd` was not scored: odd/capture.yaml" in text
     assert "| walk/first | 56 | ran | 56 | 18.0 | 9.5 | – | – |" in text
-    assert "| `batch --scheduler local:1` | 36.0 | 1.8 | 0.6 |" in text
+    assert "| `batch --scheduler local:1` | 36.0 | 1.80 | 0.6 |" in text
     assert "Every batch run: parallel 20.0, 21.0 s; sequential 36.0, 37.5 s." in text
 
 
