@@ -21,6 +21,7 @@ capture's own per-frame stages run in its task's process, one frame after the ot
 from __future__ import annotations
 
 import argparse
+import atexit
 import concurrent.futures as cf
 import contextlib
 import csv
@@ -243,9 +244,22 @@ def _log_in_worker(name: str, level: int) -> None:
 # Running the captures
 
 
-def _import(modules: Sequence[str]) -> None:
+def _start_worker(modules: Sequence[str]) -> None:
+    """A worker process's start: import ``modules``, and arrange to end without the interpreter's teardown.
+
+    Unloading numba's LLVM, OpenCV and the rest takes a few tenths of a second per process, which the batch
+    waits for as its pool shuts down, after its last capture; by then every file of the worker's is written and
+    closed, and its log lines are flushed here (as ``python -m pipeline`` itself ends, see pipeline/__main__.py).
+    """
     for module in modules:
         importlib.import_module(module)
+    atexit.register(_exit_now)
+
+
+def _exit_now() -> None:
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 class RenewedProcessPool(cf.Executor):
@@ -263,9 +277,9 @@ class RenewedProcessPool(cf.Executor):
         self._pool = self._start()
 
     def _start(self) -> cf.ProcessPoolExecutor:
-        """A pool whose processes start now, each importing :data:`TASK_MODULES` first."""
+        """A pool whose processes start now, each importing :data:`TASK_MODULES` first (:func:`_start_worker`)."""
         pool = cf.ProcessPoolExecutor(max_workers=self.count, mp_context=multiprocessing.get_context("spawn"),
-                                      initializer=_import, initargs=(TASK_MODULES,))
+                                      initializer=_start_worker, initargs=(TASK_MODULES,))
         for _ in range(self.count):  # a spawn pool starts a process per call while none is idle, up to count
             pool.submit(int)
         return pool

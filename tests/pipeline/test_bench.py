@@ -283,6 +283,7 @@ def results():
                       {"capture": "tiny/broken", "frames": None, "status": "failed", "estimated": None,
                        "mpjpe_mm": None, "seconds": 0.2, "error": "tiny/broken/images/cam2/000004.png: unreadable"}]},
                   "sequential": {"seconds": 36.0, "returncode": 3, "load": 0.6, "rows": []},
+                  "trial_seconds": {"parallel": [20.0, 21.0], "sequential": [36.0, 37.5]},
                   "runs": {"seconds": 40.0, "load": 0.7, "ok": ["walk/first"]},
                   "speedup": 1.8, "speedup_vs_runs": 2.0, "broken_reported": True, "same_joints": True},
     }
@@ -343,7 +344,8 @@ def test_results_markdown_has_every_section_command_and_verdict(results):
     assert walk in text
     assert "| data_samples/taekwondo (reference) |" in text and "`odd` was not scored: odd/capture.yaml" in text
     assert "| walk/first | 56 | ran | 56 | 18.0 | 9.5 | – | – |" in text
-    assert "| `batch --scheduler local:1` | 36.0 | 1.8 | 0.6 |" in text
+    assert "| `batch --scheduler local:1` | 36.0 | 1.80 | 0.6 |" in text
+    assert "Every batch run: parallel 20.0, 21.0 s; sequential 36.0, 37.5 s." in text
 
 
 def test_results_round_trip_through_strict_json(results, tmp_path):
