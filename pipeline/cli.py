@@ -34,7 +34,7 @@ SUBCOMMANDS: dict[str, str] = {
     "batch": "pipeline.commands.batch",
     "stages": "pipeline.commands.stages",
     "eval": "pipeline.evaluate",
-    "synth": "pipeline.synth.cli",
+    "synth": "pipeline.lab.synth.cli",
     "params": "pipeline.commands.params",
     "bench": "pipeline.commands.bench",
     "warmup": "pipeline.commands.warmup",

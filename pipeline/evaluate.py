@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from calib.errors import InputError
-from pipeline import frames_io
-from pipeline.export_io import JOINTS_FILE, read_joints_csv
+from pipeline.io import frames_io
+from pipeline.io.export_io import JOINTS_FILE, read_joints_csv
 from pipeline.terminal import printable
 from stages.export.metrics import JointMetrics, evaluate_joints, mask_iou
 

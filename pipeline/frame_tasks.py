@@ -26,8 +26,8 @@ import cv2
 import numpy as np
 
 from calib.camera import Rig
-from pipeline import frames_io
-from pipeline.capture import Capture
+from pipeline.io import frames_io
+from pipeline.io.capture import Capture
 from stages.background import tolerated_views
 from stages.consistency import consistent_silhouettes
 from stages.silhouettes import (

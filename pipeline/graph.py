@@ -1,4 +1,4 @@
-"""The real stage graph: one :class:`~pipeline.runner.Stage` declaration per stage, in run order.
+"""The real stage graph: one :class:`~pipeline.engine.runner.Stage` declaration per stage, in run order.
 
 Adding a stage
 --------------
@@ -7,7 +7,7 @@ Adding a stage
    and ``--config`` sections then work without further code.
 2. Write a run function here, ``run_<stage>(ctx: StageContext) -> int | None``, that reads its
    inputs (``ctx.capture``, ``ctx.input_dir("calibration")``, ...), writes its results under
-   ``ctx.out_dir`` with the atomic writers of :mod:`pipeline.frames_io`, and returns the number of
+   ``ctx.out_dir`` with the atomic writers of :mod:`pipeline.io.frames_io`, and returns the number of
    frames it computed (``None`` when the stage is not per-frame).
 3. Append one declaration to :data:`STAGES`: name, run function, upstream stages, parameter class,
    the capture parts it reads directly, and the first-party modules, packages and data folders whose
@@ -15,7 +15,7 @@ Adding a stage
 
        Stage("silhouettes", run_silhouettes, inputs=("calibration",), params_type=SilhouetteParams,
              capture_parts=("frames", "images", "background", "silhouettes"),
-             code=("stages.silhouettes", "pipeline.frame_tasks", "pipeline.capture", "calib", *FILES_CODE))
+             code=("stages.silhouettes", "pipeline.frame_tasks", "pipeline.io.capture", "calib", *FILES_CODE))
 
    tests/pipeline/test_graph.py runs each stage under a profiler and fails when it runs first-party
    code or reads first-party data that ``code`` leaves out. (A module of constants only, such as
@@ -23,7 +23,7 @@ Adding a stage
 
 Per-frame stages: the run function calls ``ctx.map_frames(task, outputs_of)``. ``task`` is a
 module-level function bound with ``functools.partial`` to plain picklable arguments (the
-:class:`~pipeline.capture.Capture`, which carries the rig and paths but no pixels, the params
+:class:`~pipeline.io.capture.Capture`, which carries the rig and paths but no pixels, the params
 dataclass, the output folder) and is called in a worker with a chunk of consecutive frame numbers.
 **The worker writes each frame's outputs itself, atomically**, and returns nothing: images never
 travel back to the parent, and a frame's file existing means the frame is done, which is how an
@@ -45,15 +45,7 @@ import numpy as np
 
 from calib.camera import Rig
 from calib.formats import load_rig, save_rig
-from pipeline import atomic, frames_io
-from pipeline.capture import Capture, capture_summary
-from pipeline.export_io import (
-    JOINTS_FILE,
-    QUALITY_FILE,
-    write_exports,
-    write_joints_csv,
-    write_quality_csv,
-)
+from pipeline.engine.runner import Stage, StageContext
 from pipeline.frame_tasks import (
     background_path,
     noise_floors_path,
@@ -62,9 +54,17 @@ from pipeline.frame_tasks import (
     silhouette_path,
     silhouettes_task,
 )
-from pipeline.overlay_video import overlay_video_name, write_overlay_video
-from pipeline.report import write_report
-from pipeline.runner import Stage, StageContext
+from pipeline.io import atomic, frames_io
+from pipeline.io.capture import Capture, capture_summary
+from pipeline.io.export_io import (
+    JOINTS_FILE,
+    QUALITY_FILE,
+    write_exports,
+    write_joints_csv,
+    write_quality_csv,
+)
+from pipeline.io.overlay_video import overlay_video_name, write_overlay_video
+from pipeline.report.page import write_report
 from stages.background import BackgroundEstimate, estimate_backgrounds, sample_camera, sample_count, working_size
 from stages.export import ExportParams
 from stages.export.quality import FrameQuality
@@ -251,7 +251,7 @@ def tracking_path(out_dir: Path, frame: int) -> Path:
 def read_tracking(folder: Path, frame: int) -> tuple[FrameResult, TrackerState]:
     """One frame's tracking record: its estimate and the tracker's state after it.
 
-    Raises :class:`~pipeline.frames_io.DamagedFileError` when the record fails its content check or is
+    Raises :class:`~pipeline.io.frames_io.DamagedFileError` when the record fails its content check or is
     not a record of this frame with a (17, 3) array of joints and a known status.
     """
     path = tracking_path(folder, frame)
@@ -374,19 +374,19 @@ def run_export(ctx: StageContext) -> None:
 WORKER_MODULES = ("pipeline.frame_tasks",)
 
 #: Modules every stage runs to write (and read) its files.
-FILES_CODE = ("pipeline.frames_io", "pipeline.atomic")
+FILES_CODE = ("pipeline.io.frames_io", "pipeline.io.atomic")
 
 STAGES: tuple[Stage, ...] = (
-    Stage("calibration", run_calibration,  # up: auto finds the floor in the media (pipeline.auto_frame)
+    Stage("calibration", run_calibration,  # up: auto finds the floor in the media (pipeline.io.auto_frame)
           capture_parts=("config", "calibration", "image_sizes", "frames", "images", "background", "silhouettes"),
-          code=("calib", "pipeline.capture", "pipeline.auto_frame", "stages.silhouettes", *FILES_CODE)),
+          code=("calib", "pipeline.io.capture", "pipeline.io.auto_frame", "stages.silhouettes", *FILES_CODE)),
     Stage("silhouettes", run_silhouettes, inputs=("calibration",), params_type=SilhouetteParams,
           capture_parts=("frames", "images", "background", "silhouettes"),
           code=("stages.silhouettes", "stages.background", "stages.consistency", "stages.checks",
-                "pipeline.frame_tasks", "pipeline.capture", "calib", *FILES_CODE)),
+                "pipeline.frame_tasks", "pipeline.io.capture", "calib", *FILES_CODE)),
     Stage("reconstruction", run_reconstruction, inputs=("calibration", "silhouettes"),
           params_type=ReconstructionParams, capture_parts=("config", "frames"),
-          code=("stages.reconstruction", "stages.checks", "pipeline.frame_tasks", "pipeline.capture", "calib",
+          code=("stages.reconstruction", "stages.checks", "pipeline.frame_tasks", "pipeline.io.capture", "calib",
                 *FILES_CODE)),
     Stage("tracking", run_tracking, inputs=("calibration", "reconstruction"), params_type=TrackerParams,
           capture_parts=("config", "frames"),
@@ -395,9 +395,7 @@ STAGES: tuple[Stage, ...] = (
           streams=True),
     Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
-          code=("stages.export", "stages.checks", "stages.joints", "stages.tracking.tracker", "pipeline.export_io",
-                "pipeline.overlay_video", "pipeline.report", "pipeline.svg_plot",
-                "pipeline.report_assets", "pipeline.tracking_summary",
-                "pipeline.run_warnings", "pipeline.evaluate", "pipeline.terminal", "pipeline.capture", "calib",
-                *FILES_CODE)),
+          code=("stages.export", "stages.checks", "stages.joints", "stages.tracking.tracker", "pipeline.io.export_io",
+                "pipeline.io.overlay_video", "pipeline.report", "pipeline.engine.run_warnings", "pipeline.evaluate",
+                "pipeline.terminal", "pipeline.io.capture", "calib", *FILES_CODE)),
 )

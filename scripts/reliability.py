@@ -39,7 +39,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "data_samples" / "tiny"
 TIMEOUT_S = 120
-TEMP_PREFIX = ".tmp-"  # pipeline.atomic.TEMP_PREFIX; not imported so the script runs without the package
+TEMP_PREFIX = ".tmp-"  # pipeline.io.atomic.TEMP_PREFIX; not imported so the script runs without the package
 CATEGORIES = ("bad input", "kill", "corruption", "concurrency")
 
 

@@ -43,9 +43,9 @@ from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from calib.errors import InputError
-from pipeline import atomic
-from pipeline.executors import InProcessExecutor, Workers, local_count, make_executor
-from pipeline.runner import check_output_folder, format_columns, output_lock
+from pipeline.engine.executors import InProcessExecutor, Workers, local_count, make_executor
+from pipeline.engine.runner import check_output_folder, format_columns, output_lock
+from pipeline.io import atomic
 from pipeline.terminal import PrintableFormatter, printable
 
 log = logging.getLogger(__name__)
@@ -186,7 +186,7 @@ def process_capture(job: CaptureJob) -> CaptureReport:
     """
     from pipeline.commands.run import run_capture  # see TASK_MODULES
     from pipeline.evaluate import evaluate_run
-    from pipeline.export_io import JOINTS_FILE, read_joints_csv
+    from pipeline.io.export_io import JOINTS_FILE, read_joints_csv
 
     started = time.perf_counter()
     if job.worker_log_level is not None:
@@ -268,7 +268,7 @@ class RenewedProcessPool(cf.Executor):
     A ``ProcessPoolExecutor`` that loses a process (killed, out of memory, a crash in compiled code) is
     broken for good: the calls running in it fail, and so would every later one. Here only those running
     fail; the next call starts a new pool, so that one capture that ends its process does not fail the
-    rest of the study. Unlike :func:`~pipeline.executors.make_executor`'s pool, its processes keep the
+    rest of the study. Unlike :func:`~pipeline.engine.executors.make_executor`'s pool, its processes keep the
     parent's priority: the parent only waits.
     """
 
@@ -302,7 +302,7 @@ def capture_workers(scheduler: str) -> Iterator[Workers]:
     """Where whole captures run, and how many at once.
 
     ``local:1``: one after the other in this process; ``local:N``: N processes (:class:`RenewedProcessPool`);
-    anything else: the Dask scheduler at that address (:func:`~pipeline.executors.make_executor`).
+    anything else: the Dask scheduler at that address (:func:`~pipeline.engine.executors.make_executor`).
     """
     if not scheduler.startswith("local:"):
         with make_executor(scheduler=scheduler) as workers:
@@ -389,7 +389,7 @@ def describe(report: CaptureReport) -> str:
 def make_jobs(root: Path, captures: Sequence[Path], out: Path, params: Mapping[str, Any], *,
               allow_outside_paths: bool, worker_log_level: int | None) -> list[CaptureJob]:
     """One job per capture, into ``out/<its path under root>``; refuses, before any run, an ``out`` that
-    overlaps a capture (see :func:`~pipeline.runner.check_output_folder`)."""
+    overlaps a capture (see :func:`~pipeline.engine.runner.check_output_folder`)."""
     if Path(out).resolve() == Path(root).resolve():
         raise InputError(f"--out {out}: is the folder of captures (expected a separate output folder)")
     jobs = []

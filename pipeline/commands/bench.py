@@ -32,7 +32,15 @@ import argparse
 from pathlib import Path
 
 from calib.errors import InputError
-from pipeline.bench.suite import RESULTS_JSON, RESULTS_MD, SUITES, BenchOptions, load_results, run_bench, write_report
+from pipeline.lab.bench.suite import (
+    RESULTS_JSON,
+    RESULTS_MD,
+    SUITES,
+    BenchOptions,
+    load_results,
+    run_bench,
+    write_report,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -37,7 +37,7 @@ from calib.board import Board, Detection, detect, parse_board
 from calib.calibrate import DISTORTION_MODELS, Intrinsics, RigCalibration, calibrate_intrinsics, calibrate_rig
 from calib.errors import InputError
 from calib.formats import save_rig
-from pipeline import atomic, plain_yaml
+from pipeline.io import atomic, plain_yaml
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")

@@ -17,16 +17,17 @@ from pathlib import Path
 from typing import Any
 
 from calib.errors import InputError
-from pipeline import graph, run_warnings
-from pipeline.capture import Capture
-from pipeline.executors import Workers, make_executor
-from pipeline.export_io import BVH_FILE, C3D_FILE, JOINTS_FILE, check_cutoff, read_joints_csv
-from pipeline.params import apply_overrides, default_params, parse_assignments, read_config
-from pipeline.report import REPORT_FILE
-from pipeline.run_warnings import WARNINGS_FILE
-from pipeline.runner import Runner, StageOutcome, format_summary, output_lock, select_stages, storage_error
+from pipeline import graph
+from pipeline.engine import run_warnings
+from pipeline.engine.executors import Workers, make_executor
+from pipeline.engine.params import apply_overrides, default_params, parse_assignments, read_config
+from pipeline.engine.run_warnings import WARNINGS_FILE
+from pipeline.engine.runner import Runner, StageOutcome, format_summary, output_lock, select_stages, storage_error
+from pipeline.io.capture import Capture
+from pipeline.io.export_io import BVH_FILE, C3D_FILE, JOINTS_FILE, check_cutoff, read_joints_csv
+from pipeline.report.page import REPORT_FILE
+from pipeline.report.tracking_summary import read_frame_statuses, summary_line
 from pipeline.terminal import printable
-from pipeline.tracking_summary import read_frame_statuses, summary_line
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -79,7 +80,7 @@ def unusable_result(export_dir: Path, frames: int) -> str | None:
 
 def closing_lines(out: Path, frames: Sequence[int], outcomes: Sequence[StageOutcome], warned: int) -> list[str]:
     """What the run's results amount to, below the table of stages: what the tracker did on the frames
-    and why (:mod:`pipeline.tracking_summary`), how many warnings this run logged, and where the report is;
+    and why (:mod:`pipeline.report.tracking_summary`), how many warnings this run logged, and where the report is;
     the tracker's and the report's lines only when their stage was part of the run."""
     selected = {outcome.name for outcome in outcomes if outcome.action != "not selected"}
     lines = []
@@ -128,7 +129,7 @@ def run_capture(capture_dir: Path, out: Path, params: Mapping[str, Any], workers
     ------
     InputError
         For a mistake in the capture or the output folder, and for a full, read-only or forbidden disk
-        (:func:`~pipeline.runner.storage_error`), from this process or a worker.
+        (:func:`~pipeline.engine.runner.storage_error`), from this process or a worker.
     """
     try:
         with run_warnings.collecting() as warnings:

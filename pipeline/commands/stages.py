@@ -10,9 +10,9 @@ import argparse
 from pathlib import Path
 
 from pipeline import graph
-from pipeline.capture import Capture
-from pipeline.params import apply_overrides, default_params
-from pipeline.runner import RUN_RECORD, graph_status, read_run_record
+from pipeline.engine.params import apply_overrides, default_params
+from pipeline.engine.runner import RUN_RECORD, graph_status, read_run_record
+from pipeline.io.capture import Capture
 from pipeline.terminal import printable
 
 

@@ -56,7 +56,7 @@ def test_a_camera_looking_away_from_the_volume_is_named():
 def test_capture_in_millimetres_declared_as_metres_fails_to_open(tmp_path):
     from conftest import make_capture, write_config
 
-    from pipeline.capture import Capture
+    from pipeline.io.capture import Capture
 
     root = make_capture(tmp_path / "c", units="mm")
     write_config(root, calibration={"format": "anipose", "path": "calibration/calibration.toml", "units": "m"})

@@ -15,12 +15,12 @@ from calib_testing import ring_rig
 from calib.camera import Camera, Rig
 from calib.formats import load_rig, save_rig
 from calib.world import WorldTransform, level_rotation, rig_vertical
-from pipeline import frames_io
-from pipeline.auto_frame import aim_point
-from pipeline.capture import DERIVED_VOLUME_FLOOR_MARGIN_M, Capture
 from pipeline.cli import main
 from pipeline.evaluate import evaluate_run
-from pipeline.export_io import read_joints_csv, write_joints_csv
+from pipeline.io import frames_io
+from pipeline.io.auto_frame import aim_point
+from pipeline.io.capture import DERIVED_VOLUME_FLOOR_MARGIN_M, Capture
+from pipeline.io.export_io import read_joints_csv, write_joints_csv
 
 TAEKWONDO = Path(__file__).resolve().parents[2] / "data_samples" / "taekwondo"
 #: Frames of the end-to-end comparison: short, the whole suite must stay within minutes.
@@ -108,7 +108,7 @@ def floor_and_camera_captures(tmp_path_factory) -> tuple[Path, Path]:
 
 def test_auto_frame_finds_the_floor_and_the_vertical(floor_and_camera_captures, caplog):
     floor, camera = floor_and_camera_captures
-    with caplog.at_level(logging.INFO, logger="pipeline.capture"):
+    with caplog.at_level(logging.INFO, logger="pipeline.io.capture"):
         auto = Capture.open(camera)
     assert any("up: auto: vertical" in record.getMessage() for record in caplog.records)
     truth = Capture.open(floor).rig

@@ -16,10 +16,6 @@ import pytest
 from conftest import frame_image, make_capture
 
 from calib.errors import InputError
-from pipeline.bench.batch import BROKEN as BENCH_BROKEN
-from pipeline.bench.batch import BROKEN_IMAGE as BENCH_BROKEN_IMAGE
-from pipeline.bench.batch import broken_reported, excerpt_view
-from pipeline.capture import Capture
 from pipeline.cli import main
 from pipeline.commands.batch import (
     BATCH_CSV,
@@ -32,9 +28,13 @@ from pipeline.commands.batch import (
     make_jobs,
     run_jobs,
 )
-from pipeline.executors import Workers
+from pipeline.engine.executors import Workers
+from pipeline.engine.runner import read_manifest
 from pipeline.graph import STAGES
-from pipeline.runner import read_manifest
+from pipeline.io.capture import Capture
+from pipeline.lab.bench.batch import BROKEN as BENCH_BROKEN
+from pipeline.lab.bench.batch import BROKEN_IMAGE as BENCH_BROKEN_IMAGE
+from pipeline.lab.bench.batch import broken_reported, excerpt_view
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = REPO / "data_samples" / "tiny"

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline.bench import paper, recipes, speed, suite, unseen
-from pipeline.bench.masks import perturb_mask
-from pipeline.bench.runs import LAUNCHER, run_command, stage_timings
-from pipeline.synth.writer import SynthParams
+from pipeline.lab.bench import paper, recipes, speed, suite, unseen
+from pipeline.lab.bench.masks import perturb_mask
+from pipeline.lab.bench.runs import LAUNCHER, run_command, stage_timings
+from pipeline.lab.synth.writer import SynthParams
 from stages.export.bvh import pelvis_frame
 from stages.export.metrics import mask_iou
 from stages.joints import JOINT_NAMES

@@ -4,8 +4,8 @@ confidence against truth, the table and the targets."""
 import numpy as np
 from conftest import stick_figure
 
-from pipeline.bench import exports, suite
-from pipeline.export_io import read_joints_csv, write_exports, write_joints_csv
+from pipeline.io.export_io import read_joints_csv, write_exports, write_joints_csv
+from pipeline.lab.bench import exports, suite
 from stages.export import ExportParams
 from stages.export.quality import FrameQuality
 

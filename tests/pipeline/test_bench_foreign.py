@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from pipeline import frames_io
-from pipeline.bench import foreign, suite
 from pipeline.evaluate import evaluate_run
-from pipeline.export_io import write_joints_csv
 from pipeline.graph import tracking_path
+from pipeline.io import frames_io
+from pipeline.io.export_io import write_joints_csv
+from pipeline.lab.bench import foreign, suite
 
 
 def _result(status: str, doubtful: bool = False) -> dict:

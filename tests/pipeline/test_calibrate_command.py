@@ -12,7 +12,7 @@ from calib.camera import Camera, Rig
 from calib.formats import load_rig
 from pipeline.cli import main
 from pipeline.commands.calibrate import update_capture_yaml
-from pipeline.synth.boards import write_board_recording
+from pipeline.lab.synth.boards import write_board_recording
 
 BOARD = "checkerboard:6x5:0.1"
 

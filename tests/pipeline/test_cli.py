@@ -26,11 +26,11 @@ from conftest import make_capture, tiny_rig, write_config, write_video
 
 from calib.errors import InputError
 from calib.formats import load_rig
-from pipeline import atomic, frames_io
 from pipeline.cli import SUBCOMMANDS, main
+from pipeline.engine.run_warnings import WARNINGS_FILE
+from pipeline.engine.runner import MANIFEST, output_lock
 from pipeline.graph import STAGES
-from pipeline.run_warnings import WARNINGS_FILE
-from pipeline.runner import MANIFEST, output_lock
+from pipeline.io import atomic, frames_io
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -468,7 +468,7 @@ def test_the_examples_given_to_users_name_real_parameters():
     """run --help, the --set error and the params module's docstring show parameters that exist."""
     import pipeline.commands.run as run_command
     from pipeline import params as params_module
-    from pipeline.params import apply_overrides, default_params, parse_assignments
+    from pipeline.engine.params import apply_overrides, default_params, parse_assignments
 
     examples = re.findall(r"--set (\S+=\S+)", run_command.__doc__)
     with pytest.raises(InputError) as malformed:

@@ -13,9 +13,10 @@ import still_scene as scene
 import yaml
 
 from calib.formats import save_rig
-from pipeline import frames_io, graph
-from pipeline.capture import Capture
+from pipeline import graph
 from pipeline.frame_tasks import background_path, noise_floors_path
+from pipeline.io import frames_io
+from pipeline.io.capture import Capture
 from stages.silhouettes import SilhouetteParams
 
 

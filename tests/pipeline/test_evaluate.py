@@ -3,9 +3,10 @@ import json
 import numpy as np
 import pytest
 
-from pipeline import cli, frames_io
+from pipeline import cli
 from pipeline.evaluate import evaluate_run, silhouette_iou
-from pipeline.export_io import write_joints_csv
+from pipeline.io import frames_io
+from pipeline.io.export_io import write_joints_csv
 from stages.joints import JOINT_NAMES
 
 

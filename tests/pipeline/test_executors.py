@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 
 from calib.errors import InputError
-from pipeline import frames_io
-from pipeline.capture import Capture
-from pipeline.executors import WORKER_NICENESS, InProcessExecutor, make_executor
-from pipeline.runner import StageContext
+from pipeline.engine.executors import WORKER_NICENESS, InProcessExecutor, make_executor
+from pipeline.engine.runner import StageContext
+from pipeline.io import frames_io
+from pipeline.io.capture import Capture
 
 
 def write_frames(chunk: tuple[int, ...], *, out_dir: Path) -> None:

@@ -7,8 +7,9 @@ import os
 import numpy as np
 import pytest
 
-from pipeline import frame_tasks, frames_io
+from pipeline import frame_tasks
 from pipeline.graph import MAX_VIDEO_CHUNK_FRAMES, video_chunk_size
+from pipeline.io import frames_io
 from stages.silhouettes import SilhouetteParams
 
 

@@ -10,7 +10,7 @@ import open3d as o3d
 import pytest
 
 from calib.errors import InputError
-from pipeline import atomic, frames_io
+from pipeline.io import atomic, frames_io
 
 
 def test_atomic_output_replaces_only_on_success(tmp_path):

@@ -17,7 +17,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def test_the_run_command_never_imports_matplotlib():
-    code = "import sys, pipeline.commands.run, pipeline.report; print('matplotlib' in sys.modules)"
+    code = "import sys, pipeline.commands.run, pipeline.report.page; print('matplotlib' in sys.modules)"
     imported = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert imported.strip() == "False"  # a quarter of a second to import: the report's plots are SVG instead
 
@@ -31,14 +31,15 @@ def test_the_run_command_never_imports_matplotlib():
 UNCOVERED = """
 import json, os, sys
 from pathlib import Path
-from pipeline import graph, runner
-from pipeline.capture import Capture
-from pipeline.executors import make_executor
-from pipeline.params import default_params
+from pipeline import graph
+from pipeline.engine import runner
+from pipeline.io.capture import Capture
+from pipeline.engine.executors import make_executor
+from pipeline.engine.params import default_params
 
-repo = Path(runner.__file__).resolve().parents[1]
+repo = Path(runner.__file__).resolve().parents[2]
 roots = tuple(repo / name for name in ("calib", "stages", "pipeline"))
-orchestration = {repo / "pipeline" / name for name in ("runner.py", "executors.py", "run_warnings.py")}
+orchestration = {repo / "pipeline" / "engine" / name for name in ("runner.py", "executors.py", "run_warnings.py")}
 capture, out = Capture.open(sys.argv[1]), Path(sys.argv[2])
 
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from calib.errors import InputError
-from pipeline.mocap import load_clip
+from pipeline.lab.mocap import load_clip
 from stages.joints import JOINT_NAMES
 
-DATA = Path(__file__).resolve().parents[2] / "pipeline" / "data"
+DATA = Path(__file__).resolve().parents[2] / "pipeline" / "lab" / "data"
 CLIPS = DATA / "clips"
 J = {name: k for k, name in enumerate(JOINT_NAMES)}
 

@@ -8,7 +8,7 @@ from typing import Literal
 import pytest
 
 from calib.errors import InputError
-from pipeline.params import apply_overrides, params_to_dict, parse_assignments, read_config
+from pipeline.engine.params import apply_overrides, params_to_dict, parse_assignments, read_config
 
 
 @dataclass(frozen=True)

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.bench.speed import prefix_view
 from pipeline.cli import main
 from pipeline.evaluate import evaluate_run
+from pipeline.lab.bench.speed import prefix_view
 
 #: The tolerance of this regression test: MPJPE of the 20-frame cut, mm, a few mm above what it measures.
 MPJPE_TOLERANCE_MM = 32.0

@@ -15,7 +15,7 @@ import yaml
 
 from pipeline.cli import main
 from pipeline.evaluate import evaluate_run
-from pipeline.export_io import read_joints_csv
+from pipeline.io.export_io import read_joints_csv
 from stages.joints import JOINT_NAMES
 
 SAMPLES = Path(__file__).resolve().parents[2] / "data_samples"

@@ -10,11 +10,12 @@ from conftest import stick_figure
 from test_tracking_summary import record, write_records
 
 from calib.camera import Camera, Rig
-from pipeline import frames_io
+from pipeline.engine.run_warnings import WARNINGS_FILE
 from pipeline.evaluate import evaluate_run, format_metrics
-from pipeline.export_io import write_angles_csv, write_joints_csv
-from pipeline.overlay_video import overlay_video_name, write_overlay_video
-from pipeline.report import (
+from pipeline.io import frames_io
+from pipeline.io.export_io import write_angles_csv, write_joints_csv
+from pipeline.io.overlay_video import overlay_video_name, write_overlay_video
+from pipeline.report.page import (
     JointSequence,
     angle_groups,
     build_report,
@@ -25,7 +26,6 @@ from pipeline.report import (
     warning_groups,
     write_report,
 )
-from pipeline.run_warnings import WARNINGS_FILE
 from stages.joints import JOINT_NAMES
 
 CHROMIUM_SECONDS = 60
@@ -79,7 +79,7 @@ def shared_run(tmp_path_factory):
         background = np.full((120, 160, 3), 90, np.uint8)
         frames_io.write_image(out / "silhouettes" / "background" / f"{camera}.png", background)
     frames_io.write_json(out / WARNINGS_FILE, {"warnings": [
-        {"stage": None, "logger": "pipeline.capture", "template": None, "message": "volume touched"},
+        {"stage": None, "logger": "pipeline.io.capture", "template": None, "message": "volume touched"},
         {"stage": "tracking", "logger": "pipeline.graph", "template": "frame %d: pose %s",
          "message": "frame 4: pose lost"},
         {"stage": "tracking", "logger": "pipeline.graph", "template": "frame %d: pose %s",

@@ -5,10 +5,10 @@ import threading
 
 from conftest import make_capture
 
-from pipeline import frames_io
 from pipeline.cli import main
-from pipeline.executors import call_logged, relog
-from pipeline.run_warnings import WARNINGS_FILE, collecting, read_warnings, stage_scope
+from pipeline.engine.executors import call_logged, relog
+from pipeline.engine.run_warnings import WARNINGS_FILE, collecting, read_warnings, stage_scope
+from pipeline.io import frames_io
 
 log = logging.getLogger("tests.run_warnings")
 

@@ -19,11 +19,9 @@ import numpy as np
 import pytest
 
 from calib.errors import InputError
-from pipeline import frames_io
-from pipeline.capture import Capture
-from pipeline.executors import make_executor
-from pipeline.params import apply_overrides, default_params
-from pipeline.runner import (
+from pipeline.engine.executors import make_executor
+from pipeline.engine.params import apply_overrides, default_params
+from pipeline.engine.runner import (
     LOCK,
     MANIFEST,
     MARKER,
@@ -39,6 +37,8 @@ from pipeline.runner import (
     output_lock,
     select_stages,
 )
+from pipeline.io import frames_io
+from pipeline.io.capture import Capture
 
 WORK_LOG = "FAKE_STAGE_WORK_LOG"  # environment: file where fake stages log their work
 FAIL_AT = "FAKE_STAGE_FAIL_AT"  # environment: frame at which the per-frame stage raises
@@ -338,7 +338,7 @@ def test_a_run_function_counts_with_the_helpers_and_constants_of_its_module_it_u
 
 
 def test_a_failed_rerun_leaves_nothing_that_looks_finished(setup, monkeypatch, caplog):
-    caplog.set_level(logging.DEBUG, logger="pipeline.runner")  # the terminal shows only the run's error
+    caplog.set_level(logging.DEBUG, logger="pipeline.engine.runner")  # the terminal shows only the run's error
     capture, out, run, work = setup
     run()
     assert frames_io.read_json(out / RUN_RECORD)["state"] == "finished"

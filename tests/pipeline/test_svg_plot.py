@@ -4,7 +4,7 @@ from xml.etree import ElementTree
 import numpy as np
 import pytest
 
-from pipeline.svg_plot import (
+from pipeline.report.svg_plot import (
     LegendEntry,
     Panel,
     ReferenceLine,

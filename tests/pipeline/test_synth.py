@@ -11,17 +11,24 @@ import pytest
 from calib.errors import InputError
 from calib.formats import load_rig
 from calib.world import fixed_transform
-from pipeline.capture import Capture
 from pipeline.cli import main as cli_main
-from pipeline.mocap import load_clip
-from pipeline.synth import build_body, pose_body, posed_mesh, sample_body_surface
-from pipeline.synth.distractors import paint_distractors, random_distractors
-from pipeline.synth.render import AMBIENT, AMBIENT_FROM_BELOW, irradiance, linear_to_srgb, srgb_to_linear, tone_curve
-from pipeline.synth.rig import RingParams, check_rig_sees, ring_rig
-from pipeline.synth.writer import SynthParams, count_video_frames, standing_height, synthesise
+from pipeline.io.capture import Capture
+from pipeline.lab.mocap import load_clip
+from pipeline.lab.synth import build_body, pose_body, posed_mesh, sample_body_surface
+from pipeline.lab.synth.distractors import paint_distractors, random_distractors
+from pipeline.lab.synth.render import (
+    AMBIENT,
+    AMBIENT_FROM_BELOW,
+    irradiance,
+    linear_to_srgb,
+    srgb_to_linear,
+    tone_curve,
+)
+from pipeline.lab.synth.rig import RingParams, check_rig_sees, ring_rig
+from pipeline.lab.synth.writer import SynthParams, count_video_frames, standing_height, synthesise
 from stages.joints import JOINT_NAMES, SCORED_JOINTS
 
-CLIPS = Path(__file__).resolve().parents[2] / "pipeline" / "data" / "clips"
+CLIPS = Path(__file__).resolve().parents[2] / "pipeline" / "lab" / "data" / "clips"
 KICKS = dict(clip=str(CLIPS / "135_07.amc"), skeleton=str(CLIPS / "martialwalk.asf"))
 
 

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from pipeline import frames_io
-from pipeline.tracking_summary import (
+from pipeline.io import frames_io
+from pipeline.report.tracking_summary import (
     category_totals,
     frame_status,
     read_frame_statuses,

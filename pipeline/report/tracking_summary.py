@@ -1,0 +1,170 @@
+"""What the tracker did on each frame, and why, from the tracking stage's per-frame records.
+
+The run's closing summary and the HTML report both say how many frames were tracked, initialised,
+doubtful, predicted or lost. A frame's record holds its status and doubt flag but not the cause; the
+cause follows from the record, the tracker's state before the frame (the previous record's) and the
+tracker's parameters (the tracking stage's manifest), by the rules of :mod:`stages.tracking.tracker`:
+
+- *initialised*: the first frame; data back after frames without a fit; the check that follows a
+  doubtful initialisation (``recheck``); a periodic re-initialisation (``reinit_every``); otherwise the
+  fit from the previous frame failed the failure checks and a fresh initialisation explained the data
+  better;
+- *doubtful* (tracked or initialised, exported but flagged): the kept fit failed the checks, an outlier
+  share above ``max_outlier_fraction`` and/or a spread of Σ above ``failure_sigma_m``;
+- *predicted*: fewer than ``min_observations`` usable observations, the pose carried on;
+- *lost*: too few observations for longer than ``max_predicted_frames`` frames, or before any fit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.io import frames_io
+from stages.tracking.tracker import TrackerParams
+
+#: Where the tracking stage writes a frame's record, inside its folder (as ``pipeline.graph.tracking_path``).
+RECORDS_DIR = "frames"
+
+#: The categories counted, in the order they are reported; a doubtful frame counts only as doubtful.
+CATEGORIES = ("tracked", "initialised", "doubtful", "predicted", "lost")
+
+#: Tracker parameters the causes depend on; the tracker's defaults stand in for a manifest that lacks them.
+CAUSE_PARAMS = ("max_outlier_fraction", "failure_sigma_m", "min_observations", "max_predicted_frames",
+                "reinit_every")
+
+
+@dataclass(frozen=True)
+class FrameStatus:
+    """One frame as the tracker left it.
+
+    Attributes
+    ----------
+    frame : int
+    category : one of :data:`CATEGORIES`
+    status : the record's status ("tracked", "initialised", "predicted", "lost")
+    log_likelihood : float, nats (0 when not fitted)
+    outlier_fraction : float, mean outlier posterior (1 when not fitted)
+    sigma_spread_m : float, square root of the largest eigenvalue of the kept fit's Σ, metres
+    causes : why the frame is not plainly tracked (empty for a tracked frame that passed the checks)
+    """
+
+    frame: int
+    category: str
+    status: str
+    log_likelihood: float
+    outlier_fraction: float
+    sigma_spread_m: float
+    causes: tuple[str, ...]
+
+
+def _sigma_spread(state: Mapping) -> float:
+    sigma = np.asarray(state.get("Sigma", [[0.0]]), dtype=float)
+    return float(np.sqrt(max(np.linalg.eigvalsh(sigma).max(), 0.0))) if sigma.size else 0.0
+
+
+def _doubt_causes(result: Mapping, spread: float, params: Mapping) -> tuple[str, ...]:
+    causes = []
+    if result["outlier_fraction"] > params["max_outlier_fraction"]:
+        causes.append(f"outlier share above {100 * params['max_outlier_fraction']:.0f} %")
+    if spread > params["failure_sigma_m"]:
+        causes.append(f"Sigma spread above {100 * params['failure_sigma_m']:.1f} cm")
+    return tuple(causes) or ("failed the failure checks",)
+
+
+def _initialisation_cause(previous: Mapping | None, params: Mapping) -> str:
+    if previous is None:
+        return "first frame"
+    before, state = previous["result"], previous["state"]
+    if before["status"] in ("predicted", "lost"):
+        return "data back after frames without a fit"
+    if state.get("recheck"):
+        return "re-check of a doubtful initialisation"
+    if 0 < params["reinit_every"] <= state.get("since_initialisation", 0) + 1:
+        return "periodic re-initialisation"
+    return "the fit from the previous frame failed the checks"
+
+
+def frame_status(record: Mapping, previous: Mapping | None, params: Mapping, *, fitted_before: bool) -> FrameStatus:
+    """The :class:`FrameStatus` of one tracking record, given the record of the frame before (None at the
+    first frame), the tracker's parameters (:data:`CAUSE_PARAMS` keys) and whether an earlier frame was
+    fitted (tracked or initialised)."""
+    result, state = record["result"], record["state"]
+    status = result["status"]
+    spread = _sigma_spread(state) if status in ("tracked", "initialised") else 0.0
+    causes: tuple[str, ...] = ()
+    if status == "initialised":
+        causes = (_initialisation_cause(previous, params),)
+    elif status == "predicted":
+        causes = (f"fewer than {params['min_observations']} observations",)
+    elif status == "lost":
+        causes = (f"fewer than {params['min_observations']} observations for more than "
+                  f"{params['max_predicted_frames']} frames" if fitted_before
+                  else f"fewer than {params['min_observations']} observations before any fit",)
+    doubtful = bool(result.get("doubtful")) and status in ("tracked", "initialised")
+    if doubtful:
+        causes = _doubt_causes(result, spread, params) + tuple(f"initialised: {cause}" for cause in causes)
+    return FrameStatus(frame=int(record["frame"]), category="doubtful" if doubtful else status, status=status,
+                       log_likelihood=float(result["log_likelihood"]),
+                       outlier_fraction=float(result["outlier_fraction"]), sigma_spread_m=spread, causes=causes)
+
+
+def tracker_params(tracking_dir: Path) -> dict:
+    """The :data:`CAUSE_PARAMS` the tracking stage ran with (its manifest), defaults where unreadable."""
+    params = {key: value for key, value in dataclasses.asdict(TrackerParams()).items() if key in CAUSE_PARAMS}
+    try:
+        recorded = json.loads((tracking_dir / "manifest.json").read_text(encoding="utf-8")).get("params", {})
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+        return params
+    params.update({key: recorded[key] for key in CAUSE_PARAMS if isinstance(recorded.get(key), (int, float))})
+    return params
+
+
+def read_frame_statuses(tracking_dir: str | Path, frames: Sequence[int]) -> list[FrameStatus] | None:
+    """The status of each of ``frames`` (the capture's, in order) from the tracking stage's records.
+
+    Returns None when a record is missing or unreadable (the tracking stage has not finished): a count
+    over part of the frames would read as the whole story.
+    """
+    tracking_dir = Path(tracking_dir)
+    params = tracker_params(tracking_dir)
+    statuses, previous, fitted = [], None, False
+    for frame in frames:
+        path = tracking_dir / RECORDS_DIR / frames_io.frame_name(frame, ".json")
+        try:
+            record = frames_io.read_record(path)
+            statuses.append(frame_status(record, previous, params, fitted_before=fitted))
+        except (OSError, frames_io.DamagedFileError, KeyError, TypeError, ValueError):
+            return None
+        previous, fitted = record, fitted or statuses[-1].status in ("tracked", "initialised")
+    return statuses
+
+
+def category_counts(statuses: Sequence[FrameStatus]) -> dict[str, Counter]:
+    """Per category of :data:`CATEGORIES`, how many frames each cause accounts for (``Counter``; a frame
+    with two causes counts under both, so use :func:`category_totals` for frame counts)."""
+    counts: dict[str, Counter] = {category: Counter() for category in CATEGORIES}
+    for status in statuses:
+        counts[status.category].update(status.causes)
+    return counts
+
+
+def category_totals(statuses: Sequence[FrameStatus]) -> dict[str, int]:
+    totals = Counter(status.category for status in statuses)
+    return {category: totals.get(category, 0) for category in CATEGORIES}
+
+
+def summary_line(statuses: Sequence[FrameStatus]) -> str:
+    """``"tracking, 112 frames: 104 tracked, 2 initialised (first frame; ...), 6 doubtful (...), 0 ..."``."""
+    totals, counts = category_totals(statuses), category_counts(statuses)
+    parts = []
+    for category in CATEGORIES:
+        causes = "; ".join(f"{cause} x{n}" if n > 1 else cause for cause, n in counts[category].most_common())
+        parts.append(f"{totals[category]} {category}" + (f" ({causes})" if causes else ""))
+    return f"tracking, {len(statuses)} frames: " + ", ".join(parts)
