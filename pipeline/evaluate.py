@@ -19,13 +19,12 @@ import numpy as np
 
 from calib.errors import InputError
 from pipeline.io import frames_io
-from pipeline.io.export_io import JOINTS_FILE, read_joints_csv
+from pipeline.io.export_io import read_joints_csv
+from pipeline.io.run_layout import RunLayout
 from pipeline.terminal import printable
 from stages.export.metrics import JointMetrics, evaluate_joints, mask_iou
 
 #: Where the evaluation writes, inside the run's output directory.
-EVAL_DIR, METRICS_FILE = "eval", "metrics.json"
-CAPTURE_JSON = Path("calibration") / "capture.json"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,13 +36,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     summary = evaluate_run(args.out_dir, truth=args.truth)
     print("\n".join(printable(line) for line in format_metrics(summary).splitlines()))  # camera names from files
-    print(printable(f"written: {Path(args.out_dir) / EVAL_DIR / METRICS_FILE}"))
+    print(printable(f"written: {RunLayout(args.out_dir).metrics}"))
     return 0
 
 
 def default_truth(out_dir: str | os.PathLike) -> Path:
     """The ground-truth joints.csv of the capture a run was made from (``capture_dir`` in capture.json)."""
-    summary_path = Path(out_dir) / CAPTURE_JSON
+    summary_path = RunLayout(out_dir).capture_summary
     summary = frames_io.read_json(summary_path) if summary_path.is_file() else {}
     capture_dir = summary.get("capture_dir") if isinstance(summary, dict) else None
     if not capture_dir:
@@ -97,10 +96,10 @@ def score_joints(out_dir: str | os.PathLike, truth: str | os.PathLike) -> JointM
     scored, so that a run on an excerpt is not charged with the frames it never saw. The report scores
     with this too, so that its figures are always those of ``pipeline eval`` on the same files.
     """
-    out_dir = Path(out_dir)
-    estimate = read_joints_csv(out_dir / "export" / JOINTS_FILE)
+    layout = RunLayout(out_dir)
+    estimate = read_joints_csv(layout.joints)
     true_frames, true_names, true_joints = read_joints_csv(truth)
-    summary_path = out_dir / CAPTURE_JSON
+    summary_path = layout.capture_summary
     capture = frames_io.read_json(summary_path) if summary_path.is_file() else {}
     processed = capture.get("frames")
     if processed is not None:
@@ -122,14 +121,15 @@ def evaluate_run(out_dir: str | os.PathLike, *, truth: str | os.PathLike | None 
     out_dir = Path(out_dir)
     if not out_dir.is_dir():
         raise InputError(f"{out_dir}: not a directory (expected the output directory of a run)")
-    estimate_path = out_dir / "export" / JOINTS_FILE
+    layout = RunLayout(out_dir)
+    estimate_path = layout.joints
     if not estimate_path.is_file():
         raise InputError(f"{estimate_path}: not found (expected a run whose export stage has finished)")
     truth_path = Path(truth) if truth is not None else default_truth(out_dir)
     metrics = score_joints(out_dir, truth_path)
     summary = {"estimate": str(estimate_path), "truth": str(truth_path), **metrics.summary(),
-               "silhouette_iou": silhouette_iou(out_dir / "silhouettes", truth_path.parent / "masks")}
-    frames_io.write_json(out_dir / EVAL_DIR / METRICS_FILE, summary)
+               "silhouette_iou": silhouette_iou(layout.silhouettes_dir, truth_path.parent / "masks")}
+    frames_io.write_json(layout.metrics, summary)
     return summary
 
 

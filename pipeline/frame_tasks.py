@@ -28,6 +28,7 @@ import numpy as np
 from calib.camera import Rig
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
+from pipeline.io.run_layout import background_path, observations_path, silhouette_path
 from stages.background import tolerated_views
 from stages.consistency import consistent_silhouettes
 from stages.silhouettes import (
@@ -49,23 +50,6 @@ log = logging.getLogger(__name__)
 FEW_OBSERVATIONS = 30
 #: Background models a worker keeps (a few MB each): enough for every camera of a large rig.
 CACHED_BACKGROUNDS = 32
-
-
-def silhouette_path(out_dir: Path, camera: str, frame: int) -> Path:
-    return out_dir / camera / frames_io.frame_name(frame, ".png")
-
-
-def background_path(out_dir: Path, camera: str) -> Path:
-    return out_dir / "background" / f"{camera}.png"
-
-
-def noise_floors_path(out_dir: Path) -> Path:
-    """Where the noise floors of the estimated backgrounds are kept (JSON: camera -> σ, 8-bit levels)."""
-    return out_dir / "background" / "noise_floors.json"
-
-
-def observations_path(out_dir: Path, frame: int) -> Path:
-    return out_dir / frames_io.frame_name(frame, ".ply")
 
 
 @contextlib.contextmanager

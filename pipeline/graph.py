@@ -43,27 +43,24 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.camera import Rig
-from calib.formats import load_rig, save_rig
+from calib.formats import save_rig
 from pipeline.engine.runner import Stage, StageContext
-from pipeline.frame_tasks import (
+from pipeline.frame_tasks import reconstruction_task, silhouettes_task
+from pipeline.io import atomic, frames_io, run_layout
+from pipeline.io.capture import Capture, capture_summary
+from pipeline.io.export_io import write_exports, write_joints_csv, write_quality_csv
+from pipeline.io.overlay_video import write_overlay_video
+from pipeline.io.run_layout import (
+    CAPTURE_FILE,
+    JOINTS_FILE,
+    QUALITY_FILE,
+    RIG_FILE,
     background_path,
     noise_floors_path,
     observations_path,
-    reconstruction_task,
+    overlay_video_name,
     silhouette_path,
-    silhouettes_task,
 )
-from pipeline.io import atomic, frames_io
-from pipeline.io.capture import Capture, capture_summary
-from pipeline.io.export_io import (
-    JOINTS_FILE,
-    QUALITY_FILE,
-    write_exports,
-    write_joints_csv,
-    write_quality_csv,
-)
-from pipeline.io.overlay_video import overlay_video_name, write_overlay_video
 from pipeline.report.page import write_report
 from stages.background import BackgroundEstimate, estimate_backgrounds, sample_camera, sample_count, working_size
 from stages.export import ExportParams
@@ -77,31 +74,17 @@ from stages.tracking.tracker import STATUSES, FrameResult, TrackerParams, Tracke
 
 log = logging.getLogger(__name__)
 
-#: File names of the calibration stage's results.
-RIG_FILE = "rig.toml"
-CAPTURE_FILE = "capture.json"
-
-
 def run_calibration(ctx: StageContext) -> None:
     """Write the capture's cameras in the world frame (anipose TOML) and its metadata (JSON).
 
-    Downstream stages read these instead of the capture's own calibration, so they always see
-    metres, +z up, and image sizes taken from the media.
+    The stages after it take the rig from the capture, opened once per run (:class:`Capture` already holds it
+    in this frame: metres, +z up, image sizes taken from the media); they declare this stage as an input so
+    that a change of the world frame (``up: auto`` finding another floor) reruns them. ``rig.toml`` is for the
+    user and other tools; ``capture.json`` is what the report and ``pipeline eval`` read of the capture.
     """
     with atomic.atomic_output(ctx.out_dir / RIG_FILE) as tmp:
         save_rig(ctx.capture.rig, "anipose", tmp)
     frames_io.write_json(ctx.out_dir / CAPTURE_FILE, capture_summary(ctx.capture))
-
-
-def read_calibration(folder: Path) -> tuple[Rig, dict]:
-    """The calibration stage's results: the world-frame rig and the capture summary.
-
-    ``summary`` has ``fps``, ``cameras``, ``image_sizes``, ``frames``, ``volume`` ((2, 3) as nested
-    lists, metres), ``volume_source``, ``world_transform`` (``up``, ``rotation``, ``translation_m``,
-    ``scale``: calibration world to this one; with ``up: auto`` also what was found), ``height_m``,
-    ``media``, ``silhouettes_given``, ``backgrounds``.
-    """
-    return load_rig("anipose", folder / RIG_FILE), frames_io.read_json(folder / CAPTURE_FILE)
 
 
 #: Frames sampled per camera for a temporal-median background when no clean plate is given.
@@ -245,7 +228,9 @@ EXPORTED_STATUSES = ("tracked", "initialised")
 
 
 def tracking_path(out_dir: Path, frame: int) -> Path:
-    return out_dir / "frames" / frames_io.frame_name(frame, ".json")
+    """A frame's record in the tracking stage's folder ``out_dir``: named by the run layout, and a function of this
+    module so that the tracking stage's code version counts it with the record's reader (:func:`read_tracking`)."""
+    return run_layout.tracking_path(out_dir, frame)
 
 
 def read_tracking(folder: Path, frame: int) -> tuple[FrameResult, TrackerState]:
@@ -374,7 +359,7 @@ def run_export(ctx: StageContext) -> None:
 WORKER_MODULES = ("pipeline.frame_tasks",)
 
 #: Modules every stage runs to write (and read) its files.
-FILES_CODE = ("pipeline.io.frames_io", "pipeline.io.atomic")
+FILES_CODE = ("pipeline.io.frames_io", "pipeline.io.atomic", "pipeline.io.run_layout")
 
 STAGES: tuple[Stage, ...] = (
     Stage("calibration", run_calibration,  # up: auto finds the floor in the media (pipeline.io.auto_frame)

@@ -186,7 +186,8 @@ def process_capture(job: CaptureJob) -> CaptureReport:
     """
     from pipeline.commands.run import run_capture  # see TASK_MODULES
     from pipeline.evaluate import evaluate_run
-    from pipeline.io.export_io import JOINTS_FILE, read_joints_csv
+    from pipeline.io.export_io import read_joints_csv
+    from pipeline.io.run_layout import RunLayout
 
     started = time.perf_counter()
     if job.worker_log_level is not None:
@@ -197,7 +198,7 @@ def process_capture(job: CaptureJob) -> CaptureReport:
                                  allow_outside_paths=job.allow_outside_paths)
         if result.problem is not None:
             raise InputError(result.problem)
-        estimated = len(read_joints_csv(job.out / "export" / JOINTS_FILE)[0])
+        estimated = len(read_joints_csv(RunLayout(job.out).joints)[0])
         truth = job.capture / TRUTH
         mpjpe = float(evaluate_run(job.out, truth=truth)["mpjpe_mm"]) if truth.is_file() else None
     except Exception as error:  # this capture's failure, whatever it is, must not end the batch

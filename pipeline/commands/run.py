@@ -21,11 +21,10 @@ from pipeline import graph
 from pipeline.engine import run_warnings
 from pipeline.engine.executors import Workers, make_executor
 from pipeline.engine.params import apply_overrides, default_params, parse_assignments, read_config
-from pipeline.engine.run_warnings import WARNINGS_FILE
 from pipeline.engine.runner import Runner, StageOutcome, format_summary, output_lock, select_stages, storage_error
 from pipeline.io.capture import Capture
-from pipeline.io.export_io import BVH_FILE, C3D_FILE, JOINTS_FILE, check_cutoff, read_joints_csv
-from pipeline.report.page import REPORT_FILE
+from pipeline.io.export_io import check_cutoff, read_joints_csv
+from pipeline.io.run_layout import BVH_FILE, C3D_FILE, JOINTS_FILE, RunLayout
 from pipeline.report.tracking_summary import read_frame_statuses, summary_line
 from pipeline.terminal import printable
 
@@ -84,13 +83,14 @@ def closing_lines(out: Path, frames: Sequence[int], outcomes: Sequence[StageOutc
     the tracker's and the report's lines only when their stage was part of the run."""
     selected = {outcome.name for outcome in outcomes if outcome.action != "not selected"}
     lines = []
-    statuses = read_frame_statuses(out / "tracking", frames) if "tracking" in selected else None
+    layout = RunLayout(out)
+    statuses = read_frame_statuses(layout.tracking_dir, frames) if "tracking" in selected else None
     if statuses is not None:
         lines.append(summary_line(statuses))
     if warned:
         lines.append(f"{warned} warning{'s' if warned > 1 else ''} in this run "
-                     f"(above; every warning behind the results: {out / WARNINGS_FILE} and the report)")
-    report = out / "export" / REPORT_FILE
+                     f"(above; every warning behind the results: {layout.warnings} and the report)")
+    report = layout.report
     if "export" in selected and report.is_file():
         lines.append(f"report: {report}")
     return lines
@@ -148,7 +148,7 @@ def run_capture(capture_dir: Path, out: Path, params: Mapping[str, Any], workers
         raise problem from None
     frames = list(capture.frame_numbers)
     exported = any(outcome.name == "export" and outcome.action != "not selected" for outcome in outcomes)
-    problem = unusable_result(Path(out) / "export", len(frames)) if exported else None
+    problem = unusable_result(RunLayout(out).export_dir, len(frames)) if exported else None
     return RunResult(outcomes, frames, len(warnings.records), problem)
 
 

@@ -11,8 +11,9 @@ from pathlib import Path
 
 from pipeline import graph
 from pipeline.engine.params import apply_overrides, default_params
-from pipeline.engine.runner import RUN_RECORD, graph_status, read_run_record
+from pipeline.engine.runner import graph_status, read_run_record
 from pipeline.io.capture import Capture
+from pipeline.io.run_layout import RunLayout
 from pipeline.terminal import printable
 
 
@@ -24,7 +25,7 @@ def main(args: argparse.Namespace) -> int:
     record = read_run_record(args.out)
     capture = Capture.open(record["capture"], allow_outside_paths=record.get("allow_outside_paths") is True)
     params = apply_overrides(default_params(graph.STAGES), record.get("params", {}),
-                             source=f"{args.out / RUN_RECORD}:")
+                             source=f"{RunLayout(args.out).run_record}:")
     statuses = graph_status(graph.STAGES, capture, params, args.out)
     width = max(len(status.name) for status in statuses)
     for status in statuses:

@@ -29,8 +29,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from pipeline.io import frames_io
-
-WARNINGS_FILE = "warnings.json"
+from pipeline.io.run_layout import WARNINGS_FILE
 
 #: Shortest time between two rewrites of the file while warnings arrive (a run that loses every frame
 #: logs one warning per frame; rewriting the whole file for each would cost quadratic time).

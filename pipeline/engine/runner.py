@@ -76,13 +76,10 @@ from pipeline.engine.executors import Workers, call_logged, relog
 from pipeline.engine.params import params_to_dict
 from pipeline.io import atomic, frames_io
 from pipeline.io.capture import Capture
+from pipeline.io.run_layout import LOCK, MANIFEST, MARKER, RUN_RECORD
 
 log = logging.getLogger(__name__)
 
-MANIFEST = "manifest.json"
-MARKER = "params_hash"
-RUN_RECORD = "run.json"
-LOCK = ".lock"
 PACKAGE = "hnmocap"
 #: Largest chunk of consecutive frames given to one worker call. Bigger chunks decode video with
 #: fewer seeks; smaller ones balance load and update the progress bar more often.

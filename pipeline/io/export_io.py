@@ -36,6 +36,7 @@ from ezc3d import ezc3d as ezc3d_types
 
 from calib.errors import InputError
 from pipeline.io import atomic
+from pipeline.io.run_layout import ANGLES_FILE, BVH_FILE, C3D_FILE, JOINTS_FILE, QUALITY_FILE, TRC_FILE
 from stages.export import ExportParams
 from stages.export.angles import format_angles_csv, joint_angles
 from stages.export.bvh import bvh_from_joints
@@ -47,9 +48,6 @@ from stages.export.trc import MARKER_NAMINGS, format_trc
 from stages.joints import JOINT_NAMES
 
 #: File names inside ``<out>/export/``.
-JOINTS_FILE, BVH_FILE, TRC_FILE, ANGLES_FILE = "joints.csv", "motion.bvh", "joints.trc", "angles.csv"
-C3D_FILE, QUALITY_FILE = "joints.c3d", "quality.csv"
-
 #: Millimetres per metre: C3D points are in millimetres.
 MM_PER_M = 1000.0
 

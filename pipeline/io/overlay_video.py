@@ -22,13 +22,9 @@ from pipeline.io import atomic
 from stages.export.overlay import draw_skeleton
 from stages.joints import JOINT_NAMES
 
-#: Container and codec of the overlay videos (see the module docstring).
-SUFFIX, FOURCC = ".webm", "VP80"
-
-
-def overlay_video_name(camera: str) -> str:
-    """File name of a camera's overlay video inside ``export/``."""
-    return f"overlay_{camera}{SUFFIX}"
+#: Codec of the overlay videos, in the container that :data:`pipeline.io.run_layout.OVERLAY_SUFFIX` names (see the
+#: module docstring).
+FOURCC = "VP80"
 
 
 def write_overlay_video(images: Iterable[tuple[int, np.ndarray]], camera: Camera,
@@ -44,7 +40,7 @@ def write_overlay_video(images: Iterable[tuple[int, np.ndarray]], camera: Camera
     camera : the calibrated camera the images come from
     joints_by_frame : mapping frame -> (J, 3) float, metres
         Frames without an entry (lost) are written without a skeleton.
-    path : output path, ending in :data:`SUFFIX`
+    path : output path, ending in :data:`~pipeline.io.run_layout.OVERLAY_SUFFIX`
     fps : frames per second of the video
 
     Returns

@@ -37,10 +37,10 @@ import numpy as np
 from calib.camera import Rig
 from calib.errors import InputError
 from pipeline.engine.run_warnings import WARNINGS_FILE, read_warnings
-from pipeline.evaluate import CAPTURE_JSON, default_truth, format_metrics, score_joints
+from pipeline.evaluate import default_truth, format_metrics, score_joints
 from pipeline.io import atomic, frames_io
-from pipeline.io.export_io import ANGLES_FILE, JOINTS_FILE, read_joints_csv
-from pipeline.io.overlay_video import overlay_video_name
+from pipeline.io.export_io import read_joints_csv
+from pipeline.io.run_layout import ANGLES_FILE, MANIFEST, STAGE_NAMES, RunLayout, overlay_video_name
 from pipeline.report.svg_plot import LegendEntry, Panel, ReferenceLine, Series, Strip, line_chart, with_gaps
 from pipeline.report.tracking_summary import (
     CATEGORIES,
@@ -57,11 +57,7 @@ from stages.export.skeleton import bones_among
 
 log = logging.getLogger(__name__)
 
-REPORT_FILE = "report.html"
 ASSETS = Path(__file__).with_name("assets")
-
-#: Stages in pipeline order; other stage folders with a manifest follow alphabetically.
-STAGE_ORDER = ("calibration", "silhouettes", "reconstruction", "tracking", "export")
 
 #: Joints whose trajectories are plotted: the root and the extremities, where errors show most.
 TRAJECTORY_JOINTS = ("pelvis", "head", "l_wrist", "r_ankle")
@@ -286,14 +282,15 @@ def warning_groups(warnings: Sequence[Mapping]) -> list[tuple[str | None, list[s
 
 
 def stage_timings(out_dir: Path) -> list[dict]:
-    """One row per stage folder with a readable manifest: stage, seconds, frames, finished_at."""
-    folders = [p for p in out_dir.iterdir() if (p / "manifest.json").is_file()] if out_dir.is_dir() else []
-    rank = {name: i for i, name in enumerate(STAGE_ORDER)}
-    folders.sort(key=lambda p: (rank.get(p.name, len(STAGE_ORDER)), p.name))
+    """One row per stage folder with a readable manifest: stage, seconds, frames, finished_at (the stages in
+    pipeline order; other stage folders with a manifest follow alphabetically)."""
+    folders = [p for p in out_dir.iterdir() if (p / MANIFEST).is_file()] if out_dir.is_dir() else []
+    rank = {name: i for i, name in enumerate(STAGE_NAMES)}
+    folders.sort(key=lambda p: (rank.get(p.name, len(STAGE_NAMES)), p.name))
     rows = []
     for folder in folders:
         try:
-            manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
+            manifest = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
             log.warning("%s: unreadable manifest (%s); left out of the report", folder, error)
             continue
@@ -366,14 +363,15 @@ class _Run:
 
 
 def _load_run(out_dir: Path, truth_path: str | os.PathLike | None) -> _Run:
-    summary_path = out_dir / CAPTURE_JSON
+    layout = RunLayout(out_dir)
+    summary_path = layout.capture_summary
     capture = frames_io.read_json(summary_path) if summary_path.is_file() else {}
     capture = capture if isinstance(capture, dict) else {}
     fps = capture.get("fps")
     fps = float(fps) if isinstance(fps, (int, float)) and fps > 0 else DEFAULT_FPS
     estimate, estimate_problem = None, None
     try:
-        estimate = _read_sequence(out_dir / "export" / JOINTS_FILE)
+        estimate = _read_sequence(layout.joints)
     except InputError as error:  # e.g. no rows: no frame was estimated, which the report is to explain
         estimate_problem = str(error)
     found_truth = _find_truth(out_dir, truth_path)
@@ -385,15 +383,15 @@ def _load_run(out_dir: Path, truth_path: str | os.PathLike | None) -> _Run:
         except InputError as error:
             problem = str(error)
     frames = capture.get("frames")
-    statuses = read_frame_statuses(out_dir / "tracking", frames) if isinstance(frames, list) else None
+    statuses = read_frame_statuses(layout.tracking_dir, frames) if isinstance(frames, list) else None
     angles, angles_problem = None, None
-    if (out_dir / "export" / ANGLES_FILE).is_file():
+    if layout.export_file(ANGLES_FILE).is_file():
         try:
-            angles = read_angles_csv(out_dir / "export" / ANGLES_FILE)
+            angles = read_angles_csv(layout.export_file(ANGLES_FILE))
         except (InputError, UnicodeDecodeError) as error:
             angles_problem = str(error)
     return _Run(out_dir, fps, capture, estimate, estimate_problem, truth, found_truth if truth is not None else None,
-                metrics, problem, statuses, tracker_params(out_dir / "tracking"), angles, angles_problem,
+                metrics, problem, statuses, tracker_params(layout.tracking_dir), angles, angles_problem,
                 read_warnings(out_dir))
 
 
@@ -520,21 +518,21 @@ def _cameras_section(run: _Run, rig: Rig | None, images: Mapping[str, tuple[int,
     stills = {camera: (frame, image) for camera, frame, image in
               (overlay_stills(images, rig, run.estimate, run.truth) if rig is not None and images else [])}
     cameras = list(stills) or [str(name) for name in run.capture.get("cameras", []) or []]
-    silhouettes = run.out_dir / "silhouettes"
+    layout = RunLayout(run.out_dir)
     rows = []
     for camera in cameras:
         frame = stills[camera][0] if camera in stills else None
         cells = []
         if camera in stills:
             cells.append((jpeg_data_uri(stills[camera][1]), f"frame {frame}"))
-        if frame is not None and (mask := _mask_thumb(silhouettes / camera / frames_io.frame_name(frame))):
+        if frame is not None and (mask := _mask_thumb(layout.silhouette(camera, frame))):
             cells.append((mask, f"silhouette, frame {frame}"))
-        if background := _mask_thumb(silhouettes / "background" / f"{camera}.png"):
+        if background := _mask_thumb(layout.background(camera)):
             cells.append((background, "background"))
         figures = "".join(f"<figure><img alt='{html.escape(camera)} {html.escape(caption)}' src='{uri}'>"
                           f"<figcaption>{html.escape(caption)}</figcaption></figure>" for uri, caption in cells)
         video = overlay_video_name(camera)
-        if (run.out_dir / "export" / video).is_file():
+        if layout.overlay_video(camera).is_file():
             figures += (f"<figure><video controls muted loop preload='metadata' src='{html.escape(video)}'></video>"
                         f"<figcaption><a href='{html.escape(video)}'>{html.escape(video)}</a></figcaption></figure>")
         if figures:
@@ -612,6 +610,6 @@ def build_report(out_dir: str | os.PathLike, *, truth_path: str | os.PathLike | 
 def write_report(out_dir: str | os.PathLike, *, truth_path: str | os.PathLike | None = None,
                  rig: Rig | None = None, images: Mapping[str, tuple[int, np.ndarray]] | None = None) -> Path:
     """Write ``<out_dir>/export/report.html`` (see :func:`build_report`) and return its path."""
-    path = Path(out_dir) / "export" / REPORT_FILE
+    path = RunLayout(out_dir).report
     atomic.write_text(path, build_report(out_dir, truth_path=truth_path, rig=rig, images=images))
     return path

@@ -27,10 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.io import frames_io
+from pipeline.io.run_layout import MANIFEST, tracking_path
 from stages.tracking.tracker import TrackerParams
-
-#: Where the tracking stage writes a frame's record, inside its folder (as ``pipeline.graph.tracking_path``).
-RECORDS_DIR = "frames"
 
 #: The categories counted, in the order they are reported; a doubtful frame counts only as doubtful.
 CATEGORIES = ("tracked", "initialised", "doubtful", "predicted", "lost")
@@ -119,7 +117,7 @@ def tracker_params(tracking_dir: Path) -> dict:
     """The :data:`CAUSE_PARAMS` the tracking stage ran with (its manifest), defaults where unreadable."""
     params = {key: value for key, value in dataclasses.asdict(TrackerParams()).items() if key in CAUSE_PARAMS}
     try:
-        recorded = json.loads((tracking_dir / "manifest.json").read_text(encoding="utf-8")).get("params", {})
+        recorded = json.loads((tracking_dir / MANIFEST).read_text(encoding="utf-8")).get("params", {})
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
         return params
     params.update({key: recorded[key] for key in CAUSE_PARAMS if isinstance(recorded.get(key), (int, float))})
@@ -136,7 +134,7 @@ def read_frame_statuses(tracking_dir: str | Path, frames: Sequence[int]) -> list
     params = tracker_params(tracking_dir)
     statuses, previous, fitted = [], None, False
     for frame in frames:
-        path = tracking_dir / RECORDS_DIR / frames_io.frame_name(frame, ".json")
+        path = tracking_path(tracking_dir, frame)
         try:
             record = frames_io.read_record(path)
             statuses.append(frame_status(record, previous, params, fitted_before=fitted))

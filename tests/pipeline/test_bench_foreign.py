@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from pipeline.evaluate import evaluate_run
-from pipeline.graph import tracking_path
 from pipeline.io import frames_io
 from pipeline.io.export_io import write_joints_csv
+from pipeline.io.run_layout import tracking_path
 from pipeline.lab.bench import foreign, suite
 
 

@@ -27,10 +27,10 @@ from conftest import make_capture, tiny_rig, write_config, write_video
 from calib.errors import InputError
 from calib.formats import load_rig
 from pipeline.cli import SUBCOMMANDS, main
-from pipeline.engine.run_warnings import WARNINGS_FILE
-from pipeline.engine.runner import MANIFEST, output_lock
+from pipeline.engine.runner import output_lock
 from pipeline.graph import STAGES
 from pipeline.io import atomic, frames_io
+from pipeline.io.run_layout import MANIFEST, WARNINGS_FILE
 
 REPO = Path(__file__).resolve().parents[2]
 

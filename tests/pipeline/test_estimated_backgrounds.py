@@ -14,9 +14,9 @@ import yaml
 
 from calib.formats import save_rig
 from pipeline import graph
-from pipeline.frame_tasks import background_path, noise_floors_path
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
+from pipeline.io.run_layout import background_path, noise_floors_path
 from stages.silhouettes import SilhouetteParams
 
 

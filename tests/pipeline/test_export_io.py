@@ -11,12 +11,12 @@ from trc import TRCData
 
 from calib.errors import InputError
 from pipeline.cli import main
-from pipeline.engine.runner import MANIFEST
 from pipeline.io.export_io import (
     read_joints_csv,
     write_exports,
     write_joints_csv,
 )
+from pipeline.io.run_layout import MANIFEST
 from stages.export import ExportParams
 from stages.export.angles import ANGLE_NAMES
 from stages.export.quality import FrameQuality

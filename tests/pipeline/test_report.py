@@ -10,11 +10,11 @@ from conftest import stick_figure
 from test_tracking_summary import record, write_records
 
 from calib.camera import Camera, Rig
-from pipeline.engine.run_warnings import WARNINGS_FILE
 from pipeline.evaluate import evaluate_run, format_metrics
 from pipeline.io import frames_io
 from pipeline.io.export_io import write_angles_csv, write_joints_csv
-from pipeline.io.overlay_video import overlay_video_name, write_overlay_video
+from pipeline.io.overlay_video import write_overlay_video
+from pipeline.io.run_layout import WARNINGS_FILE, overlay_video_name
 from pipeline.report.page import (
     JointSequence,
     angle_groups,

@@ -11,8 +11,7 @@ import pytest
 
 from pipeline import graph
 from pipeline.cli import main
-from pipeline.engine.runner import MANIFEST
-from pipeline.io.export_io import JOINTS_FILE
+from pipeline.io.run_layout import JOINTS_FILE, MANIFEST
 
 TINY = Path(__file__).resolve().parents[2] / "data_samples" / "tiny"
 TRACKED_BEFORE_THE_KILL = 3

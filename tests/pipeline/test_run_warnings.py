@@ -7,8 +7,9 @@ from conftest import make_capture
 
 from pipeline.cli import main
 from pipeline.engine.executors import call_logged, relog
-from pipeline.engine.run_warnings import WARNINGS_FILE, collecting, read_warnings, stage_scope
+from pipeline.engine.run_warnings import collecting, read_warnings, stage_scope
 from pipeline.io import frames_io
+from pipeline.io.run_layout import WARNINGS_FILE
 
 log = logging.getLogger("tests.run_warnings")
 

@@ -22,10 +22,6 @@ from calib.errors import InputError
 from pipeline.engine.executors import make_executor
 from pipeline.engine.params import apply_overrides, default_params
 from pipeline.engine.runner import (
-    LOCK,
-    MANIFEST,
-    MARKER,
-    RUN_RECORD,
     Runner,
     Stage,
     code_inputs,
@@ -39,6 +35,7 @@ from pipeline.engine.runner import (
 )
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
+from pipeline.io.run_layout import LOCK, MANIFEST, MARKER, RUN_RECORD
 
 WORK_LOG = "FAKE_STAGE_WORK_LOG"  # environment: file where fake stages log their work
 FAIL_AT = "FAKE_STAGE_FAIL_AT"  # environment: frame at which the per-frame stage raises

@@ -12,8 +12,8 @@ from conftest import make_capture
 
 from calib.errors import InputError
 from pipeline.cli import main
-from pipeline.engine.runner import MANIFEST
 from pipeline.graph import STAGES
+from pipeline.io.run_layout import MANIFEST
 from stages.export import ExportParams
 from stages.reconstruction import ReconstructionParams
 from stages.silhouettes import SilhouetteParams

@@ -31,7 +31,7 @@ from pathlib import Path
 import yaml
 
 from pipeline.commands.batch import BATCH_CSV, SOME_FAILED
-from pipeline.io.export_io import JOINTS_FILE
+from pipeline.io.run_layout import RunLayout
 from pipeline.lab.bench.runs import REPO, run_pipeline
 from pipeline.lab.bench.speed import prefix_view
 from pipeline.lab.bench.suite import fmt, format_table
@@ -107,8 +107,8 @@ def run_batch(study: Path, out: Path, scheduler: str) -> dict:
 def same_joints(names: list[str], *folders: Path) -> bool:
     """Whether every capture of ``names`` exported the same joints.csv in each of ``folders``."""
     for name in names:
-        contents = {(folder / name / "export" / JOINTS_FILE).read_bytes()
-                    if (folder / name / "export" / JOINTS_FILE).is_file() else None for folder in folders}
+        contents = {RunLayout(folder / name).joints.read_bytes()
+                    if RunLayout(folder / name).joints.is_file() else None for folder in folders}
         if len(contents) != 1 or None in contents:
             return False
     return True

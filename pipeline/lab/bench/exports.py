@@ -31,7 +31,8 @@ from calib.errors import InputError
 from pipeline.evaluate import evaluate_run
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
-from pipeline.io.export_io import BVH_FILE, C3D_FILE, JOINTS_FILE, QUALITY_FILE, TRC_FILE, read_joints_csv
+from pipeline.io.export_io import read_joints_csv
+from pipeline.io.run_layout import BVH_FILE, C3D_FILE, QUALITY_FILE, TRC_FILE, RunLayout
 from pipeline.lab.bench.foreign import FOREIGN_ROOT, find_captures, selected
 from pipeline.lab.bench.runs import REPO, run_command, run_pipeline
 from pipeline.lab.bench.suite import SuiteSkipped
@@ -93,9 +94,10 @@ def c3d_positions(path: Path, names: tuple[str, ...]) -> np.ndarray:
 
 def agreement_mm(run_dir: Path) -> dict[str, float]:
     """Largest distance (mm) over the estimated frames and joints between joints.csv and each other export."""
-    export = Path(run_dir) / "export"
-    frames, names, joints = read_joints_csv(export / JOINTS_FILE)
-    manifest = export / "manifest.json"  # the run's export parameters: the BVH's units and names
+    layout = RunLayout(run_dir)
+    export = layout.export_dir
+    frames, names, joints = read_joints_csv(layout.joints)
+    manifest = layout.manifest("export")  # the run's export parameters: the BVH's units and names
     params = frames_io.read_json(manifest).get("params", {}) if manifest.is_file() else {}
     index = _grid_index(frames)
     readings = {
@@ -110,9 +112,10 @@ def agreement_mm(run_dir: Path) -> dict[str, float]:
 
 def confidence_against_truth(run_dir: Path, truth: Path) -> dict[str, float]:
     """How the joints quality.csv calls unsupported compare in error with the others (see the module docstring)."""
-    frames, names, joints = read_joints_csv(Path(run_dir) / "export" / JOINTS_FILE)
+    layout = RunLayout(run_dir)
+    frames, names, joints = read_joints_csv(layout.joints)
     true_frames, true_names, true_joints = read_joints_csv(truth)
-    with open(Path(run_dir) / "export" / QUALITY_FILE, newline="") as handle:
+    with open(layout.export_file(QUALITY_FILE), newline="") as handle:
         rows = {int(row["frame"]): row for row in csv.DictReader(handle)}
     common = np.intersect1d(frames, true_frames)
     scored = [name for name in SCORED_JOINTS if name in names and name in true_names]

@@ -27,9 +27,9 @@ from pathlib import Path
 
 from calib.errors import InputError
 from pipeline.evaluate import evaluate_run
-from pipeline.graph import tracking_path
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
+from pipeline.io.run_layout import RunLayout
 from pipeline.lab.bench.runs import REPO, run_pipeline
 from pipeline.lab.bench.speed import prefix_view, tracker_speed
 from pipeline.lab.bench.suite import SuiteSkipped
@@ -72,7 +72,7 @@ def foreign_scores(metrics: dict) -> dict:
 
 def tracking_results(run_dir: Path, frames: Sequence[int]) -> list[dict]:
     """The tracking stage's per-frame ``result`` records of a run, in frame order."""
-    return [frames_io.read_json(tracking_path(Path(run_dir) / "tracking", frame))["result"] for frame in frames]
+    return [frames_io.read_json(RunLayout(run_dir).tracking_record(frame))["result"] for frame in frames]
 
 
 def status_counts(results: Sequence[dict]) -> dict[str, int]:

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline import graph
+from pipeline.io.run_layout import RunLayout
 
 #: The repository root: the child runs there so that ``python -m pipeline`` imports this checkout.
 REPO = Path(__file__).resolve().parents[3]
@@ -79,7 +80,7 @@ def stage_timings(out: Path) -> dict[str, float]:
     """Seconds each stage took according to its manifest (0 when a stage has no readable manifest)."""
     seconds = {}
     for stage in graph.STAGES:
-        path = Path(out) / stage.name / "manifest.json"
+        path = RunLayout(out).manifest(stage.name)
         try:
             seconds[stage.name] = float(json.loads(path.read_text())["timing"]["seconds"])
         except (OSError, ValueError, KeyError, TypeError):

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from pipeline.graph import observations_path
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
+from pipeline.io.run_layout import RunLayout
 from pipeline.lab.bench.recipes import SPEED, describe, ensure_capture
 from pipeline.lab.bench.runs import RunMeasure, run_pipeline
 from stages.reconstruction import Observations
@@ -69,7 +69,7 @@ def tracker_speed(run_dir: Path, capture: Capture, frames: list[int]) -> dict:
     """
     params = TrackerParams(height_m=capture.height_m)
     body = load_body()
-    observations = [frames_io.read_ply(observations_path(run_dir / "reconstruction", frame)) for frame in frames]
+    observations = [frames_io.read_ply(RunLayout(run_dir).observations(frame)) for frame in frames]
     started = time.perf_counter()
     track_frame(None, Observations(*observations[0]), body, params, capture.volume)
     first_call = time.perf_counter() - started

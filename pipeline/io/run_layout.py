@@ -1,0 +1,159 @@
+"""Where everything of a run lies under its output folder ``<out>/``: the one place that names those paths.
+
+::
+
+    <out>/run.json                           which capture and parameters the folder is for, the last run's state
+    <out>/.lock                              held while a run uses the folder
+    <out>/warnings.json                      every warning behind the results, by stage
+    <out>/<stage>/manifest.json              written last: the stage finished (cache key, inputs, outputs)
+    <out>/<stage>/params_hash                written first: the folder is the runner's, and for which key
+    <out>/calibration/rig.toml               the cameras in the pipeline's world frame (anipose TOML), for the user
+    <out>/calibration/capture.json           fps, frames, volume, world transform, ... (the report and eval read it)
+    <out>/silhouettes/<camera>/<frame>.png   masks
+    <out>/silhouettes/background/<camera>.png, noise_floors.json
+    <out>/reconstruction/<frame>.ply         points and normals
+    <out>/tracking/frames/<frame>.json       estimate and tracker state
+    <out>/export/joints.csv, quality.csv, joints.trc, motion.bvh, joints.c3d, angles.csv, overlay_<camera>.webm,
+                 report.html
+    <out>/eval/metrics.json                  ``python -m pipeline eval``
+
+``<frame>`` is :func:`pipeline.io.frames_io.frame_name`'s six digits. A stage's run function and its worker
+tasks see their own folder (``ctx.out_dir``) and upstream folders (``ctx.input_dir(name)``), so the per-stage
+functions below take a stage folder; :class:`RunLayout` gives the same paths from the run folder, for what
+reads a run from outside (the report, eval, the commands, the benchmarks).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.io.frames_io import frame_name
+
+#: Files the runner keeps in the run folder and in each stage folder.
+RUN_RECORD, LOCK, WARNINGS_FILE = "run.json", ".lock", "warnings.json"
+MANIFEST, MARKER = "manifest.json", "params_hash"
+#: The calibration stage's files.
+RIG_FILE, CAPTURE_FILE = "rig.toml", "capture.json"
+#: The export stage's files.
+JOINTS_FILE, BVH_FILE, TRC_FILE, ANGLES_FILE = "joints.csv", "motion.bvh", "joints.trc", "angles.csv"
+C3D_FILE, QUALITY_FILE = "joints.c3d", "quality.csv"
+REPORT_FILE = "report.html"
+OVERLAY_SUFFIX = ".webm"
+#: ``python -m pipeline eval``'s folder and file.
+EVAL_DIR, METRICS_FILE = "eval", "metrics.json"
+#: The stage folders' names, in run order (the names of :data:`pipeline.graph.STAGES`).
+STAGE_NAMES = ("calibration", "silhouettes", "reconstruction", "tracking", "export")
+
+
+def silhouette_path(stage_dir: Path, camera: str, frame: int) -> Path:
+    """A mask in the silhouette stage's folder."""
+    return stage_dir / camera / frame_name(frame, ".png")
+
+
+def background_path(stage_dir: Path, camera: str) -> Path:
+    """A camera's background image in the silhouette stage's folder."""
+    return stage_dir / "background" / f"{camera}.png"
+
+
+def noise_floors_path(stage_dir: Path) -> Path:
+    """The noise floors of the estimated backgrounds (JSON: camera -> σ, 8-bit levels) in the silhouette stage's
+    folder."""
+    return stage_dir / "background" / "noise_floors.json"
+
+
+def observations_path(stage_dir: Path, frame: int) -> Path:
+    """A frame's points and normals in the reconstruction stage's folder."""
+    return stage_dir / frame_name(frame, ".ply")
+
+
+def tracking_path(stage_dir: Path, frame: int) -> Path:
+    """A frame's record in the tracking stage's folder."""
+    return stage_dir / "frames" / frame_name(frame, ".json")
+
+
+def overlay_video_name(camera: str) -> str:
+    """File name of a camera's overlay video inside ``export/``."""
+    return f"overlay_{camera}{OVERLAY_SUFFIX}"
+
+
+@dataclass(frozen=True)
+class RunLayout:
+    """The paths of one run folder, ``root`` (see the module docstring)."""
+
+    root: Path
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "root", Path(self.root))
+
+    def stage_dir(self, stage: str) -> Path:
+        return self.root / stage
+
+    def manifest(self, stage: str) -> Path:
+        return self.stage_dir(stage) / MANIFEST
+
+    def marker(self, stage: str) -> Path:
+        return self.stage_dir(stage) / MARKER
+
+    @property
+    def run_record(self) -> Path:
+        return self.root / RUN_RECORD
+
+    @property
+    def lock(self) -> Path:
+        return self.root / LOCK
+
+    @property
+    def warnings(self) -> Path:
+        return self.root / WARNINGS_FILE
+
+    @property
+    def rig(self) -> Path:
+        return self.stage_dir("calibration") / RIG_FILE
+
+    @property
+    def capture_summary(self) -> Path:
+        return self.stage_dir("calibration") / CAPTURE_FILE
+
+    @property
+    def silhouettes_dir(self) -> Path:
+        return self.stage_dir("silhouettes")
+
+    def silhouette(self, camera: str, frame: int) -> Path:
+        return silhouette_path(self.silhouettes_dir, camera, frame)
+
+    def background(self, camera: str) -> Path:
+        return background_path(self.silhouettes_dir, camera)
+
+    def observations(self, frame: int) -> Path:
+        return observations_path(self.stage_dir("reconstruction"), frame)
+
+    @property
+    def tracking_dir(self) -> Path:
+        return self.stage_dir("tracking")
+
+    def tracking_record(self, frame: int) -> Path:
+        return tracking_path(self.tracking_dir, frame)
+
+    @property
+    def export_dir(self) -> Path:
+        return self.stage_dir("export")
+
+    def export_file(self, name: str) -> Path:
+        """One of the export stage's files, by name (:data:`JOINTS_FILE`, ...)."""
+        return self.export_dir / name
+
+    @property
+    def joints(self) -> Path:
+        return self.export_file(JOINTS_FILE)
+
+    @property
+    def report(self) -> Path:
+        return self.export_file(REPORT_FILE)
+
+    def overlay_video(self, camera: str) -> Path:
+        return self.export_file(overlay_video_name(camera))
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / EVAL_DIR / METRICS_FILE
