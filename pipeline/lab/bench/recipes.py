@@ -32,7 +32,7 @@ CLIPS: dict[str, tuple[str, str | None]] = {
 }
 RECIPE_SUFFIX = ".recipe.json"
 #: Sources that decide what a recipe renders (the generator's version).
-GENERATOR_SOURCES = ("synth/*.py", "mocap.py")
+GENERATOR_SOURCES = ("synth/*.py", "mocap/*.py")
 
 
 @functools.cache
