@@ -23,6 +23,7 @@ import numpy as np
 
 from calib.camera import Camera
 from calib.errors import InputError
+from stages.rays import box_interval
 
 #: Parts are told apart on square blocks of pixels, about this many across the image's width (4 pixels a
 #: side on a 780 x 580 image): a sixteenth of the pixels to label.
@@ -131,25 +132,12 @@ def _without_parts(mask: np.ndarray, labels: np.ndarray, corner: tuple[int, int]
     return kept
 
 
-def _stretch(origin: np.ndarray, directions: np.ndarray, volume: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Ray parameters (enter (n,), leave (n,)) where rays ``origin + t directions`` (n, 3) cross the box
-    ``volume`` (2, 3), t >= 0; enter >= leave for a ray that misses it (the slab method, as
-    ``stages.reconstruction.views.box_interval``, which the silhouette workers do not import: the
-    reconstruction package brings scipy along)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        low = (volume[0] - origin) / directions
-        high = (volume[1] - origin) / directions
-    near = np.nan_to_num(np.minimum(low, high), nan=-np.inf)
-    far = np.nan_to_num(np.maximum(low, high), nan=np.inf)
-    return np.maximum(near.max(axis=1), 0.0), far.min(axis=1)
-
-
 def _explained(camera: Camera, uv: np.ndarray, others: Sequence[tuple[Camera, np.ndarray]], volume: np.ndarray,
                tolerated: int) -> np.ndarray:
     """(n,) bool: which rays of ``camera`` through pixels ``uv`` (n, 2) meet a point that the ``others``
     (camera, mask) see inside their silhouettes (see the module's docstring)."""
     directions = camera.pixel_rays(uv)  # (n, 3)
-    enter, leave = _stretch(camera.centre, directions, volume)
+    enter, leave = box_interval(camera.centre, directions, volume)
     t = enter[:, None] + (leave - enter)[:, None] * (np.arange(POINTS_PER_RAY) + 0.5) / POINTS_PER_RAY  # (n, S)
     X = (camera.centre + t[..., None] * directions[:, None, :]).reshape(-1, 3)  # (n S, 3)
     # The other views are asked one after the other, each about the points still in the running: a point the

@@ -29,8 +29,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from calib.camera import Camera, Rig
+from stages.rays import box_interval
 from stages.reconstruction.contours import Outline, cone_normals, outline, row_norms
-from stages.reconstruction.views import box_interval, in_volume, inside_view, ray_points
+from stages.reconstruction.views import in_volume, inside_view, ray_points
 
 # The convex hull of a silhouette is widened by this many pixels before clipping rays, so that lens
 # distortion (which bends the hull's straight edges slightly) never cuts off a true part of the cone.
