@@ -23,6 +23,7 @@ import numpy as np
 
 from calib.camera import Camera
 from calib.errors import InputError
+from stages.rays import box_interval
 
 #: Parts are told apart on square blocks of pixels, about this many across the image's width (4 pixels a
 #: side on a 780 x 580 image): a sixteenth of the pixels to label.
@@ -58,12 +59,15 @@ def consistent_silhouettes(masks: Sequence[np.ndarray], cameras: Sequence[Camera
     kept = []
     for c, (mask, camera) in enumerate(zip(masks, cameras, strict=True)):
         cell = max(1, round(mask.shape[1] / CELLS_ACROSS))
-        count, labels, stats, _ = cv2.connectedComponentsWithStats(_cells(mask, cell), connectivity=8)
+        cells, corner = _cells(mask, cell)
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(cells, connectivity=8)
         if count <= 2 or len(cameras) < 2:
             kept.append(mask)
             continue
+        # The parts' boxes and pixels from here on are of the full image, in cells and in pixels.
+        stats[:, :2] += corner
         others = [(camera, masks[o]) for o, camera in enumerate(cameras) if o != c]
-        pixels = [_spread_pixels(mask, labels, stats[part], part, cell) for part in range(1, count)]
+        pixels = [_spread_pixels(mask, labels, stats[part], corner, part, cell) for part in range(1, count)]
         explained = _explained(camera, np.concatenate(pixels), others, volume, tolerated)  # (rays,) bool
         starts = np.cumsum([0] + [len(part) for part in pixels[:-1]])
         shares = np.add.reduceat(explained, starts) / np.array([len(part) for part in pixels])
@@ -71,44 +75,61 @@ def consistent_silhouettes(masks: Sequence[np.ndarray], cameras: Sequence[Camera
         if not len(dropped):
             kept.append(mask)
             continue
-        gone = np.isin(labels, dropped).repeat(cell, axis=0).repeat(cell, axis=1)
-        kept.append(np.where(gone[: mask.shape[0], : mask.shape[1]], np.uint8(0), mask))
+        kept.append(_without_parts(mask, labels, corner, dropped, cell))
     return kept
 
 
-def _cells(mask: np.ndarray, cell: int) -> np.ndarray:
-    """(h, w) uint8 1 for the ``cell`` x ``cell`` blocks of ``mask`` that hold a foreground pixel (the last,
-    partial blocks included). Parts less than a block apart merge, and are kept or dropped together."""
-    height, width = mask.shape
-    rows, cols = -(-height // cell), -(-width // cell)
-    padded = np.zeros((rows * cell, cols * cell), np.uint8)
-    padded[:height, :width] = mask
+def _cells(mask: np.ndarray, cell: int) -> tuple[np.ndarray, tuple[int, int]]:
+    """``(cells (h, w) uint8, corner (column, row))``: nonzero for the ``cell`` x ``cell`` blocks of ``mask`` that hold
+    a foreground pixel (the last, partial blocks included), in the box of blocks around the foreground, whose
+    first block is ``corner`` (in blocks). Parts less than a block apart merge, and are kept or dropped together.
+
+    Only the box is reduced: a person covers a small part of the frame, and the empty rest cost most of the
+    reduction.
+    """
+    x, y, w, h = cv2.boundingRect(mask)
+    if w == 0:
+        return np.zeros((1, 1), np.uint8), (0, 0)
+    left, top = x // cell, y // cell
+    cols, rows = -(-(x + w) // cell) - left, -(-(y + h) // cell) - top
+    box = mask[top * cell : (top + rows) * cell, left * cell : (left + cols) * cell]
+    if box.shape != (rows * cell, cols * cell):  # partial blocks at the image's far edges: pad them
+        padded = np.zeros((rows * cell, cols * cell), np.uint8)
+        padded[: box.shape[0], : box.shape[1]] = box
+        box = padded
     # Area averaging by a whole factor is the exact mean of each block: above 0 where a pixel is set.
-    return (cv2.resize(padded, (cols, rows), interpolation=cv2.INTER_AREA) > 0).astype(np.uint8)
+    return cv2.compare(cv2.resize(box, (cols, rows), interpolation=cv2.INTER_AREA), 0, cv2.CMP_GT), (left, top)
 
 
-def _spread_pixels(mask: np.ndarray, labels: np.ndarray, stats: np.ndarray, part: int, cell: int) -> np.ndarray:
+def _part_blocks(labels: np.ndarray, part_labels: np.ndarray, cell: int) -> np.ndarray:
+    """(h cell, w cell) uint8 255 on the pixels of the blocks ``labels`` (h, w) gives one of ``part_labels``."""
+    chosen = np.isin(labels, part_labels).astype(np.uint8) * np.uint8(255)
+    return cv2.resize(chosen, (labels.shape[1] * cell, labels.shape[0] * cell), interpolation=cv2.INTER_NEAREST)
+
+
+def _spread_pixels(mask: np.ndarray, labels: np.ndarray, stats: np.ndarray, corner: tuple[int, int], part: int,
+                   cell: int) -> np.ndarray:
     """(n, 2) float (u, v): at most RAYS_PER_PART foreground pixels of ``mask`` in the blocks (``cell`` pixels
-    a side) of ``part``, evenly spread in their raster order."""
+    a side) of ``part``, evenly spread in their raster order. ``stats`` gives the part's box of blocks in the
+    image, ``labels`` the parts of the blocks from block ``corner`` on."""
     x, y, w, h = stats[:4]
-    blocks = (labels[y : y + h, x : x + w] == part).repeat(cell, axis=0).repeat(cell, axis=1)
+    blocks = _part_blocks(labels[y - corner[1] : y - corner[1] + h, x - corner[0] : x - corner[0] + w], part, cell)
     box = mask[y * cell : (y + h) * cell, x * cell : (x + w) * cell]
-    rows, cols = np.nonzero(blocks[: box.shape[0], : box.shape[1]] & (box > 0))
+    points = cv2.findNonZero(cv2.bitwise_and(blocks[: box.shape[0], : box.shape[1]], box))  # (n, 1, 2) raster order
+    cols, rows = points.reshape(-1, 2).T
     chosen = np.unique(np.linspace(0, len(rows) - 1, min(RAYS_PER_PART, len(rows))).round().astype(int))
     return np.column_stack([cols[chosen] + x * cell, rows[chosen] + y * cell]).astype(float)
 
 
-def _stretch(origin: np.ndarray, directions: np.ndarray, volume: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Ray parameters (enter (n,), leave (n,)) where rays ``origin + t directions`` (n, 3) cross the box
-    ``volume`` (2, 3), t >= 0; enter >= leave for a ray that misses it (the slab method, as
-    ``stages.reconstruction.views.box_interval``, which the silhouette workers do not import: the
-    reconstruction package brings scipy along)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        low = (volume[0] - origin) / directions
-        high = (volume[1] - origin) / directions
-    near = np.nan_to_num(np.minimum(low, high), nan=-np.inf)
-    far = np.nan_to_num(np.maximum(low, high), nan=np.inf)
-    return np.maximum(near.max(axis=1), 0.0), far.min(axis=1)
+def _without_parts(mask: np.ndarray, labels: np.ndarray, corner: tuple[int, int], dropped: np.ndarray,
+                   cell: int) -> np.ndarray:
+    """A copy of ``mask`` without the pixels of the blocks labelled ``dropped`` (from block ``corner`` on)."""
+    gone = _part_blocks(labels, dropped, cell)
+    top, left = corner[1] * cell, corner[0] * cell
+    kept = mask.copy()
+    box = kept[top : top + gone.shape[0], left : left + gone.shape[1]]  # clipped at the image's far edges
+    box[gone[: box.shape[0], : box.shape[1]] > 0] = 0
+    return kept
 
 
 def _explained(camera: Camera, uv: np.ndarray, others: Sequence[tuple[Camera, np.ndarray]], volume: np.ndarray,
@@ -116,19 +137,26 @@ def _explained(camera: Camera, uv: np.ndarray, others: Sequence[tuple[Camera, np
     """(n,) bool: which rays of ``camera`` through pixels ``uv`` (n, 2) meet a point that the ``others``
     (camera, mask) see inside their silhouettes (see the module's docstring)."""
     directions = camera.pixel_rays(uv)  # (n, 3)
-    enter, leave = _stretch(camera.centre, directions, volume)
+    enter, leave = box_interval(camera.centre, directions, volume)
     t = enter[:, None] + (leave - enter)[:, None] * (np.arange(POINTS_PER_RAY) + 0.5) / POINTS_PER_RAY  # (n, S)
     X = (camera.centre + t[..., None] * directions[:, None, :]).reshape(-1, 3)  # (n S, 3)
-    in_volume = np.repeat(enter < leave, POINTS_PER_RAY)
+    # The other views are asked one after the other, each about the points still in the running: a point the
+    # others see outside more than ``tolerated`` times is out (most of a ray's stretch lies in free room).
+    running = np.flatnonzero(np.repeat(enter < leave, POINTS_PER_RAY))
     inside = np.zeros(len(X), np.int32)
-    seen = np.zeros(len(X), np.int32)
+    misses = np.zeros(len(X), np.int32)
     for other, mask in others:
-        uv_other = other.project(X)
-        visible = (other.depth(X) > 0) & other.in_image(uv_other)
+        Y = X[running]
+        uv_other = other.project(Y)
+        visible = (other.depth(Y) > 0) & other.in_image(uv_other)
         pixel = np.floor(uv_other[visible] + 0.5).astype(int)
-        hit = np.zeros(len(X), bool)
+        hit = np.zeros(len(Y), bool)
         hit[visible] = mask[np.clip(pixel[:, 1], 0, mask.shape[0] - 1), np.clip(pixel[:, 0], 0, mask.shape[1] - 1)] > 0
-        seen += visible
-        inside += hit
-    needed = np.maximum(np.minimum(2, len(others)), seen - tolerated)
-    return (in_volume & (inside >= needed)).reshape(len(uv), POINTS_PER_RAY).any(axis=1)
+        inside[running] += hit
+        misses[running] += visible & ~hit
+        running = running[misses[running] <= tolerated]
+    # Inside at least two others (the only other of a two-camera rig), outside at most ``tolerated`` of those
+    # that see it: inside >= max(min(2, others), seen - tolerated).
+    explained = np.zeros(len(X), bool)
+    explained[running] = inside[running] >= min(2, len(others))
+    return explained.reshape(len(uv), POINTS_PER_RAY).any(axis=1)

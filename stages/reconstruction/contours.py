@@ -149,27 +149,48 @@ def _mostly_inside(mask: np.ndarray, probes: np.ndarray) -> bool:
     return np.count_nonzero(mask[v, u]) * 2 > len(probes)
 
 
-def cone_normals(
-    camera: Camera, pixels: np.ndarray, normalised: np.ndarray, tangents: np.ndarray, outward: np.ndarray
-) -> np.ndarray:
+def cone_normals(camera: Camera, normalised: np.ndarray, tangents: np.ndarray, outward: np.ndarray) -> np.ndarray:
     """(L, 3) unit normals of the viewing-cone tangent planes at outline points, oriented outwards.
 
-    The plane through the camera centre containing the rays of ``pixels`` (L, 2) and of a point a
-    little along ``tangents`` (L, 2); its normal is the cross product of the two ray directions, turned
-    to the side of ``outward`` (L, 2) (distortion makes a pixel's tangent line a curve in the normalised
-    image, so the second ray is taken one pixel away, where that curvature is negligible).
-    ``normalised`` (L, 2) is ``camera.undistort_pixels(pixels)``, which the caller already holds: only the
-    two offset points are undistorted here.
+    The plane through the camera centre containing the ray of an outline point, whose normalised image
+    coordinates are ``normalised`` (L, 2) (``camera.undistort_pixels`` of its pixel), and the direction in
+    which that ray moves as the point moves along the outline's tangent ``tangents`` (L, 2); its normal is
+    the cross product of the two, turned to the side of ``outward`` (L, 2). Pixel steps are carried into the
+    normalised image by the inverse of the distortion's derivative at the point (:func:`normalised_steps`):
+    the tangent of the outline's image there, exactly, without undistorting further points.
     """
-    if len(pixels) == 0:
+    if len(normalised) == 0:
         return np.zeros((0, 3))
-    offset = camera.undistort_pixels(np.concatenate([pixels + tangents, pixels + outward]))
-    ray, along, beside = np.split(camera.normalised_rays(np.concatenate([normalised, offset])), 3)
+    along, beside = normalised_steps(camera, normalised, tangents, outward)
+    # Rays through the point and a step along (or beside) it: R^T (x, y, 1) and R^T (dx, dy, 0), unnormalised.
+    ray = np.hstack([normalised, np.ones((len(normalised), 1))]) @ camera.R
+    along = along @ camera.R[:2]
     # ray × along, as np.cross computes it (without its generic axis handling, which cost more than this).
     normals = ray[:, (1, 2, 0)] * along[:, (2, 0, 1)] - ray[:, (2, 0, 1)] * along[:, (1, 2, 0)]
-    flip = np.einsum("ij,ij->i", normals, beside - ray) < 0
+    flip = np.einsum("ij,ij->i", normals, beside @ camera.R[:2]) < 0
     normals[flip] *= -1.0
     return normals / np.maximum(row_norms(normals), 1e-15)
+
+
+def normalised_steps(camera: Camera, normalised: np.ndarray, *steps: np.ndarray) -> list[np.ndarray]:
+    """Each of the pixel ``steps`` (L, 2) at the points ``normalised`` (L, 2) as steps of normalised image
+    coordinates, (L, 2) each: solved from the derivative of the projection there, pixel = K D(x) (D the
+    lens distortion, as ``Camera.project`` applies it), which undistorting the stepped pixels only
+    approximates to first order."""
+    k1, k2, p1, p2, k3 = camera.dist
+    x, y = normalised[:, 0], normalised[:, 1]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    slope = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3))  # d radial / d(r2), twice
+    # dD/dx: [[a, b], [b, d]] (the tangential terms keep it symmetric), then pixels = K[:2, :2] of it.
+    a = radial + slope * x * x + 2.0 * p1 * y + 6.0 * p2 * x
+    b = slope * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+    d = radial + slope * y * y + 6.0 * p1 * y + 2.0 * p2 * x
+    (fx, skew), (_, fy) = camera.K[0, :2], camera.K[1, :2]
+    m00, m01, m10, m11 = fx * a + skew * b, fx * b + skew * d, fy * b, fy * d
+    determinant = m00 * m11 - m01 * m10
+    inverse = np.stack([m11, -m01, -m10, m00], axis=1).reshape(-1, 2, 2) / determinant[:, None, None]
+    return [np.einsum("nij,nj->ni", inverse, step) for step in steps]
 
 
 def row_norms(vectors: np.ndarray) -> np.ndarray:

@@ -103,28 +103,6 @@ def ray_points(origins: np.ndarray, directions: np.ndarray, t: np.ndarray) -> np
     return (o + t[None] * d).reshape(3, -1)
 
 
-def box_interval(
-    origins: np.ndarray, directions: np.ndarray, volume: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Ray parameters ``(t_enter (M,), t_exit (M,))`` where rays ``origins + t directions`` cross the box
-    ``volume`` (2, 3), restricted to ``t >= 0``; rays that miss it get ``t_enter > t_exit``.
-
-    The slab method: the intersection of the three coordinate slabs.
-    """
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inverse = 1.0 / directions  # (M, 3), +-inf for axis-parallel rays
-        t_low = (volume[0] - origins) * inverse
-        t_high = (volume[1] - origins) * inverse
-    t_near = np.minimum(t_low, t_high)
-    t_far = np.maximum(t_low, t_high)
-    # An axis-parallel ray gives nan (0 * inf) on that axis when it lies on a slab face: no constraint.
-    t_near = np.where(np.isnan(t_near), -np.inf, t_near)
-    t_far = np.where(np.isnan(t_far), np.inf, t_far)
-    # The three slabs column by column: max/min over rows of three are slow reductions, same result.
-    return (np.maximum(np.maximum(np.maximum(t_near[:, 0], t_near[:, 1]), t_near[:, 2]), 0.0),
-            np.minimum(np.minimum(t_far[:, 0], t_far[:, 1]), t_far[:, 2]))
-
-
 def in_volume(X: np.ndarray, volume: np.ndarray) -> np.ndarray:
     """(N,) bool: which points ``X`` (N, 3) lie in the box ``volume`` (2, 3)."""
     return np.all((X >= volume[0]) & (X <= volume[1]), axis=1)

@@ -29,8 +29,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from calib.camera import Camera, Rig
+from stages.rays import box_interval
 from stages.reconstruction.contours import Outline, cone_normals, outline, row_norms
-from stages.reconstruction.views import box_interval, in_volume, inside_view, ray_points
+from stages.reconstruction.views import in_volume, inside_view, ray_points
 
 # The convex hull of a silhouette is widened by this many pixels before clipping rays, so that lens
 # distortion (which bends the hull's straight edges slightly) never cuts off a true part of the cone.
@@ -434,17 +435,17 @@ def _faces(cameras, outlines, normalised, view: np.ndarray, index: np.ndarray) -
     """(n, 3) outward unit normals of the viewing-cone faces at outline points ``index`` (n,) of the views
     ``view`` (n,), whose outlines undistorted are ``normalised``; zero where ``view`` is -1.
 
-    Computed for the points asked for only (the rays and the edge ends use about half of the outline, and
-    a normal costs two undistortions), each distinct point once: a fifth of the edge ends share their
-    nearest outline point with another end, and some with a ray.
+    Computed for the points asked for only (the rays and the edge ends use about half of the outline), each
+    distinct point once: a fifth of the edge ends share their nearest outline point with another end, and
+    some with a ray.
     """
     normals = np.zeros((len(index), 3))
     for camera_index, (camera, ours) in enumerate(zip(cameras, outlines, strict=True)):
         chosen = np.flatnonzero(view == camera_index)
         if len(chosen):
             points, which = _distinct(index[chosen], len(ours))
-            normals[chosen] = cone_normals(camera, ours.pixels[points], normalised[camera_index][points],
-                                           ours.tangents[points], ours.outward[points])[which]
+            normals[chosen] = cone_normals(camera, normalised[camera_index][points], ours.tangents[points],
+                                           ours.outward[points])[which]
     return normals
 
 
