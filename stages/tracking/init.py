@@ -21,9 +21,8 @@ from scipy.spatial import cKDTree
 
 from stages.joints import JOINT_NAMES
 from stages.tracking.body import BodyModel, Ellipsoids
-from stages.tracking.distances import residual_size
+from stages.tracking.distances import distance_named
 from stages.tracking.em import (
-    HEIGHT_RANGE_M,
     EMParams,
     FitResult,
     Mixture,
@@ -32,6 +31,7 @@ from stages.tracking.em import (
     log_evidence,
     volume_size,
 )
+from stages.tracking.gauss_newton import HEIGHT_RANGE_M
 
 _J = {name: k for k, name in enumerate(JOINT_NAMES)}
 # IK weights per joint: toes are optional in the ground truth and loosely defined.
@@ -276,7 +276,7 @@ def initialise(y: np.ndarray, n: np.ndarray, body: BodyModel, volume: np.ndarray
         bodies.append(body.scaled(height))
         poses.append(pose)
     yaws = np.linspace(0.0, 2 * np.pi, params.headings, endpoint=False)
-    mixture = Mixture.initial(body.n_ellipsoids, _SCORE_SIGMA_M, residual_size(em.distance))
+    mixture = Mixture.initial(body.n_ellipsoids, _SCORE_SIGMA_M, distance_named(em.distance).size)
     scored = sample[: params.score_points]
     scores = _score(y[scored], n[scored], centre, bodies, poses, yaws, mixture, V, em.distance)  # (M, H)
     short = replace(em, max_iterations=params.refine_iterations, displacement_m=0.0,

@@ -36,7 +36,7 @@ from calib.errors import InputError
 from stages.checks import check_choice, check_int, check_number
 from stages.joints import SUBJECT_HEIGHT_RANGE_M
 from stages.tracking.body import BodyModel, shipped_length_groups
-from stages.tracking.distances import DISTANCES, residual_size
+from stages.tracking.distances import DISTANCES, distance_named
 from stages.tracking.em import EMParams, FitResult, Mixture, fit, volume_size
 from stages.tracking.init import (
     LIMB_MIN_OBSERVATIONS,
@@ -166,7 +166,7 @@ class TrackerParams:
         """
         if self.height_m is not None:
             check_number("tracking.height_m", self.height_m, *SUBJECT_HEIGHT_RANGE_M, above=True)
-        check_choice("tracking.distance", self.distance, DISTANCES)
+        check_choice("tracking.distance", self.distance, tuple(DISTANCES))
         for name, minimum in _INTEGER_MINIMA.items():
             check_int(f"tracking.{name}", getattr(self, name), minimum)
         for name, (minimum, maximum, above) in _NUMBER_RANGES.items():
@@ -479,7 +479,7 @@ def _first_state(body: BodyModel, params: TrackerParams, volume: np.ndarray) -> 
     height = params.height_m if params.height_m is not None else body.height_m
     pose = body.scaled(height).zero_pose()
     pose[:2] = volume.mean(axis=0)[:2]  # a finite stand-in until data arrive
-    mixture = Mixture.initial(body.n_ellipsoids, params.sigma_m, residual_size(params.distance))
+    mixture = Mixture.initial(body.n_ellipsoids, params.sigma_m, distance_named(params.distance).size)
     return TrackerState(pose=pose, velocity=np.zeros(body.pose_size), height_m=height,
                         length_factors=body.length_factors.copy(), height_weight=0, Sigma=mixture.Sigma,
                         pi=mixture.pi, likelihood_level=np.nan, frames_without_fit=0, lost=True)
