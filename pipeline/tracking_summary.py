@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import frames_io
-from stages.tracking.tracker import TrackerParams
+from stages.tracking.params import TrackerParams
 
 #: Where the tracking stage writes a frame's record, inside its folder (as ``pipeline.graph.tracking_path``).
 RECORDS_DIR = "frames"

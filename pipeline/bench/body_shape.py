@@ -24,10 +24,10 @@ from pipeline.bench.tracker import CLIPS
 from pipeline.mocap import load_clip
 from pipeline.poselib import clip_path
 from pipeline.synth import build_body, pose_body, sample_body_surface
-from stages.tracking.body import load_body
+from stages.tracking.body_file import load_body
 from stages.tracking.distances import DISTANCES
 from stages.tracking.geometry import ellipsoid_point
-from stages.tracking.init import retarget
+from stages.tracking.library import retarget
 
 CALIBRATION_CLIPS = ("walk", "front_kick")
 ROUNDS = 3

@@ -34,7 +34,7 @@ from pipeline.bench.unseen import score_row
 from pipeline.capture import Capture
 from pipeline.evaluate import evaluate_run
 from pipeline.graph import tracking_path
-from stages.tracking.tracker import STATUSES
+from stages.tracking.results import STATUSES
 
 #: Where the foreign captures are: beside the repository, shared by every checkout.
 FOREIGN_ROOT = REPO.parent / "shared" / "foreign"

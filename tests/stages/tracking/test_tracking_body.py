@@ -6,7 +6,8 @@ from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
 from stages.joints import JOINT_NAMES
-from stages.tracking.body import load_body, skew
+from stages.tracking.body import skew
+from stages.tracking.body_file import load_body
 from stages.tracking.distances import DISTANCES, pose_jacobian
 from stages.tracking.geometry import ellipsoid_point
 

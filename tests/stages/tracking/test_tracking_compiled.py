@@ -5,7 +5,7 @@ import pytest
 from tracking_testing import data_near_a_pose, random_pose
 
 from stages.tracking import compiled
-from stages.tracking.body import load_body
+from stages.tracking.body_file import load_body
 from stages.tracking.distances import NormalsDistance
 from stages.tracking.geometry import normal_spread, shape_matrices
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from tracking_testing import data_near_a_pose
 
-from stages.tracking.body import load_body
+from stages.tracking.body_file import load_body
 from stages.tracking.distances import DISTANCES
 from stages.tracking.geometry import normal_spread, normal_spread_entries, symmetric_matrices
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from tracking_testing import VOLUME, data_near_a_pose, random_pose, sample_ellipsoids
 
-from stages.tracking.body import load_body
+from stages.tracking.body_file import load_body
 from stages.tracking.distances import DISTANCES
 from stages.tracking.em import (
     EMParams,
@@ -176,7 +176,7 @@ def test_pruned_e_step_equals_the_dense_one(body, distance, noise_deg, sigma_m):
     evidence = np.logaddexp.reduce(log_joint, axis=1)
     dense = np.exp(log_joint - evidence[:, None])
     estep = e_step(y, n, body.ellipsoids(pose), mixture, V, EMParams(distance=distance, normal_noise_rad=sigma_n))
-    bound = body.n_ellipsoids * NEGLIGIBLE_POSTERIOR  # what skipping may change, relative (mixture.NEGLIGIBLE_POSTERIOR)
+    bound = body.n_ellipsoids * NEGLIGIBLE_POSTERIOR  # what skipping may change, relative
     np.testing.assert_allclose(estep.t, dense[:, :-1], rtol=0, atol=bound)
     np.testing.assert_allclose(estep.t_outlier, dense[:, -1], rtol=0, atol=bound)
     assert estep.log_likelihood == pytest.approx(evidence.sum(), abs=len(y) * bound)
