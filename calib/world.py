@@ -8,7 +8,7 @@ rotated by the proper rotation ``A`` that takes the declared up axis to +z, ``X_
 
 With ``up: auto`` the calibration's world is arbitrary (camera 1's frame, a checkerboard's): the vertical
 comes from the rig (:func:`rig_vertical`), :func:`level_rotation` turns it to +z, and the floor height,
-which the rig alone cannot tell, comes from the images (``pipeline.auto_frame``). The whole map is a
+which the rig alone cannot tell, comes from the images (``pipeline.io.auto_frame``). The whole map is a
 :class:`WorldTransform`, ``X_new = A @ (scale X_old) + b``.
 """
 

@@ -69,8 +69,9 @@ from stages.joints import JOINT_NAMES
 from stages.reconstruction import Observations, ReconstructionParams
 from stages.reconstruction.views import VOLUME_FACES, faces_reached
 from stages.silhouettes import SilhouetteParams, median_background
-from stages.tracking.body import load_body
-from stages.tracking.tracker import STATUSES, FrameResult, TrackerParams, TrackerState, track_frame
+from stages.tracking.params import TrackerParams
+from stages.tracking.results import FrameResult, TrackerState, frame_record, read_frame_record
+from stages.tracking.tracker import Tracker
 
 log = logging.getLogger(__name__)
 
@@ -242,19 +243,9 @@ def read_tracking(folder: Path, frame: int) -> tuple[FrameResult, TrackerState]:
     path = tracking_path(folder, frame)
     record = frames_io.read_record(path)
     try:
-        result, state = record["result"], TrackerState.from_dict(record["state"])
-        support = result.get("joint_support")  # absent from records written before it was saved
-        estimate = FrameResult(**{**result, "pose": np.asarray(result["pose"], dtype=float),
-                                  "joints": np.asarray(result["joints"], dtype=float),
-                                  "joint_support": None if support is None else np.asarray(support, dtype=float)})
-    except (KeyError, TypeError, ValueError) as error:
-        raise frames_io.DamagedFileError(path, f"not a tracking record ({type(error).__name__}: {error})") from None
-    support_shape = None if estimate.joint_support is None else estimate.joint_support.shape
-    if (record.get("frame") != frame or estimate.joints.shape != (len(JOINT_NAMES), 3)
-            or estimate.status not in STATUSES or support_shape not in (None, (len(JOINT_NAMES),))):
-        raise frames_io.DamagedFileError(path, f"not the tracking record of frame {frame} "
-                                         "(its frame number, joints, joint support or status differ)")
-    return estimate, state
+        return read_frame_record(record, frame)
+    except ValueError as error:
+        raise frames_io.DamagedFileError(path, str(error)) from None
 
 
 def run_tracking(ctx: StageContext) -> int:
@@ -268,7 +259,7 @@ def run_tracking(ctx: StageContext) -> int:
     params: TrackerParams = ctx.params
     if params.height_m is None and ctx.capture.height_m is not None:
         params = dataclasses.replace(params, height_m=ctx.capture.height_m)
-    body = load_body()
+    tracker = Tracker(params, ctx.capture.volume)
     frames = ctx.capture.frame_numbers
     pending = ctx.pending_frames(lambda frame: [tracking_path(ctx.out_dir, frame)])
     done = frames.index(pending[0]) if pending else len(frames)  # frames after a missing one are redone
@@ -279,11 +270,10 @@ def run_tracking(ctx: StageContext) -> int:
         for index, frame in enumerate(frames[done:], start=done):
             points, normals = frames_io.read_ply(ctx.ready(observations_path(observations_dir, frame)))
             faces[index] = faces_reached(points, ctx.capture.volume, VOLUME_CONTACT_M)
-            result, state = track_frame(state, Observations(points, normals), body, params, ctx.capture.volume)
+            result, state = tracker.track(state, Observations(points, normals))
             if result.status in ("predicted", "lost"):
                 log.warning("frame %d: pose %s, not exported (%d observations)", frame, result.status, len(points))
-            frames_io.write_record(tracking_path(ctx.out_dir, frame),
-                                   {"frame": frame, "result": result.to_dict(), "state": state.to_dict()})
+            frames_io.write_record(tracking_path(ctx.out_dir, frame), frame_record(frame, result, state))
             bar.update(1)
     _warn_volume_contact(faces[done:], frames[done:], ctx.capture.volume)
     return len(frames) - done
@@ -380,7 +370,7 @@ STAGES: tuple[Stage, ...] = (
           streams=True),
     Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
-          code=("stages.export", "stages.checks", "stages.joints", "stages.tracking.tracker", "pipeline.io.export_io",
+          code=("stages.export", "stages.checks", "stages.joints", "stages.tracking.results", "pipeline.io.export_io",
                 "pipeline.io.overlay_video", "pipeline.report", "pipeline.engine.run_warnings", "pipeline.evaluate",
                 "pipeline.terminal", "pipeline.io.capture", "calib", *FILES_CODE)),
 )

@@ -112,20 +112,21 @@ def _observations(body, pose: np.ndarray, rng: np.random.Generator, count: int =
 def warm_up() -> None:
     """Call every compiled function of the tracker with the argument types the tracking stage uses.
 
-    The tracker runs as the tracking stage runs it (`track_frame` with the default parameters and the
+    The tracker runs as the tracking stage runs it (`Tracker.track` with the default parameters and the
     default body, height unknown) on two synthetic frames: the first initialises (pose library scoring,
     EM refinement with the height free, limb recovery), the second is tracked (the segment lengths free).
     A limb re-initialisation is then forced (the data decide whether the tracker needs one), and each
     other distance fits once (its own code is numpy; what it shares with the paper's is compiled).
     """
-    from stages.tracking.body import load_body
-    from stages.tracking.em import EMParams, fit
-    from stages.tracking.init import body_limbs, load_pose_library, reinitialise_limb
-    from stages.tracking.tracker import TrackerParams, track_frame
+    from stages.tracking.em import fit
+    from stages.tracking.limbs import reinitialise_limb
+    from stages.tracking.params import TrackerParams
+    from stages.tracking.tracker import Tracker
 
     rng = np.random.default_rng(0)
-    body = load_body()
     params = TrackerParams()
+    tracker = Tracker(params, VOLUME)
+    body = tracker.body
     poses = []
     for step in range(2):  # standing at the volume's centre, turning, one knee and one elbow bending
         pose = body.zero_pose()
@@ -136,13 +137,12 @@ def warm_up() -> None:
     frames = [_observations(body, pose, rng) for pose in poses]
     state = None
     for obs in frames:
-        _, state = track_frame(state, obs, body, params, VOLUME)
+        _, state = tracker.track(state, obs)
     y, n = frames[-1].points, frames[-1].normals / np.linalg.norm(frames[-1].normals, axis=1, keepdims=True)
     sized = body.scaled(state.height_m)
-    em = EMParams(normal_noise_rad=np.radians(params.normal_noise_deg), min_outlier_prior=params.min_outlier_prior,
-                  max_sigma_m=params.max_sigma_m, max_iterations=2)
+    em = replace(params.em, max_iterations=2)
     fitted = fit(y, n, sized, state.pose, VOLUME, em)
-    reinitialise_limb(y, n, fitted, body_limbs(sized)[0], VOLUME, em, load_pose_library(sized))
+    reinitialise_limb(y, n, fitted, tracker.limbs[0], VOLUME, em, tracker.library)
     for distance in ("points", "algebraic"):
         fit(y, n, sized, state.pose, VOLUME, replace(em, distance=distance, normal_noise_rad=0.0))
 

@@ -11,7 +11,7 @@ distance), so that rare poses (the top of a kick) are as present as common ones 
 
 The file holds these joints (`joints` (M, 17, 3), `source`) and, for every body configuration in
 BODIES, the same poses retargeted to it by inverse kinematics as pose vectors, after the generic
-standing, bending and squatting poses of `stages.tracking.init.generic_poses` (`poses_<body>` (G + M, D):
+standing, bending and squatting poses of `stages.tracking.library.generic_poses` (`poses_<body>` (G + M, D):
 joint angles, root at x = y = 0, yaw 0, root height as a fraction of standing height). Joint angles do
 not depend on the subject's size, so the tracker's initialisation uses them as they are.
 """
@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.lab.mocap import load_clip
-from stages.tracking.body import load_body
-from stages.tracking.init import heading, library_poses, retarget
+from stages.tracking.body_file import load_body
+from stages.tracking.library import heading, library_poses, retarget
 
 MOCAP = Path(__file__).resolve().parent / "data"
 CLIPS = (

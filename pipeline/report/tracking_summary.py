@@ -28,7 +28,7 @@ import numpy as np
 
 from pipeline.io import frames_io
 from pipeline.io.run_layout import MANIFEST, tracking_path
-from stages.tracking.tracker import TrackerParams
+from stages.tracking.params import TrackerParams
 
 #: The categories counted, in the order they are reported; a doubtful frame counts only as doubtful.
 CATEGORIES = ("tracked", "initialised", "doubtful", "predicted", "lost")
@@ -115,7 +115,7 @@ def frame_status(record: Mapping, previous: Mapping | None, params: Mapping, *, 
 
 def tracker_params(tracking_dir: Path) -> dict:
     """The :data:`CAUSE_PARAMS` the tracking stage ran with (its manifest), defaults where unreadable."""
-    params = {key: value for key, value in dataclasses.asdict(TrackerParams()).items() if key in CAUSE_PARAMS}
+    params = {field.name: field.default for field in dataclasses.fields(TrackerParams) if field.name in CAUSE_PARAMS}
     try:
         recorded = json.loads((tracking_dir / MANIFEST).read_text(encoding="utf-8")).get("params", {})
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):

@@ -1,7 +1,7 @@
 """Export converters: joint tables, BVH and TRC text, joint angles, quality, accuracy metrics, overlays.
 
 Pure functions over arrays of joint centres ``(F, J, 3)`` in metres (world frame, +z up); they return
-text or arrays and never open files. ``pipeline.export_io`` writes what they produce.
+text or arrays and never open files. ``pipeline.io.export_io`` writes what they produce.
 
 - :mod:`stages.export.skeleton`: the bones between the joints of ``JOINT_NAMES``; one body size for a sequence.
 - :mod:`stages.export.joints_table`: ``joints.csv`` text (CAPTURE_FORMAT.md), gap filling.

@@ -162,7 +162,7 @@ def reconstruct(masks: Sequence[np.ndarray], rig: Rig, volume, params: Reconstru
 
 
 #: How far from 1 an observation's normal length may be: float32 rounding on disk is far below it, and a
-#: reader of the observations (``pipeline.frames_io.read_ply``) refuses more.
+#: reader of the observations (``pipeline.io.frames_io.read_ply``) refuses more.
 UNIT_NORMAL_TOLERANCE = 1e-3
 
 

@@ -2,8 +2,8 @@
 
 A body is a tree of rigid segments joined by revolute degrees of freedom (DOF); each segment carries
 ellipsoids (Horaud et al. 2009, Sec. 2.2) and some of the 17 joint centres of `stages.joints`. The
-geometry lives in YAML files (`bodies/<name>.yaml`) as fractions of standing height, so a user edits a
-body without touching code and one number scales it.
+geometry lives in YAML files (`bodies/<name>.yaml`, read by `body_file`) as fractions of standing height,
+so a user edits a body without touching code and one number scales it.
 
 Pose vector Λ (D,): the root's translation (3, metres, world), the root's rotation as yaw about world
 z, pitch and roll (3, radians), then every joint DOF in segment order (radians). Pose zero is the
@@ -19,26 +19,11 @@ from __future__ import annotations
 import functools
 import itertools
 from dataclasses import dataclass, replace
-from importlib import resources
 
 import numpy as np
-import yaml
 
 from calib.errors import InputError
-from stages.joints import JOINT_NAMES
 from stages.tracking import compiled
-
-ROOT_DOF_NAMES = ("tx", "ty", "tz", "yaw", "pitch", "roll")
-# Segment-length factors vary between adults by a few per cent of the population's proportions; this
-# is the standard deviation of the prior on ln ℓ towards 0 (the body file's proportions) of a length
-# group whose entry gives no `prior_sd`.
-LENGTH_PRIOR_SD = 0.06
-# Root rotation order: yaw about world z, then pitch about the body's (negative) right axis so that a
-# positive pitch leans forward, then roll about the forward axis. Its gimbal lock (pitch = ±90°, body
-# lying face down) is far from the upright motions tracked here.
-_ROOT_AXES = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 1], [-1, 0, 0], [0, 1, 0]], dtype=float)
-_AXIS_WORDS = {"x": (1, 0, 0), "y": (0, 1, 0), "z": (0, 0, 1),
-               "-x": (-1, 0, 0), "-y": (0, -1, 0), "-z": (0, 0, -1)}
 
 
 @dataclass(frozen=True)
@@ -387,143 +372,3 @@ def _forward_kinematics(body: BodyModel, pose: np.ndarray) -> Kinematics:
     R, t, axis, origin = compiled.forward_kinematics(body.parent, body.offset, body._dof_start, body.dof_axis,
                                                      body.dof_revolute, pose)
     return Kinematics(R=R, t=t, axis=axis, origin=origin)
-
-
-def load_body(name: str = "default", *, height_m: float | None = None) -> BodyModel:
-    """Load the body configuration `bodies/<name>.yaml`, scaled to `height_m` if given.
-
-    Raises
-    ------
-    InputError
-        If there is no such configuration or the file is malformed.
-    """
-    files = resources.files("stages.tracking") / "bodies"
-    path = files / f"{name}.yaml"
-    if not path.is_file():
-        known = sorted(p.name[:-5] for p in files.iterdir() if p.name.endswith(".yaml"))
-        raise InputError(f"body {name!r}: no such body configuration, expected one of {known}")
-    body = body_from_dict(yaml.safe_load(path.read_text()), source=f"bodies/{name}.yaml")
-    return body if height_m is None else body.scaled(height_m)
-
-
-@functools.cache
-def shipped_length_groups() -> frozenset[str]:
-    """Names of the length groups of the bodies shipped in `bodies/` (their files' `lengths` keys).
-
-    What `TrackerParams.estimate_lengths` may name, checked when the parameters are made, before any
-    work: the body itself is only loaded as tracking starts, after the reconstruction. A body built
-    elsewhere (`body_from_dict`) is checked again by `BodyModel.with_length_groups`.
-    """
-    files = resources.files("stages.tracking") / "bodies"
-    return frozenset(name for path in files.iterdir() if path.name.endswith(".yaml")
-                     for name in (yaml.safe_load(path.read_text()).get("lengths") or {}))
-
-
-def body_from_dict(spec: dict, *, source: str = "body") -> BodyModel:
-    """Build a BodyModel from the YAML structure described in `bodies/default.yaml`."""
-    try:
-        return _body_from_dict(spec)
-    except (KeyError, TypeError, ValueError, IndexError) as err:
-        if isinstance(err, InputError):
-            raise
-        raise InputError(f"{source}: malformed body description ({err!r}), expected the layout of "
-                         "bodies/default.yaml") from err
-
-
-def _body_from_dict(spec: dict) -> BodyModel:
-    H = float(spec["height_m"])
-    segments = spec["segments"]
-    names = tuple(s["name"] for s in segments)
-    index = {n: i for i, n in enumerate(names)}
-    parent = np.array([-1 if s["parent"] is None else index[s["parent"]] for s in segments])
-    if parent[0] != -1 or np.any(parent[1:] < 0) or np.any(parent[1:] >= np.arange(1, len(names))):
-        raise ValueError("segments must start with the root and list every parent before its children")
-    joint = np.array([s["joint"] for s in segments], dtype=float) * H  # zero-pose world positions
-    offset = joint - np.where(parent[:, None] >= 0, joint[np.maximum(parent, 0)], joint)
-    offset[0] = 0.0
-
-    dof_names, dof_seg, axes, revolute, lo, hi, prior = [], [], [], [], [], [], []
-    for s, seg in enumerate(segments):
-        if seg["dofs"] == "root":
-            for k, dof in enumerate(ROOT_DOF_NAMES):
-                dof_names.append(f"{seg['name']}.{dof}")
-                dof_seg.append(s)
-                axes.append(_ROOT_AXES[k])
-                revolute.append(k >= 3)
-                lo.append(-np.inf)
-                hi.append(np.inf)
-                prior.append(0.0)
-            continue
-        for dof in seg["dofs"]:
-            dof_names.append(f"{seg['name']}.{dof['name']}")
-            dof_seg.append(s)
-            axes.append(_AXIS_WORDS[dof["axis"]])
-            revolute.append(True)
-            lo.append(np.radians(float(dof["min"])))
-            hi.append(np.radians(float(dof["max"])))
-            prior.append(float(dof.get("prior", 0.0)))
-    dof_seg = np.array(dof_seg)
-    moves = np.zeros((len(dof_seg), len(names)), dtype=bool)
-    for s in range(len(names)):
-        a = s
-        while a >= 0:  # every DOF of s and of its ancestors moves s
-            moves[dof_seg == a, s] = True
-            a = parent[a]
-
-    e_seg, e_rot, e_centre, e_axes = [], [], [], []
-    for e in spec["ellipsoids"]:
-        s = index[e["segment"]]
-        start, end = np.array(e["from"], float) * H, np.array(e["to"], float) * H
-        R, semi = _ellipsoid_frame(end - start, np.array(e["radii"], float) * H)
-        e_seg.append(s)
-        e_rot.append(R)
-        e_centre.append(0.5 * (start + end) - joint[s])
-        e_axes.append(semi)
-
-    groups = spec.get("lengths", {})
-    length_group, length_axis = np.full(len(names), -1), np.zeros((len(names), 3))
-    girth_group = np.full(len(e_seg), -1)
-    joint_group, joint_axis = np.full(len(names), -1), np.zeros((len(names), 3))
-    for g, entry in enumerate(groups.values()):
-        for seg in entry["segments"]:
-            if entry["axis"] == "girth":
-                girth_group[np.array(e_seg) == index[seg]] = g
-                continue
-            if entry.get("scales", "segment") == "joint":
-                joint_group[index[seg]] = g
-                joint_axis[index[seg]] = _AXIS_WORDS[entry["axis"]]
-                continue
-            length_group[index[seg]] = g
-            length_axis[index[seg]] = _AXIS_WORDS[entry["axis"]]
-
-    j_seg, j_off = [], []
-    for name in JOINT_NAMES:
-        j = spec["joints"][name]
-        s = index[j["segment"]]
-        j_seg.append(s)
-        j_off.append(np.array(j["at"], float) * H - joint[s])
-
-    return BodyModel(
-        name=str(spec["name"]), height_m=H, segment_names=names, parent=parent, offset=offset,
-        dof_names=tuple(dof_names), dof_segment=dof_seg, dof_axis=np.array(axes, dtype=float),
-        dof_revolute=np.array(revolute), lower=np.array(lo), upper=np.array(hi),
-        prior_weight=np.array(prior), moves=moves, ellipsoid_segment=np.array(e_seg),
-        ellipsoid_rotation=np.array(e_rot), ellipsoid_centre=np.array(e_centre),
-        semi_axes=np.array(e_axes), standing_root=joint[0], joint_segment=np.array(j_seg),
-        joint_offset=np.array(j_off), length_groups=tuple(groups), length_group=length_group,
-        length_axis=length_axis, length_factors=np.ones(len(groups)), girth_group=girth_group,
-        joint_group=joint_group, joint_axis=joint_axis,
-        length_prior_sd=np.array([float(entry.get("prior_sd", LENGTH_PRIOR_SD)) for entry in groups.values()]))
-
-
-def _ellipsoid_frame(long_axis: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Axes (3, 3) (columns a, b, c) and semi-axes (3,) of an ellipsoid given by its long-axis chord."""
-    length = np.linalg.norm(long_axis)
-    if length <= 0 or np.any(radii <= 0):
-        raise ValueError("an ellipsoid needs distinct tips and positive radii")
-    a_dir = long_axis / length
-    ref = np.array([0.0, 1.0, 0.0]) if abs(a_dir[0]) > 0.9 else np.array([1.0, 0.0, 0.0])
-    b_dir = ref - a_dir * (ref @ a_dir)
-    b_dir /= np.linalg.norm(b_dir)
-    c_dir = np.cross(a_dir, b_dir)
-    return np.column_stack([a_dir, b_dir, c_dir]), np.array([0.5 * length, radii[0], radii[1]])

@@ -15,7 +15,9 @@ against which the tests check these functions:
 Ellipsoid shapes enter as M (P, 3, 3) and M² (P, 3, 3) (`shapes`); a symmetric 3 × 3 sum is returned as its
 six distinct entries in `distances.SYMMETRIC_ENTRIES` order (00, 11, 22, 01, 02, 12). Every loop runs on one
 core: numba's threads were tried, and on a machine shared with other work they made the tracker several
-times slower.
+times slower. The loops stay in this one module although it is long: numba's disk cache of a function is
+invalidated only when its own file changes, not when a helper compiled into it from another file does,
+and the warm-up (`python -m pipeline warmup`) stamps this one file.
 """
 
 from __future__ import annotations

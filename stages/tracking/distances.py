@@ -1,4 +1,4 @@
-"""Residuals between observations and posed ellipsoids, with their derivatives w.r.t. the pose.
+"""Datum-to-ellipsoid distances, one object each, and what EM computes on them.
 
 Three ways to measure how far datum i (point y_i, unit outward normal n_i) is from ellipsoid p:
 
@@ -22,22 +22,43 @@ which is linear in (ω, v): de = B (ω, v) with B (k, 6) per pair. The pose Jaco
 de/dΛ = B T_s with T_s (6, D) the rigid velocities of the ellipsoid's segment per DOF
 (`BodyModel.segment_twists`), so a least-squares solver can sum 6 × 6 blocks per ellipsoid instead
 of forming (K, k, D) Jacobians.
+
+Each distance is a `Distance` object, chosen once by name (`distance_named`): its geometry (residuals
+and their derivatives, in numpy) and the EM's work on it, the E-step (eqs. 12-13), the evidence of
+hypotheses and the M-step's normal equations (eq. 14), which `Distance` computes in numpy from the
+geometry. The paper's distance, which the tracker runs by default, is `CompiledNormals`: the same maths
+in the compiled loops of `compiled` (`NormalsDistance`, its numpy twin, is the reference the tests check
+them against).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
+from scipy.special import logsumexp
 
-from stages.tracking.body import Ellipsoids, Kinematics, skew
+from stages.tracking import compiled
+from stages.tracking.body import Ellipsoids, Kinematics
+from stages.tracking.geometry import (
+    Q_MIN,
+    entries,
+    normal_point,
+    radial_point,
+    rigid_derivative,
+    shape_matrices,
+)
+from stages.tracking.mixture import (
+    NEGLIGIBLE_POSTERIOR,
+    PRUNE_POSTERIOR,
+    EStep,
+    Mixture,
+    bound_covariance,
+)
 
-DISTANCES = ("normals", "points", "algebraic")
-# Order of the six distinct entries of a symmetric 3 × 3 matrix when it is kept as separate arrays.
-SYMMETRIC_ENTRIES = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
-# q_p(y) is the squared "ellipsoidal radius" of y; at the ellipsoid's centre the radial projection is
-# undefined. Data that deep inside a limb are noise; clamping keeps x finite and lets EM push them out.
-_Q_MIN = 1e-6
+# EM updates of Σ per M-step under normal noise (`CompiledNormals.covariance`).
+NOISY_COVARIANCE_ITERATIONS = 5
 
 
 @dataclass(frozen=True)
@@ -65,225 +86,287 @@ def pose_jacobian(B: np.ndarray, twists: np.ndarray) -> np.ndarray:
     return B @ twists
 
 
-def residual_size(distance: str) -> int:
-    """Dimension k of one residual for a distance name."""
-    return 1 if distance == "algebraic" else 3
+def whitened(W: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Wᵀ X of every pair for lower-triangular W (K, k, k) and X (K, k) or (K, k, m), term by term."""
+    k = W.shape[1]
+    w = W if X.ndim == 2 else W[..., None]
+    return np.stack([sum(w[:, a, b] * X[:, a] for a in range(b, k)) for b in range(k)], axis=1)
 
 
-def residuals(y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, kin: Kinematics,
-              ellipsoids: Ellipsoids, *, distance: str = "normals",
-              jacobian: bool = False, scale: bool = False) -> Residuals:
-    """Residuals (and optionally their pose Jacobians) of the pairs (i[k], p[k]).
+class Distance:
+    """A datum-to-ellipsoid distance: its residuals (the subclasses) and EM's work on them, in numpy.
 
-    Parameters
-    ----------
-    y, n : (I, 3) float
-        Observed points (metres) and unit outward normals.
-    i, p : (K,) int
-        Observation and ellipsoid index of every pair.
-    kin, ellipsoids
-        The body's kinematics and posed ellipsoids at the current pose.
-    distance : {"normals", "points", "algebraic"}
-    jacobian : bool
-        Also return the rigid derivatives B (K, k, 6) (see `Residuals`).
-    scale : bool
-        Also return de/d(ln s) (K, k) for the body's height: scaling every ellipsoid by s about the
-        root c is scaling the datum by 1/s about c, so dx/d(ln s) = (x − c) − (∂x/∂y)(y − c).
+    The numpy E-step and M-step model no noise on the normals (Σ_ip = Σ, the paper's model): the
+    normals' noise (`EMParams.normal_noise_rad`) is `CompiledNormals`'.
     """
-    if distance not in DISTANCES:
-        raise ValueError(f"distance={distance!r}, expected one of {DISTANCES}")
-    y_k, n_k, t = y[i], n[i], ellipsoids.t[p]
-    if distance == "algebraic":
-        Q = shape_matrices(ellipsoids, -2.0)[p]
-        return _algebraic(y_k, Q, t, ellipsoids.semi_axes[p], kin, jacobian, scale)
-    if distance == "normals":
-        x, A_y, A_n = _normal_point(n_k, _entries(shape_matrices(ellipsoids, 2.0), p), t, jacobian)
-    else:
-        x, A_y, A_n = _radial_point(y_k, shape_matrices(ellipsoids, -2.0)[p], t)
-    e = y_k - x
-    if not jacobian:
-        return Residuals(e=e, B=None)
-    J_scale = None
-    if scale:
-        c = kin.t[0]
-        J_scale = -(x - c) if A_y is None else -(x - c) + np.einsum("kab,kb->ka", A_y, y_k - c)
-    return Residuals(e=e, B=-_rigid_derivative(x, y_k, n_k, A_y, A_n), J_scale=J_scale)
+
+    name: ClassVar[str]
+    size: ClassVar[int] = 3  # dimension k of one residual
+
+    def residuals(self, y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, kin: Kinematics,
+                  ellipsoids: Ellipsoids, *, jacobian: bool = False, scale: bool = False) -> Residuals:
+        """Residuals (and optionally their pose Jacobians) of the pairs (i[k], p[k]).
+
+        Parameters
+        ----------
+        y, n : (I, 3) float
+            Observed points (metres) and unit outward normals.
+        i, p : (K,) int
+            Observation and ellipsoid index of every pair.
+        kin, ellipsoids
+            The body's kinematics and posed ellipsoids at the current pose.
+        jacobian : bool
+            Also return the rigid derivatives B (K, k, 6) (see `Residuals`).
+        scale : bool
+            Also return de/d(ln s) (K, k) for the body's height: scaling every ellipsoid by s about the
+            root c is scaling the datum by 1/s about c, so dx/d(ln s) = (x − c) − (∂x/∂y)(y − c).
+        """
+        raise NotImplementedError
+
+    def all_residuals(self, y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids) -> np.ndarray:
+        """Residuals (I, P, k) of every observation against every ellipsoid (the E-step's dense case).
+
+        Same values as `residuals` on all pairs, computed by broadcasting instead of gathering.
+        """
+        raise NotImplementedError
+
+    def lower_bound(self, y: np.ndarray, ellipsoids: Ellipsoids) -> np.ndarray:
+        """A lower bound on every pair's |e_ip|² (P, I), from the centres' distances alone.
+
+        For the point distances x_ip lies on ellipsoid p, within its largest semi-axis a_p of t_p, so
+        |e| ≥ |y − t_p| − a_p. Ellipsoid-major (P, I), the order of the pairs everywhere else.
+        """
+        t = ellipsoids.t
+        centre = (t * t).sum(1)[:, None] - 2.0 * t @ y.T + (y * y).sum(1)  # |y − t|²
+        gap = np.maximum(np.sqrt(np.maximum(centre, 0.0)) - ellipsoids.semi_axes.max(axis=1)[:, None], 0.0)
+        return gap * gap
+
+    def e_step(self, y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, mixture: Mixture, log_outlier: float,
+               normal_noise_rad: float, previous: EStep | None) -> EStep:
+        """Posteriors (eq. 13) and ln P(Y | Λ) (eq. 12) of I > 0 data, pairs skipped as `em.e_step` says.
+
+        `log_outlier` is ln π_{P+1} / V; `previous` (the last iteration's E-step) only guides the
+        compiled search.
+        """
+        I, P, k = len(y), len(ellipsoids.t), self.size
+        # Squared Mahalanobis distance (P,) beyond which ln π_p N_ip is below ln(NEGLIGIBLE_POSTERIOR π_{P+1} / V)
+        # (the Gaussian's peak is at most N₀ = N(0 | 0, Σ)), and eᵀ Σ⁻¹ e ≥ |e|² / c, c Σ's largest eigenvalue.
+        log_peak = -0.5 * (np.linalg.slogdet(mixture.Sigma)[1] + k * np.log(2.0 * np.pi))
+        reach = -2.0 * (log_outlier + np.log(NEGLIGIBLE_POSTERIOR) - np.log(mixture.pi[:P]) - log_peak)
+        bound = self.lower_bound(y, ellipsoids) / np.linalg.eigvalsh(mixture.Sigma)[-1]
+        p, i = np.nonzero(bound <= reach[:, None])
+        e = self.residuals(y, n, i, p, None, ellipsoids).e
+        W = np.linalg.inv(mixture.Sigma)
+        log_joint = np.log(mixture.pi[p]) + log_peak - 0.5 * ((e @ W) * e).sum(1)  # ln π_p N_ip
+        dense = np.full((P, I), -np.inf)  # ln π_p N_ip, −∞ for the skipped pairs
+        dense[p, i] = log_joint
+        peak = np.maximum(dense.max(axis=0), log_outlier)
+        joint = np.exp(log_joint - peak[i])
+        evidence = np.exp(log_outlier - peak) + np.bincount(i, joint, minlength=I)
+        posterior = joint / evidence[i]  # eq. (13)
+        t = np.zeros((I, P))
+        t[i, p] = posterior
+        log_likelihood = float(np.sum(peak + np.log(evidence)))  # Σ_i ln P(y_i | n_i), eq. (12)
+        used = posterior > PRUNE_POSTERIOR
+        weights = np.linalg.cholesky(W) * np.sqrt(posterior[used])[:, None, None]  # t_ip Σ⁻¹ = W Wᵀ, Σ shared
+        return EStep(t=t, t_outlier=np.exp(log_outlier - peak) / evidence, log_likelihood=log_likelihood,
+                     pairs=np.stack([i[used], p[used]]), weights=weights, best=t.argmax(axis=1))
+
+    def log_evidence(self, y: np.ndarray, n: np.ndarray, chosen: Ellipsoids, mixture: Mixture, log_pi: np.ndarray,
+                     base: np.ndarray, normal_noise_rad: float) -> np.ndarray:
+        """Per datum ln(exp(b_i) + Σ_p π_p N(y_i | x_ip, Σ)) (I,) over the `chosen` ellipsoids, I > 0."""
+        log_norm = -0.5 * (np.linalg.slogdet(mixture.Sigma)[1] + len(mixture.Sigma) * np.log(2.0 * np.pi))
+        e = self.all_residuals(y, n, chosen)  # (I, P', k)
+        log_joint = log_pi + log_norm - 0.5 * np.einsum("ipa,ab,ipb->ip", e, np.linalg.inv(mixture.Sigma), e)
+        return np.logaddexp(base, logsumexp(log_joint, axis=1))
+
+    def hypothesis_scores(self, y: np.ndarray, n: np.ndarray, hypotheses: Ellipsoids, mixture: Mixture,
+                          which: np.ndarray, base: np.ndarray, blocks: np.ndarray,
+                          normal_noise_rad: float) -> np.ndarray:
+        """`log_evidence` over the ellipsoids `which` of each of H posed bodies, summed per block (H, B)."""
+        H = len(hypotheses.t)
+        log_pi = np.log(mixture.pi[which])
+        terms = (self.log_evidence(y, n, Ellipsoids(R=hypotheses.R[h][which], t=hypotheses.t[h][which],
+                                                    semi_axes=hypotheses.semi_axes[h][which]),
+                                   mixture, log_pi, base, 0.0) for h in range(H))
+        return np.array([[column[a:b].sum() for a, b in zip(blocks[:-1], blocks[1:], strict=True)]
+                         for column in terms]).reshape(H, len(blocks) - 1)
+
+    def pair_residuals(self, y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, kin: Kinematics,
+                       ellipsoids: Ellipsoids) -> np.ndarray:
+        """The M-step's residuals e (K, k) of the pairs (i, p) at the posed `ellipsoids`."""
+        return self.residuals(y, n, i, p, kin, ellipsoids).e
+
+    def normal_equations(self, y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, W: np.ndarray,
+                         kin: Kinematics, ellipsoids: Ellipsoids, scale: bool):
+        """The pairs' residuals e and, whitened, r = Wᵀ e and Bw = Wᵀ B (B = de/d(ω, v)); per ellipsoid
+        H_p = Σ Bwᵀ Bw (P, 6, 6) and g_p = Σ Bwᵀ r (P, 6); and de/d(ln s) (or None without `scale`).
+
+        The pairs (i, p) are sorted by ellipsoid, W (K, k, k) whitens them (t_ip Σ_ip⁻¹ = W Wᵀ).
+        """
+        P = len(ellipsoids.t)
+        res = self.residuals(y, n, i, p, kin, ellipsoids, jacobian=True, scale=scale)
+        r = whitened(W, res.e)  # (K,k) Wᵀ e
+        Bw = whitened(W, res.B)  # (K,k,6) Wᵀ B
+        H6, g6 = np.zeros((P, 6, 6)), np.zeros((P, 6))
+        starts = np.flatnonzero(np.diff(p, prepend=-1))
+        for a, b in zip(starts, np.append(starts, len(r))[1:], strict=True):
+            block = Bw[a:b].reshape(-1, 6)
+            H6[p[a]] = block.T @ block
+        g6[p[starts]] = np.add.reduceat(np.einsum("kai,ka->ki", Bw, r), starts)
+        return res.e, r, Bw, H6, g6, res.J_scale
+
+    def covariance(self, n: np.ndarray, i: np.ndarray, p: np.ndarray, e: np.ndarray, t: np.ndarray,
+                   ellipsoids: Ellipsoids, Sigma: np.ndarray, normal_noise_rad: float,
+                   max_sigma_m: float) -> np.ndarray:
+        """The M-step's Σ = Σ t_ip e_ip e_ipᵀ / Σ t_ip from the pairs' residuals e and posteriors t, bounded
+        (`mixture.bound_covariance`)."""
+        return bound_covariance((e * t[:, None]).T @ e / max(t.sum(), np.finfo(float).tiny), max_sigma_m)
 
 
-def all_residuals(y: np.ndarray, n: np.ndarray, ellipsoids: Ellipsoids, *,
-                  distance: str = "normals") -> np.ndarray:
-    """Residuals (I, P, k) of every observation against every ellipsoid (the E-step's dense case).
+class _PointDistance(Distance):
+    """A distance whose residual is y_i − x_ip for a point x_ip of ellipsoid p chosen by the datum."""
 
-    Same values as `residuals` on all pairs, computed by broadcasting instead of gathering.
-    """
-    if distance not in DISTANCES:
-        raise ValueError(f"distance={distance!r}, expected one of {DISTANCES}")
-    P = len(ellipsoids.t)
-    if distance == "normals":
+    def point(self, y_k, n_k, ellipsoids: Ellipsoids, p, t, jacobian):
+        """x_ip (K, 3) of the pairs, ∂x/∂y and ∂x/∂n (K, 3, 3) each or None (zero, or not asked for)."""
+        raise NotImplementedError
+
+    def residuals(self, y, n, i, p, kin, ellipsoids, *, jacobian=False, scale=False) -> Residuals:
+        y_k, n_k, t = y[i], n[i], ellipsoids.t[p]
+        x, A_y, A_n = self.point(y_k, n_k, ellipsoids, p, t, jacobian)
+        e = y_k - x
+        if not jacobian:
+            return Residuals(e=e, B=None)
+        J_scale = None
+        if scale:
+            c = kin.t[0]
+            J_scale = -(x - c) if A_y is None else -(x - c) + np.einsum("kab,kb->ka", A_y, y_k - c)
+        return Residuals(e=e, B=-rigid_derivative(x, y_k, n_k, A_y, A_n), J_scale=J_scale)
+
+
+class NormalsDistance(_PointDistance):
+    """The paper's distance (eq. 4): to the ellipsoid point whose outward normal is parallel to n_i (numpy)."""
+
+    name = "normals"
+
+    def point(self, y_k, n_k, ellipsoids, p, t, jacobian):
+        return normal_point(n_k, entries(shape_matrices(ellipsoids, 2.0), p), t, jacobian)
+
+    def all_residuals(self, y, n, ellipsoids):
+        P = len(ellipsoids.t)
         M = shape_matrices(ellipsoids, 2.0)  # (P,3,3) symmetric, so (nᵀ M)ᵀ = M n
         u = (n @ M.transpose(1, 0, 2).reshape(3, 3 * P)).reshape(-1, P, 3)  # (I,P,3): one matrix product
         lam = 1.0 / np.sqrt(np.einsum("ipa,ia->ip", u, n))  # eq. (4)
         return y[:, None, :] - ellipsoids.t[None] - lam[:, :, None] * u
-    v = y[:, None, :] - ellipsoids.t[None]  # (I,P,3)
-    q = np.einsum("ipa,ipa->ip", v, np.einsum("ipa,pab->ipb", v, shape_matrices(ellipsoids, -2.0)))
-    if distance == "points":
-        return v * (1.0 - 1.0 / np.sqrt(np.maximum(q, _Q_MIN)))[:, :, None]  # y − (t + v/√q)
-    return (0.5 * ellipsoids.semi_axes.min(axis=1)[None, :] * (q - 1.0))[:, :, None]
 
 
-def normal_spread(n: np.ndarray, ellipsoids: Ellipsoids, p: np.ndarray | None = None) -> np.ndarray:
-    """A Aᵀ with A = ∂x_ip/∂n_i of eq. (4): how a tilt of the normal moves the ellipsoid point.
+class PointsDistance(_PointDistance):
+    """To the radial projection of y_i on the ellipsoid (no normals; Dewaele et al.'s pseudo-Euclidean point)."""
 
-    A tilt of the unit normal by a small angle θ about an axis perpendicular to n moves n by θ w, w a
-    unit tangent; with θ ~ N(0, σ_n²) about either tangent axis, cov(dn) = σ_n² (I − n nᵀ) and
-    cov(x_ip) = σ_n² A (I − n nᵀ) Aᵀ = σ_n² A Aᵀ, since A n = 0 (x depends on n's direction only).
-    On an elongated ellipsoid x slides along the long axis by about a²/b per radian.
+    name = "points"
 
-    Parameters
-    ----------
-    n : (I, 3) float
-        Unit normals.
-    ellipsoids : Ellipsoids
-        The P posed ellipsoids.
-    p : (I,) int, optional
-        One ellipsoid per normal (pairs); default every normal against every ellipsoid.
+    def point(self, y_k, n_k, ellipsoids, p, t, jacobian):
+        return radial_point(y_k, shape_matrices(ellipsoids, -2.0)[p], t)
 
-    Returns
-    -------
-    (I, 3, 3) float for pairs, (I, P, 3, 3) otherwise; symmetric positive semi-definite, m² per rad².
-    """
-    if p is not None:
-        return symmetric_matrices(normal_spread_entries(n, ellipsoids, p))
-    M, M2 = shape_matrices(ellipsoids, 2.0), shape_matrices(ellipsoids, 4.0)  # M² = R diag(semi_axes⁴) Rᵀ
-    u = np.einsum("pab,ib->ipa", M, n)  # (I,P,3)
-    w = np.einsum("pab,ib->ipa", M2, n)  # M u = M² n
-    lam2 = (1.0 / np.einsum("ipa,ia->ip", u, n))[..., None, None]  # λ² of eq. (4)
-    wu = w[..., :, None] * u[..., None, :]
-    uu = u[..., :, None] * u[..., None, :]
-    # A = λ (M − λ² u uᵀ) is symmetric, so A Aᵀ = A² = λ² (M² − λ² (w uᵀ + u wᵀ) + λ⁴ |u|² u uᵀ)
-    return lam2 * (M2[None] - lam2 * (wu + wu.swapaxes(-1, -2)) + lam2**2 * (u * u).sum(-1)[..., None, None] * uu)
+    def all_residuals(self, y, n, ellipsoids):
+        v = y[:, None, :] - ellipsoids.t[None]  # (I,P,3)
+        q = np.einsum("ipa,ipa->ip", v, np.einsum("ipa,pab->ipb", v, shape_matrices(ellipsoids, -2.0)))
+        return v * (1.0 - 1.0 / np.sqrt(np.maximum(q, Q_MIN)))[:, :, None]  # y − (t + v/√q)
 
 
-def normal_spread_entries(n: np.ndarray, ellipsoids: Ellipsoids, p: np.ndarray) -> tuple[np.ndarray, ...]:
-    """`normal_spread` of the pairs (n_k, ellipsoid p_k) as its six distinct entries (K,) each.
-
-    In `SYMMETRIC_ENTRIES` order; separate (K,) arrays keep the pairs' elementwise work on contiguous
-    memory. A² = λ² (M² − λ² (w uᵀ + u wᵀ) + λ⁴ |u|² u uᵀ) with u = M n, w = M u, since A = λ (M − λ² u uᵀ)
-    is symmetric.
-    """
-    M, M2 = _entries(shape_matrices(ellipsoids, 2.0), p), _entries(shape_matrices(ellipsoids, 4.0), p)
-    n = (n[:, 0], n[:, 1], n[:, 2])
-    u = _symmetric_times(M, n)
-    w = _symmetric_times(M, u)
-    lam2 = 1.0 / (n[0] * u[0] + n[1] * u[1] + n[2] * u[2])  # λ² of eq. (4)
-    quartic = lam2**2 * (u[0] * u[0] + u[1] * u[1] + u[2] * u[2])  # λ⁴ |u|²
-    return tuple(lam2 * (m2 - lam2 * (w[a] * u[b] + u[a] * w[b]) + quartic * u[a] * u[b])
-                 for m2, (a, b) in zip(M2, SYMMETRIC_ENTRIES, strict=True))
-
-
-def symmetric_matrices(entries: tuple[np.ndarray, ...]) -> np.ndarray:
-    """Symmetric matrices (K, 3, 3) from their six distinct entries (K,) in `SYMMETRIC_ENTRIES` order."""
-    m00, m11, m22, m01, m02, m12 = entries
-    return np.stack([m00, m01, m02, m01, m11, m12, m02, m12, m22], axis=1).reshape(-1, 3, 3)
-
-
-def residual_lower_bound(y: np.ndarray, ellipsoids: Ellipsoids, *, distance: str = "normals") -> np.ndarray:
-    """A lower bound on every pair's |e_ip|² (P, I), from the centres' distances alone.
-
-    For the point distances x_ip lies on ellipsoid p, within its largest semi-axis a_p of t_p, so
-    |e| ≥ |y − t_p| − a_p; the algebraic distance has no such point, and its bound is 0. Ellipsoid-major
-    (P, I), the order of the pairs everywhere else.
-    """
-    t = ellipsoids.t
-    if distance == "algebraic":
-        return np.zeros((len(t), len(y)))
-    centre = (t * t).sum(1)[:, None] - 2.0 * t @ y.T + (y * y).sum(1)  # |y − t|²
-    gap = np.maximum(np.sqrt(np.maximum(centre, 0.0)) - ellipsoids.semi_axes.max(axis=1)[:, None], 0.0)
-    return gap * gap
-
-
-def ellipsoid_point(n: np.ndarray, R: np.ndarray, t: np.ndarray, semi_axes: np.ndarray) -> np.ndarray:
-    """The ellipsoid point whose outward normal is parallel to n, Horaud et al. 2009 eq. (4).
-
-    Parameters
-    ----------
-    n : (K, 3) float
-        Unit directions.
-    R, t, semi_axes : (K, 3, 3), (K, 3), (K, 3) float
-        Ellipsoid of each row.
-    """
-    return _normal_point(n, _entries(shape_matrices(Ellipsoids(R=R, t=t, semi_axes=semi_axes), 2.0)), t, False)[0]
-
-
-def shape_matrices(ellipsoids: Ellipsoids, power: float) -> np.ndarray:
-    """R diag(semi_axes**power) Rᵀ (E, 3, 3): D⁻¹ for power 2 (M of eq. 4), D for power −2 (Q of eq. 1)."""
-    R = ellipsoids.R
-    return np.einsum("eab,eb,ecb->eac", R, ellipsoids.semi_axes**power, R)
-
-
-def _normal_point(n, M, t, jacobian):
-    """x = λ M n + t with M = R D⁻¹ Rᵀ, and ∂x/∂y = 0, ∂x/∂n = λ (M − λ² (Mn)(Mn)ᵀ) if `jacobian`.
-
-    M is given by its six distinct entries (K,) each (`_entries`).
-    """
-    u = _symmetric_times(M, (n[:, 0], n[:, 1], n[:, 2]))
-    lam = 1.0 / np.sqrt(n[:, 0] * u[0] + n[:, 1] * u[1] + n[:, 2] * u[2])  # eq. (4); n·Mn >= min(semi)² > 0
-    x = np.stack([lam * u[0], lam * u[1], lam * u[2]], axis=1) + t
-    if not jacobian:
-        return x, None, None
-    lam3 = lam * lam * lam
-    return x, None, symmetric_matrices(tuple(lam * m - lam3 * u[a] * u[b]
-                                             for m, (a, b) in zip(M, SYMMETRIC_ENTRIES, strict=True)))
-
-
-def _entries(A: np.ndarray, p: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
-    """The six distinct entries of symmetric matrices A (P, 3, 3), each gathered at p (K,) when given."""
-    return tuple(A[:, a, b] if p is None else A[:, a, b][p] for a, b in SYMMETRIC_ENTRIES)
-
-
-def _symmetric_times(M: tuple[np.ndarray, ...], v) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """M v for symmetric M given by its six distinct entries and v by its three components."""
-    m00, m11, m22, m01, m02, m12 = M
-    return (m00 * v[0] + m01 * v[1] + m02 * v[2], m01 * v[0] + m11 * v[1] + m12 * v[2],
-            m02 * v[0] + m12 * v[1] + m22 * v[2])
-
-
-def _radial_point(y, Q, t):
-    """x = t + v / sqrt(q), v = y − t, q = vᵀ Q v with Q = R D Rᵀ, and ∂x/∂y = (I − v (Qv)ᵀ / q) / sqrt(q)."""
-    v = y - t
-    g = np.einsum("kab,kb->ka", Q, v)  # half the gradient of q
-    q = np.maximum(np.einsum("ka,ka->k", v, g), _Q_MIN)
-    s = 1.0 / np.sqrt(q)
-    x = t + s[:, None] * v
-    A_y = s[:, None, None] * (np.eye(3) - v[:, :, None] * g[:, None, :] / q[:, None, None])
-    return x, A_y, None
-
-
-def _rigid_derivative(x, y, n, A_y, A_n):
-    """dx/d(ω, v) (K, 3, 6) from the rigid-motion identity in the module docstring.
-
-    dx = −[x]× ω + v − A_y (−[y]× ω + v) − A_n (−[n]× ω).
-    """
-    D = np.empty(x.shape + (6,))
-    D[:, :, :3] = -skew(x)
-    D[:, :, 3:] = np.eye(3)
-    if A_y is not None:
-        D[:, :, :3] += A_y @ skew(y)
-        D[:, :, 3:] -= A_y
-    if A_n is not None:
-        D[:, :, :3] += A_n @ skew(n)
-    return D
-
-
-def _algebraic(y, Q, t, semi, kin, jacobian, scale):
+class AlgebraicDistance(Distance):
     """Plänkers & Fua's algebraic distance q(Y) = YᵀQY (eq. 1) in metres: r = (ρ/2) q, Q = R D Rᵀ."""
-    v = y - t
-    g = np.einsum("kab,kb->ka", Q, v)
-    rho = semi.min(axis=1)
-    r = 0.5 * rho * (np.einsum("ka,ka->k", v, g) - 1.0)
-    if not jacobian:
-        return Residuals(e=r[:, None], B=None)
-    # Moving the ellipsoid by (ω, v) is moving y by −(ω × y + v) in its frame: dr = −ρ gᵀ(ω × y + v).
-    B = -rho[:, None] * np.concatenate([np.cross(y, g), g], axis=1)  # ω·(y × g) = gᵀ(ω × y)
-    J_scale = (r - rho * np.einsum("ka,ka->k", g, y - kin.t[0]))[:, None] if scale else None
-    return Residuals(e=r[:, None], B=B[:, None, :], J_scale=J_scale)
+
+    name = "algebraic"
+    size = 1
+
+    def residuals(self, y, n, i, p, kin, ellipsoids, *, jacobian=False, scale=False) -> Residuals:
+        y, Q, t, semi = y[i], shape_matrices(ellipsoids, -2.0)[p], ellipsoids.t[p], ellipsoids.semi_axes[p]
+        v = y - t
+        g = np.einsum("kab,kb->ka", Q, v)
+        rho = semi.min(axis=1)
+        r = 0.5 * rho * (np.einsum("ka,ka->k", v, g) - 1.0)
+        if not jacobian:
+            return Residuals(e=r[:, None], B=None)
+        # Moving the ellipsoid by (ω, v) is moving y by −(ω × y + v) in its frame: dr = −ρ gᵀ(ω × y + v).
+        B = -rho[:, None] * np.concatenate([np.cross(y, g), g], axis=1)  # ω·(y × g) = gᵀ(ω × y)
+        J_scale = (r - rho * np.einsum("ka,ka->k", g, y - kin.t[0]))[:, None] if scale else None
+        return Residuals(e=r[:, None], B=B[:, None, :], J_scale=J_scale)
+
+    def all_residuals(self, y, n, ellipsoids):
+        v = y[:, None, :] - ellipsoids.t[None]  # (I,P,3)
+        q = np.einsum("ipa,ipa->ip", v, np.einsum("ipa,pab->ipb", v, shape_matrices(ellipsoids, -2.0)))
+        return (0.5 * ellipsoids.semi_axes.min(axis=1)[None, :] * (q - 1.0))[:, :, None]
+
+    def lower_bound(self, y, ellipsoids):
+        """0 (P, I): the algebraic distance has no point on the ellipsoid to bound it with."""
+        return np.zeros((len(ellipsoids.t), len(y)))
+
+
+class CompiledNormals(NormalsDistance):
+    """The paper's distance with the EM's work in the compiled loops of `compiled` (the tracker's default).
+
+    It also models noise on the normals: with σ_n = `normal_noise_rad` > 0 each pair's covariance is
+    Σ_ip = Σ + σ_n² A_ip A_ipᵀ, A_ip = ∂x_ip/∂n_i (`geometry.normal_spread`).
+    """
+
+    def e_step(self, y, n, ellipsoids, mixture, log_outlier, normal_noise_rad, previous):
+        P = len(ellipsoids.t)
+        first = np.zeros(len(y), dtype=int) if previous is None else previous.best
+        t, t_outlier, log_likelihood, pairs, weights, best = compiled.e_step(
+            y, n, ellipsoids.t, *compiled.shapes(ellipsoids.R, ellipsoids.semi_axes), ellipsoids.semi_axes,
+            mixture.Sigma, np.log(mixture.pi[:P]), log_outlier, normal_noise_rad**2, np.log(NEGLIGIBLE_POSTERIOR),
+            PRUNE_POSTERIOR, first)
+        return EStep(t=t, t_outlier=t_outlier, log_likelihood=log_likelihood, pairs=pairs, weights=weights, best=best)
+
+    def log_evidence(self, y, n, chosen, mixture, log_pi, base, normal_noise_rad):
+        return compiled.log_evidence(y, n, chosen.t, *compiled.shapes(chosen.R, chosen.semi_axes), chosen.semi_axes,
+                                     mixture.Sigma, log_pi, base, normal_noise_rad**2, np.log(NEGLIGIBLE_POSTERIOR))
+
+    def hypothesis_scores(self, y, n, hypotheses, mixture, which, base, blocks, normal_noise_rad):
+        H = len(hypotheses.t)
+        R, t, semi_axes = hypotheses.R[:, which], hypotheses.t[:, which], hypotheses.semi_axes[:, which]
+        M, M2 = compiled.shapes(R.reshape(-1, 3, 3), np.ascontiguousarray(semi_axes).reshape(-1, 3))
+        stack = (H, len(which))
+        return compiled.hypothesis_scores(
+            y, n, blocks, np.ascontiguousarray(t), M.reshape(*stack, 3, 3), M2.reshape(*stack, 3, 3),
+            np.ascontiguousarray(semi_axes), mixture.Sigma, np.log(mixture.pi[which]), base, normal_noise_rad**2,
+            np.log(NEGLIGIBLE_POSTERIOR))
+
+    def pair_residuals(self, y, n, i, p, kin, ellipsoids):
+        M = compiled.shapes(ellipsoids.R, ellipsoids.semi_axes)[0]
+        return compiled.residuals(y, n, i, p, ellipsoids.t, M)
+
+    def normal_equations(self, y, n, i, p, W, kin, ellipsoids, scale):
+        e, r, Bw, H6, g6, J_scale = compiled.normal_equations(
+            y, n, i, p, W, ellipsoids.t, compiled.shapes(ellipsoids.R, ellipsoids.semi_axes)[0], kin.t[0])
+        return e, r, Bw, H6, g6, J_scale if scale else None
+
+    def covariance(self, n, i, p, e, t, ellipsoids, Sigma, normal_noise_rad, max_sigma_m):
+        """Without normal noise, `Distance.covariance`. With it, each pair's residual is e_k = z_k + w_k with
+        z ~ N(0, Σ) and w ~ N(0, σ_n² A_k²), so that e_k ~ N(0, Σ_k), Σ_k = Σ + σ_n² A_k².
+
+        The maximiser of Q(Σ) = Σ_k t_k ln N(e_k | 0, Σ_k) has no closed form. EM on the hidden z_k,
+        Σ' = (1/T) Σ_k t_k E[z zᵀ | e_k] = Σ − Σ (S₁/T) Σ + Σ (S₂/T) Σ (S₁ = Σ_k t_k Σ_k⁻¹,
+        S₂ = Σ_k t_k Σ_k⁻¹ e_k e_kᵀ Σ_k⁻¹, T = Σ_k t_k), never lowers Q; it moves slowly where σ_n² A_k²
+        dominates Σ_k (flat, wide surfaces), so it is iterated `NOISY_COVARIANCE_ITERATIONS` times
+        (`compiled.noisy_covariance`). The moment estimate (1/T) Σ_k t_k (e_k e_kᵀ − σ_n² A_k²) does not
+        maximise Q: it shrinks Σ's narrow axis iteration after iteration while ln P(Y | Λ) falls.
+        """
+        if not normal_noise_rad > 0.0:
+            return super().covariance(n, i, p, e, t, ellipsoids, Sigma, normal_noise_rad, max_sigma_m)
+        M, M2 = compiled.shapes(ellipsoids.R, ellipsoids.semi_axes)
+        return bound_covariance(compiled.noisy_covariance(n, i, p, e, t, M, M2, normal_noise_rad**2, Sigma,
+                                                          NOISY_COVARIANCE_ITERATIONS), max_sigma_m)
+
+
+# The distance each name runs as: the paper's in compiled code, the others in numpy.
+DISTANCES: dict[str, Distance] = {"normals": CompiledNormals(), "points": PointsDistance(),
+                                  "algebraic": AlgebraicDistance()}
+
+
+def distance_named(name: str) -> Distance:
+    """The distance called `name` (one of `DISTANCES`)."""
+    if name not in DISTANCES:
+        raise ValueError(f"distance={name!r}, expected one of {tuple(DISTANCES)}")
+    return DISTANCES[name]

@@ -13,7 +13,7 @@ from conftest import BACKGROUND_GREY, TINY_SIZE, frame_image, make_capture, tiny
 
 from calib.errors import InputError
 from pipeline.io.capture import DERIVED_VOLUME_FLOOR_MARGIN_M, Capture, derive_volume
-from stages.tracking.tracker import TrackerParams
+from stages.tracking.params import TrackerParams
 
 
 def test_image_capture_metadata(tiny_capture):

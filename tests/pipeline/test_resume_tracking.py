@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import graph
 from pipeline.cli import main
 from pipeline.io.run_layout import JOINTS_FILE, MANIFEST
+from stages.tracking.tracker import Tracker
 
 TINY = Path(__file__).resolve().parents[2] / "data_samples" / "tiny"
 TRACKED_BEFORE_THE_KILL = 3
@@ -23,15 +23,15 @@ def run(out: Path) -> int:
 
 def kill_after(monkeypatch, calls: int) -> None:
     """Make the tracker raise KeyboardInterrupt (a Ctrl-C; a SIGKILL leaves the same files) on call ``calls + 1``."""
-    track_frame, done = graph.track_frame, []
+    track, done = Tracker.track, []
 
     def counting(*args, **kwargs):
         if len(done) == calls:
             raise KeyboardInterrupt
         done.append(None)
-        return track_frame(*args, **kwargs)
+        return track(*args, **kwargs)
 
-    monkeypatch.setattr(graph, "track_frame", counting)
+    monkeypatch.setattr(Tracker, "track", counting)
 
 
 def tracked_frames(out: Path) -> int:

@@ -25,21 +25,22 @@ _AFTER = textwrap.dedent("""
     sys.path.insert(0, "tests/stages/tracking")
     from tracking_testing import VOLUME, sample_ellipsoids
     from pipeline.commands import warmup
-    from stages.tracking.body import load_body
-    from stages.tracking.tracker import TrackerParams, track_frame
+    from stages.tracking.body_file import load_body
+    from stages.tracking.params import TrackerParams
+    from stages.tracking.tracker import Tracker
 
     warmup.warm_up()
     body = load_body()
     rng = np.random.default_rng(5)
     for params, frames in [(TrackerParams(), 3), (TrackerParams(distance="points", init_headings=2, init_refine=2), 2),
                            (TrackerParams(distance="algebraic", init_headings=2, init_refine=2), 2)]:
-        state = None
+        state, tracker = None, Tracker(params, VOLUME)
         for f in range(frames):
             pose = body.scaled(1.7).zero_pose()
             pose[1], pose[3] = 0.03 * f, -0.4 + 0.05 * f
             pose[body.dof_names.index("l_thigh.flex")] = 0.3 * f
             y, n = sample_ellipsoids(body.scaled(1.7), body.clip(pose), 500, rng, outlier_fraction=0.2)
-            _, state = track_frame(state, SimpleNamespace(points=y, normals=n), body, params, VOLUME)
+            _, state = tracker.track(state, SimpleNamespace(points=y, normals=n))
     print(json.dumps({name: {"misses": [str(s) for s in d.stats.cache_misses],
                              "hits": [str(s) for s in d.stats.cache_hits],
                              "indexed": len(d._cache._cache_file._load_index())}

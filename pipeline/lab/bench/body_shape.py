@@ -24,9 +24,10 @@ from pipeline.lab.bench.tracker import CLIPS
 from pipeline.lab.mocap import load_clip
 from pipeline.lab.poselib import clip_path
 from pipeline.lab.synth import build_body, pose_body, sample_body_surface
-from stages.tracking.body import load_body
-from stages.tracking.distances import all_residuals, ellipsoid_point
-from stages.tracking.init import retarget
+from stages.tracking.body_file import load_body
+from stages.tracking.distances import DISTANCES
+from stages.tracking.geometry import ellipsoid_point
+from stages.tracking.library import retarget
 
 CALIBRATION_CLIPS = ("walk", "front_kick")
 ROUNDS = 3
@@ -60,7 +61,7 @@ def fit_shapes(base, samples):
             body = base.scaled(height)
             body = type(body)(**{**body.__dict__, "ellipsoid_centre": centre * height, "semi_axes": semi * height})
             kin = body.fk(pose)
-            e = np.linalg.norm(all_residuals(y, n, body.ellipsoids(kin)), axis=2)  # (I,P)
+            e = np.linalg.norm(DISTANCES["normals"].all_residuals(y, n, body.ellipsoids(kin)), axis=2)  # (I,P)
             best = e.argmin(axis=1)
             near = e[np.arange(len(y)), best] < MAX_DISTANCE_M
             for p in range(body.n_ellipsoids):

@@ -34,7 +34,7 @@ from pipeline.lab.bench.runs import REPO, run_pipeline
 from pipeline.lab.bench.speed import prefix_view, tracker_speed
 from pipeline.lab.bench.suite import SuiteSkipped
 from pipeline.lab.bench.unseen import score_row
-from stages.tracking.tracker import STATUSES
+from stages.tracking.results import STATUSES
 
 #: Where the foreign captures are: beside the repository, shared by every checkout.
 FOREIGN_ROOT = REPO.parent / "shared" / "foreign"

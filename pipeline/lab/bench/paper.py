@@ -5,7 +5,7 @@ provides true silhouettes (``groundtruth/masks``) and true joints. Each *conditi
 noise strength, number of observations) is computed in memory, calling the stage functions directly:
 
     true masks -> perturb_mask(strength) -> reconstruct(n_observations)
-               -> + 20 % outliers uniform in the working volume -> track_frame(distance) per frame
+               -> + 20 % outliers uniform in the working volume -> Tracker(distance).track per frame
 
 for the distances ``"normals"`` (the paper's points + normals), ``"points"`` and ``"algebraic"``
 (Plänkers & Fua). The tracker starts from the data alone (no pose is given) and knows the subject's height,
@@ -42,8 +42,8 @@ from stages.export.bvh import pelvis_frame
 from stages.export.metrics import mask_iou
 from stages.joints import JOINT_NAMES, SCORED_JOINTS
 from stages.reconstruction import Observations, ReconstructionParams, reconstruct
-from stages.tracking.body import load_body
-from stages.tracking.tracker import TrackerParams, track_frame
+from stages.tracking.params import TrackerParams
+from stages.tracking.tracker import Tracker
 
 DISTANCES = ("normals", "points", "algebraic")
 #: Frame rate of the rendered capture, and the rate of experiments (a), (b) and (d).
@@ -141,11 +141,10 @@ def frame_observations(capture: Capture, frame: int, condition: Condition) -> tu
 
 def track_sequence(frames: Sequence[Observations], distance: str, capture: Capture) -> tuple[np.ndarray, list[str]]:
     """Joints (F, 17, 3) and statuses of the tracker run over ``frames`` with one distance."""
-    body = load_body()
-    params = TrackerParams(distance=distance, height_m=capture.height_m)
+    tracker = Tracker(TrackerParams(distance=distance, height_m=capture.height_m), capture.volume)
     state, joints, statuses = None, [], []
     for observations in frames:
-        result, state = track_frame(state, observations, body, params, capture.volume)
+        result, state = tracker.track(state, observations)
         joints.append(result.joints)
         statuses.append(result.status)
     return np.array(joints), statuses

@@ -7,7 +7,7 @@ On the :data:`~pipeline.lab.bench.recipes.SPEED` capture (6 cameras, 780 x 580, 
    milliseconds per frame from its manifest;
 2. memory: the same run on the first third of the capture (a view of the same files whose capture.yaml
    stops early): peak resident memory of the short and the long run; streaming stages keep it flat;
-3. the tracker alone: ``track_frame`` in this process over the long run's observation files (about 1000
+3. the tracker alone: ``Tracker.track`` in this process over the long run's observation files (about 1000
    observations a frame), frames per second over all frames (initialisation and recoveries included) and
    over tracked frames only, after one uncounted call that loads the compiled code.
 """
@@ -27,8 +27,8 @@ from pipeline.io.run_layout import RunLayout
 from pipeline.lab.bench.recipes import SPEED, describe, ensure_capture
 from pipeline.lab.bench.runs import RunMeasure, run_pipeline
 from stages.reconstruction import Observations
-from stages.tracking.body import load_body
-from stages.tracking.tracker import TrackerParams, track_frame
+from stages.tracking.params import TrackerParams
+from stages.tracking.tracker import Tracker
 
 #: Length of the short run for the memory check, as a fraction of the capture (2 s of 6 s).
 SHORT_FRACTION = 1.0 / 3.0
@@ -61,22 +61,22 @@ def ms_per_frame(measure: RunMeasure) -> dict[str, float]:
 
 
 def tracker_speed(run_dir: Path, capture: Capture, frames: list[int]) -> dict:
-    """Time ``track_frame`` over a run's observations, as the tracking stage calls it (height as given).
+    """Time ``Tracker.track`` over a run's observations, as the tracking stage calls it (height as given).
 
-    A first call, on the first frame and not counted, loads the compiled inner loops (numba's runtime
-    and on-disk cache: a fixed cost per process, reported as ``ms_first_call``); the frames are then
-    tracked from scratch, initialisation included.
+    A first call, on the first frame and not counted, builds the tracker and loads the compiled inner
+    loops (numba's runtime and on-disk cache: a fixed cost per process, reported as ``ms_first_call``);
+    the frames are then tracked from scratch, initialisation included.
     """
     params = TrackerParams(height_m=capture.height_m)
-    body = load_body()
     observations = [frames_io.read_ply(RunLayout(run_dir).observations(frame)) for frame in frames]
     started = time.perf_counter()
-    track_frame(None, Observations(*observations[0]), body, params, capture.volume)
+    tracker = Tracker(params, capture.volume)
+    tracker.track(None, Observations(*observations[0]))
     first_call = time.perf_counter() - started
     state, seconds, statuses, counts = None, [], [], []
     for points, normals in observations:
         started = time.perf_counter()
-        result, state = track_frame(state, Observations(points, normals), body, params, capture.volume)
+        result, state = tracker.track(state, Observations(points, normals))
         seconds.append(time.perf_counter() - started)
         statuses.append(result.status)
         counts.append(len(points))

@@ -334,7 +334,7 @@ def format_speed(speed: dict) -> str:
     lines += ["", format_table(("stage", "ms/frame"), list(speed["stage_ms_per_frame"].items()) +
                                [("**total (stages)**", sum(speed["stage_ms_per_frame"].values()))])]
     if tracker:
-        lines += ["", f"Tracker alone (`track_frame` in-process on the long run's {tracker['frames']} observation "
+        lines += ["", f"Tracker alone (`Tracker.track` in-process on the long run's {tracker['frames']} observation "
                       f"files, {tracker['observations_mean']:.0f} observations per frame on average): "
                       f"{tracker['fps_all']:.1f} frames/s over all frames, {tracker['fps_tracked']:.1f} over "
                       f"tracked frames (median {fmt(tracker.get('ms_tracked_median'), 0)} ms, 90th percentile "
@@ -513,7 +513,7 @@ EXPORTS_NOTES = (
     "targets are judged at 6 Hz; the agreement target over every run, smoothed or not.")
 PAPER_NOTES = (
     "How: in memory, calling the stage functions (`stages.reconstruction.reconstruct`, "
-    "`stages.tracking.tracker.track_frame`) on the true silhouettes of a 56 fps rendering, perturbed "
+    "`stages.tracking.tracker.Tracker.track`) on the true silhouettes of a 56 fps rendering, perturbed "
     "(`pipeline.lab.bench.masks.perturb_mask`: random smooth erosion/dilation of the outline and holes, growing "
     "with the strength), then 20 % outliers added uniformly in the working volume. Every sequence starts from "
     "the data alone (automatic initialisation); the subject's height is given. The paper plots radians; this "

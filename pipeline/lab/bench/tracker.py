@@ -28,8 +28,9 @@ from pipeline.lab.mocap import load_clip
 from pipeline.lab.poselib import clip_path
 from pipeline.lab.synth import build_body, pose_body, sample_body_surface
 from stages.joints import JOINT_NAMES
-from stages.tracking.body import load_body
-from stages.tracking.tracker import TrackerParams, track_frame
+from stages.tracking.body_file import load_body
+from stages.tracking.params import TrackerParams
+from stages.tracking.tracker import Tracker
 
 CLIPS = {
     "taekwondo": ("clips/135_07.amc", "clips/martialwalk.asf"),
@@ -98,16 +99,17 @@ def run_clip(name: str, args) -> dict:
                                          args.normal_noise)
     body = load_body(args.body)
     truth_height = None
-    params = TrackerParams(distance=args.distance, height_m=truth_height)
+    params = TrackerParams(distance=args.distance, height_m=truth_height, body=args.body)
     if args.known_height:
-        from stages.tracking.init import retarget
+        from stages.tracking.library import retarget
 
         truth_height = retarget(body, motion.joints[0], estimate_scale=True)[1]
-        params = TrackerParams(distance=args.distance, height_m=truth_height)
+        params = TrackerParams(distance=args.distance, height_m=truth_height, body=args.body)
+    tracker = Tracker(params, volume)
     state, estimates, statuses, seconds = None, [], [], []
     for obs in observations:
         start = time.process_time()  # CPU time: the machine is shared, wall time is noisy
-        result, state = track_frame(state, obs, body, params, volume)
+        result, state = tracker.track(state, obs)
         seconds.append(time.process_time() - start)
         estimates.append(result.joints)
         statuses.append(result.status)

@@ -9,8 +9,10 @@ from tracking_testing import VOLUME, sample_ellipsoids
 
 from stages.joints import JOINT_NAMES
 from stages.tracking import tracker
-from stages.tracking.body import load_body
-from stages.tracking.tracker import STATUSES, TrackerParams, TrackerState, track_frame
+from stages.tracking.body_file import load_body
+from stages.tracking.params import TrackerParams
+from stages.tracking.results import STATUSES, TrackerState
+from stages.tracking.tracker import Tracker
 
 PARAMS = TrackerParams(height_m=1.75, init_headings=6, init_refine=2)
 
@@ -44,7 +46,7 @@ def test_tracks_a_sequence_from_an_automatic_start(body):
     truth = _walk(body.scaled(1.75), 6)
     state, errors, statuses, doubtful = None, [], [], []
     for pose in truth:
-        result, state = track_frame(state, _obs(body, pose, rng), body, PARAMS, VOLUME)
+        result, state = Tracker(PARAMS, VOLUME).track(state, _obs(body, pose, rng))
         errors.append(np.linalg.norm(result.joints - body.joint_positions(pose), axis=1).mean())
         statuses.append(result.status)
         doubtful.append(result.doubtful)
@@ -56,18 +58,18 @@ def test_tracks_a_sequence_from_an_automatic_start(body):
 def test_empty_and_degenerate_frames_are_predicted_never_nan(body):
     rng = np.random.default_rng(21)
     pose = _walk(body, 1)[0]
-    _, state = track_frame(None, _obs(body, pose, rng), body, PARAMS, VOLUME)
+    _, state = Tracker(PARAMS, VOLUME).track(None, _obs(body, pose, rng))
     empty = SimpleNamespace(points=np.zeros((0, 3)), normals=np.zeros((0, 3)))
     nan_rows = SimpleNamespace(points=np.full((50, 3), np.nan), normals=np.ones((50, 3)))
     for obs in [empty, nan_rows]:
-        result, state = track_frame(state, obs, body, PARAMS, VOLUME)
+        result, state = Tracker(PARAMS, VOLUME).track(state, obs)
         assert result.status == "predicted"
         assert np.all(np.isfinite(result.joints)) and np.all(np.isfinite(result.pose))
 
 
 def test_first_frame_without_data_is_lost_but_finite(body):
     empty = SimpleNamespace(points=np.zeros((0, 3)), normals=np.zeros((0, 3)))
-    result, state = track_frame(None, empty, body, PARAMS, VOLUME)
+    result, state = Tracker(PARAMS, VOLUME).track(None, empty)
     assert result.status == "lost" and state.lost
     assert np.all(np.isfinite(result.joints))
 
@@ -76,20 +78,20 @@ def test_all_outlier_frames_are_flagged_not_dropped_and_tracking_recovers(body):
     """A frame that was fitted is estimated (the better of the fit and a re-initialisation), flagged."""
     rng = np.random.default_rng(22)
     poses = _walk(body, 3)
-    _, state = track_frame(None, _obs(body, poses[0], rng), body, PARAMS, VOLUME)
+    _, state = Tracker(PARAMS, VOLUME).track(None, _obs(body, poses[0], rng))
     noise = SimpleNamespace(points=rng.uniform(VOLUME[0], VOLUME[1], (600, 3)),
                             normals=np.tile([0.0, 0.0, 1.0], (600, 1)))
-    result, state = track_frame(state, noise, body, PARAMS, VOLUME)
+    result, state = Tracker(PARAMS, VOLUME).track(state, noise)
     assert result.status in ("tracked", "initialised") and result.doubtful
     assert np.all(np.isfinite(result.joints))
-    result, state = track_frame(state, _obs(body, poses[2], rng), body, PARAMS, VOLUME)
+    result, state = Tracker(PARAMS, VOLUME).track(state, _obs(body, poses[2], rng))
     assert result.status in ("tracked", "initialised") and not result.doubtful
     assert np.linalg.norm(result.joints - body.joint_positions(poses[2]), axis=1).mean() < 0.02
 
 
 def test_state_round_trips_through_json(body):
     rng = np.random.default_rng(23)
-    result, state = track_frame(None, _obs(body, _walk(body, 1)[0], rng), body, PARAMS, VOLUME)
+    result, state = Tracker(PARAMS, VOLUME).track(None, _obs(body, _walk(body, 1)[0], rng))
     again = TrackerState.from_dict(json.loads(json.dumps(state.to_dict())))
     np.testing.assert_array_equal(again.pose, state.pose)
     assert again.to_dict() == state.to_dict()
@@ -101,10 +103,10 @@ def test_segment_shares_are_learnt_over_tracked_frames_and_round_trip(body):
     and average them, and they survive the JSON state of a resumed run."""
     rng = np.random.default_rng(24)
     poses = _walk(body, 3)
-    result, state = track_frame(None, _obs(body, poses[0], rng), body, PARAMS, VOLUME)
+    result, state = Tracker(PARAMS, VOLUME).track(None, _obs(body, poses[0], rng))
     assert result.status == "initialised" and state.segment_shares is None
     for pose in poses[1:]:
-        result, state = track_frame(state, _obs(body, pose, rng), body, PARAMS, VOLUME)
+        result, state = Tracker(PARAMS, VOLUME).track(state, _obs(body, pose, rng))
         assert result.status == "tracked"
     shares = state.segment_shares
     assert shares.shape == (len(body.segment_names),) and np.all(shares > 0) and shares.sum() < 1.0
@@ -115,12 +117,12 @@ def test_segment_shares_are_learnt_over_tracked_frames_and_round_trip(body):
 def test_mismatched_points_and_normals_are_rejected(body):
     obs = SimpleNamespace(points=np.zeros((5, 3)), normals=np.zeros((4, 3)))
     with pytest.raises(ValueError, match="normals"):
-        track_frame(None, obs, body, PARAMS, VOLUME)
+        Tracker(PARAMS, VOLUME).track(None, obs)
 
 
 def test_state_before_any_fit_is_strict_json(body):
     empty = SimpleNamespace(points=np.zeros((0, 3)), normals=np.zeros((0, 3)))
-    _, state = track_frame(None, empty, body, PARAMS, VOLUME)
+    _, state = Tracker(PARAMS, VOLUME).track(None, empty)
     text = json.dumps(state.to_dict(), allow_nan=False)
     assert np.isnan(TrackerState.from_dict(json.loads(text)).likelihood_level)
 
@@ -129,7 +131,7 @@ def test_state_before_any_fit_is_strict_json(body):
 def test_variant_distances_run_end_to_end(body, distance):
     rng = np.random.default_rng(24)
     params = TrackerParams(height_m=1.75, init_headings=4, init_refine=1, distance=distance)
-    result, _ = track_frame(None, _obs(body, _walk(body, 1)[0], rng), body, params, VOLUME)
+    result, _ = Tracker(params, VOLUME).track(None, _obs(body, _walk(body, 1)[0], rng))
     assert result.status in STATUSES and np.all(np.isfinite(result.joints))
 
 
@@ -139,12 +141,11 @@ def test_only_the_named_length_groups_are_estimated(body):
     params = TrackerParams(height_m=1.75, init_headings=6, init_refine=2, estimate_lengths=("shank",))
     state = None
     for pose in truth:
-        result, state = track_frame(state, _obs(body, pose, rng), body, params, VOLUME)
+        result, state = Tracker(params, VOLUME).track(state, _obs(body, pose, rng))
     assert state.length_factors.shape == (1,)
     assert abs(np.log(state.length_factors[0])) < 0.05  # the data are the file's proportions
-    _, none = track_frame(None, _obs(body, truth[0], rng), body, TrackerParams(height_m=1.75, init_headings=6,
-                                                                               init_refine=2, estimate_lengths=()),
-                          VOLUME)
+    fixed = TrackerParams(height_m=1.75, init_headings=6, init_refine=2, estimate_lengths=())
+    _, none = Tracker(fixed, VOLUME).track(None, _obs(body, truth[0], rng))
     assert none.length_factors.shape == (0,)
 
 
@@ -155,7 +156,7 @@ def test_unknown_height_comes_from_the_initialisation_and_tracked_frames_keep_it
     heights, statuses = [], []
     state = None
     for pose in truth:
-        result, state = track_frame(state, _obs(body.scaled(1.62), pose, rng), body, params, VOLUME)
+        result, state = Tracker(params, VOLUME).track(state, _obs(body.scaled(1.62), pose, rng))
         heights.append(state.height_m)
         statuses.append(result.status)
     assert statuses[0] == "initialised" and set(statuses[1:]) == {"tracked"}
@@ -170,12 +171,12 @@ def test_a_stop_after_fast_motion_is_tracked_from_the_last_pose(body, restart_dr
     rng = np.random.default_rng(24)
     params = TrackerParams(height_m=1.75, init_headings=6, init_refine=2, restart_drop=restart_drop)
     pose = _walk(body.scaled(1.75), 1)[0]
-    _, state = track_frame(None, _obs(body, pose, rng), body, params, VOLUME)
-    _, state = track_frame(state, _obs(body, pose, rng), body, params, VOLUME)  # a tracked frame sets the level
+    _, state = Tracker(params, VOLUME).track(None, _obs(body, pose, rng))
+    _, state = Tracker(params, VOLUME).track(state, _obs(body, pose, rng))  # a tracked frame sets the level
     jump = np.zeros(body.pose_size)
     jump[0], jump[3], jump[body.dof_names.index("r_shank.flex")] = 0.8, 1.5, 1.5
     state = TrackerState(**{**vars(state), "velocity": jump})
-    result, _ = track_frame(state, _obs(body, pose, rng), body, params, VOLUME)
+    result, _ = Tracker(params, VOLUME).track(state, _obs(body, pose, rng))
     error = np.linalg.norm(result.joints - body.joint_positions(pose), axis=1).mean()
     if np.isfinite(restart_drop):
         assert result.status == "tracked" and error < 0.02
@@ -191,15 +192,16 @@ def test_a_doubtful_initialisation_is_tracked_from_and_weighed_against_a_fresh_o
     poses = _walk(body.scaled(1.75), 2)
     failing = [True]  # the checks fail on the first frame only
     monkeypatch.setattr(tracker, "_failed", lambda result, params: failing[0])
-    first, state = track_frame(None, _obs(body, poses[0], rng), body, PARAMS, VOLUME)
+    the_tracker = Tracker(PARAMS, VOLUME)
+    first, state = the_tracker.track(None, _obs(body, poses[0], rng))
     assert first.status == "initialised" and first.doubtful and state.recheck and not state.lost
     failing[0] = False
     fits, initialisations = [], []
-    for name, calls in (("fit", fits), ("_initialise", initialisations)):
-        original = getattr(tracker, name)
-        monkeypatch.setattr(tracker, name, lambda *a, original=original, calls=calls, **k: calls.append(
+    for owner, name, calls in ((tracker, "fit", fits), (the_tracker, "_initialise", initialisations)):
+        original = getattr(owner, name)
+        monkeypatch.setattr(owner, name, lambda *a, original=original, calls=calls, **k: calls.append(
             original(*a, **k)) or calls[-1])
-    result, after = track_frame(state, _obs(body, poses[1], rng), body, PARAMS, VOLUME)
+    result, after = the_tracker.track(state, _obs(body, poses[1], rng))
     assert fits and len(initialisations) == 1  # tracked from the estimate, and a fresh look as well
     tracked_ll, fresh_ll = fits[-1].log_likelihood[-1], initialisations[0][0].log_likelihood
     assert result.log_likelihood == max(tracked_ll, fresh_ll) and not after.recheck
@@ -211,9 +213,9 @@ def test_frames_record_the_data_supporting_each_joint_and_a_hidden_forearm_has_l
     are gone (hidden) explains almost nothing though the frame is still tracked."""
     rng = np.random.default_rng(25)
     poses = _walk(body, 3)
-    result, state = track_frame(None, _obs(body, poses[0], rng), body, PARAMS, VOLUME)
+    result, state = Tracker(PARAMS, VOLUME).track(None, _obs(body, poses[0], rng))
     assert result.observations > 0 and result.joint_support.shape == (17,)
-    result, state = track_frame(state, _obs(body, poses[1], rng), body, PARAMS, VOLUME)
+    result, state = Tracker(PARAMS, VOLUME).track(state, _obs(body, poses[1], rng))
     seen = dict(zip(JOINT_NAMES, result.joint_support, strict=True))
     explained = result.observations * np.bincount(body.ellipsoid_segment, weights=state.pi[:-1])  # per segment
     for joint, segment in [("l_elbow", "l_upperarm"), ("l_wrist", "l_forearm"), ("pelvis", "pelvis"),
@@ -227,7 +229,7 @@ def test_frames_record_the_data_supporting_each_joint_and_a_hidden_forearm_has_l
         local = (obs.points - ellipsoids.t[e]) @ ellipsoids.R[e] / ellipsoids.semi_axes[e]
         inside |= np.linalg.norm(local, axis=1) < 1.5
     hidden = SimpleNamespace(points=obs.points[~inside], normals=obs.normals[~inside])
-    result, state = track_frame(state, hidden, body, PARAMS, VOLUME)
+    result, state = Tracker(PARAMS, VOLUME).track(state, hidden)
     assert result.status == "tracked" and result.observations == len(hidden.points)
     support = dict(zip(JOINT_NAMES, result.joint_support, strict=True))
     assert support["l_wrist"] < 0.3 * seen["l_wrist"] and support["r_wrist"] > 0.5 * seen["r_wrist"]

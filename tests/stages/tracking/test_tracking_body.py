@@ -6,8 +6,10 @@ from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
 from stages.joints import JOINT_NAMES
-from stages.tracking.body import load_body, skew
-from stages.tracking.distances import DISTANCES, all_residuals, ellipsoid_point, pose_jacobian, residuals
+from stages.tracking.body import skew
+from stages.tracking.body_file import load_body
+from stages.tracking.distances import DISTANCES, pose_jacobian
+from stages.tracking.geometry import ellipsoid_point
 
 STEP = 1e-6  # central differences: truncation ~STEP², round-off ~1e-16/STEP
 
@@ -150,11 +152,11 @@ def test_residual_jacobian_matches_finite_differences(distance):
 
     def e(q):
         kin = body.fk(q)
-        return residuals(y, n, i, p, kin, body.ellipsoids(kin), distance=distance).e
+        return DISTANCES[distance].residuals(y, n, i, p, kin, body.ellipsoids(kin)).e
 
     pose = _random_pose(body, 3)
     kin = body.fk(pose)
-    B = residuals(y, n, i, p, kin, body.ellipsoids(kin), distance=distance, jacobian=True).B
+    B = DISTANCES[distance].residuals(y, n, i, p, kin, body.ellipsoids(kin), jacobian=True).B
     J = pose_jacobian(B, body.segment_twists(kin)[body.ellipsoid_segment[p]])
     numeric = _numeric_jacobian(e, pose)
     np.testing.assert_allclose(J, numeric, atol=1e-6 * max(1.0, np.abs(numeric).max()))
@@ -181,8 +183,8 @@ def test_dense_residuals_equal_pairwise_ones(distance):
     y, n, i, p = _random_data(body, 30, 0.4, seed=5)
     kin = body.fk(_random_pose(body, 6))
     ell = body.ellipsoids(kin)
-    pairwise = residuals(y, n, i, p, kin, ell, distance=distance).e
-    dense = all_residuals(y, n, ell, distance=distance)
+    pairwise = DISTANCES[distance].residuals(y, n, i, p, kin, ell).e
+    dense = DISTANCES[distance].all_residuals(y, n, ell)
     np.testing.assert_allclose(dense.reshape(pairwise.shape), pairwise, atol=1e-12)
 
 

@@ -4,14 +4,9 @@ import numpy as np
 import pytest
 from tracking_testing import data_near_a_pose
 
-from stages.tracking.body import load_body
-from stages.tracking.distances import (
-    all_residuals,
-    normal_spread,
-    normal_spread_entries,
-    residual_lower_bound,
-    symmetric_matrices,
-)
+from stages.tracking.body_file import load_body
+from stages.tracking.distances import DISTANCES
+from stages.tracking.geometry import normal_spread, normal_spread_entries, symmetric_matrices
 
 
 @pytest.fixture(scope="module")
@@ -24,8 +19,8 @@ def data():
 @pytest.mark.parametrize("distance", ["normals", "points"])
 def test_residual_lower_bound_bounds_the_point_distances(data, distance):
     y, n, ell = data
-    bound = residual_lower_bound(y, ell, distance=distance)
-    exact = (all_residuals(y, n, ell, distance=distance) ** 2).sum(2).T
+    bound = DISTANCES[distance].lower_bound(y, ell)
+    exact = (DISTANCES[distance].all_residuals(y, n, ell) ** 2).sum(2).T
     assert np.all(bound <= exact + 1e-12) and bound.any()
 
 

@@ -4,10 +4,9 @@ import numpy as np
 import pytest
 from tracking_testing import VOLUME, data_near_a_pose, random_pose, sample_ellipsoids
 
-from stages.tracking.body import load_body
-from stages.tracking.distances import all_residuals, normal_spread
+from stages.tracking.body_file import load_body
+from stages.tracking.distances import DISTANCES
 from stages.tracking.em import (
-    NEGLIGIBLE_POSTERIOR,
     EMParams,
     Mixture,
     e_step,
@@ -15,8 +14,9 @@ from stages.tracking.em import (
     hypothesis_scores,
     log_evidence,
     m_step,
-    volume_size,
 )
+from stages.tracking.geometry import normal_spread
+from stages.tracking.mixture import NEGLIGIBLE_POSTERIOR, volume_size
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +63,7 @@ def test_e_step_posteriors_sum_to_one(body):
     pose = random_pose(body, rng)
     y, n = sample_ellipsoids(body, pose, 200, rng, outlier_fraction=0.2)
     mixture = Mixture.initial(body.n_ellipsoids, 0.02)
-    estep = e_step(y, n, body, pose, mixture, volume_size(VOLUME))
+    estep = e_step(y, n, body.ellipsoids(pose), mixture, volume_size(VOLUME))
     np.testing.assert_allclose(estep.t.sum(axis=1) + estep.t_outlier, 1.0, atol=1e-12)
     # far-away data (the outliers are the last 50) are outliers
     assert np.median(estep.t_outlier[-50:]) > 0.99 and np.median(estep.t_outlier[:150]) < 0.01
@@ -74,8 +74,8 @@ def test_m_step_priors_sum_to_one_and_covariance_is_positive(body):
     pose = random_pose(body, rng)
     y, n = sample_ellipsoids(body, pose, 200, rng, outlier_fraction=0.2)
     mixture = Mixture.initial(body.n_ellipsoids, 0.02)
-    estep = e_step(y, n, body, pose, mixture, volume_size(VOLUME))
-    mstep = m_step(y, n, body, pose, mixture, estep)
+    estep = e_step(y, n, body.ellipsoids(pose), mixture, volume_size(VOLUME))
+    mstep = m_step(y, n, body, body.fk(pose), pose, mixture, estep)
     assert mstep.mixture.pi.sum() == pytest.approx(1.0)
     assert np.all(np.linalg.eigvalsh(mstep.mixture.Sigma) > 0)
 
@@ -146,8 +146,8 @@ def test_m_step_keeps_outlier_prior_and_bounds_sigma(body):
     pose = random_pose(body, rng)
     y, n = sample_ellipsoids(body, pose, 500, rng)  # no outliers: the plain M-step drives π_{P+1} to ~0
     mixture = Mixture.initial(body.n_ellipsoids, 0.2)
-    estep = e_step(y, n, body, pose, mixture, volume_size(VOLUME))
-    mstep = m_step(y, n, body, pose, mixture, estep, min_outlier_prior=0.05, max_sigma_m=0.03)
+    estep = e_step(y, n, body.ellipsoids(pose), mixture, volume_size(VOLUME))
+    mstep = m_step(y, n, body, body.fk(pose), pose, mixture, estep, EMParams(min_outlier_prior=0.05, max_sigma_m=0.03))
     assert mstep.mixture.pi[-1] == pytest.approx(0.05)
     assert mstep.mixture.pi.sum() == pytest.approx(1.0)
     assert np.linalg.eigvalsh(mstep.mixture.Sigma).max() <= 0.03**2 * (1 + 1e-9)
@@ -171,12 +171,12 @@ def test_pruned_e_step_equals_the_dense_one(body, distance, noise_deg, sigma_m):
     V, sigma_n = volume_size(VOLUME), np.radians(noise_deg)
     ell = body.ellipsoids(pose)
     Sigma = mixture.Sigma + (sigma_n**2 * normal_spread(n, ell) if distance == "normals" else 0.0)
-    log_joint = np.c_[np.log(mixture.pi[:-1]) + log_gaussian(all_residuals(y, n, ell, distance=distance), Sigma),
+    log_joint = np.c_[np.log(mixture.pi[:-1]) + log_gaussian(DISTANCES[distance].all_residuals(y, n, ell), Sigma),
                       np.full(len(y), np.log(mixture.pi[-1] / V))]  # eq. (13) on every pair
     evidence = np.logaddexp.reduce(log_joint, axis=1)
     dense = np.exp(log_joint - evidence[:, None])
-    estep = e_step(y, n, body, pose, mixture, V, distance=distance, normal_noise_rad=sigma_n)
-    bound = body.n_ellipsoids * NEGLIGIBLE_POSTERIOR  # what skipping may change, relative (em.NEGLIGIBLE_POSTERIOR)
+    estep = e_step(y, n, body.ellipsoids(pose), mixture, V, EMParams(distance=distance, normal_noise_rad=sigma_n))
+    bound = body.n_ellipsoids * NEGLIGIBLE_POSTERIOR  # what skipping may change, relative
     np.testing.assert_allclose(estep.t, dense[:, :-1], rtol=0, atol=bound)
     np.testing.assert_allclose(estep.t_outlier, dense[:, -1], rtol=0, atol=bound)
     assert estep.log_likelihood == pytest.approx(evidence.sum(), abs=len(y) * bound)
@@ -191,7 +191,7 @@ def test_log_evidence_adds_up_over_ellipsoids(body, distance):
     mixture = Mixture(Sigma=np.diag([1.0, 1.5, 0.7]) * 0.02**2, pi=rng.dirichlet(np.ones(body.n_ellipsoids + 1)))
     V, sigma_n, ell = volume_size(VOLUME), np.radians(10.0), body.ellipsoids(pose)
     whole = log_evidence(y, n, ell, mixture, V, distance=distance, normal_noise_rad=sigma_n)
-    estep = e_step(y, n, body, pose, mixture, V, distance=distance, normal_noise_rad=sigma_n)
+    estep = e_step(y, n, body.ellipsoids(pose), mixture, V, EMParams(distance=distance, normal_noise_rad=sigma_n))
     assert whole.sum() == pytest.approx(estep.log_likelihood, rel=1e-12)
     limb = np.flatnonzero(np.isin(body.ellipsoid_segment, [1, 2, 3]))
     rest = log_evidence(y, n, ell, mixture, V, which=np.setdiff1d(np.arange(body.n_ellipsoids), limb),
@@ -219,7 +219,7 @@ def test_e_step_weights_whiten_each_pair_by_its_posterior_and_covariance(body):
     y, n, pose, rng = data_near_a_pose(body, 20, 300, spread=0.03)
     mixture = Mixture(Sigma=np.diag([1.0, 1.5, 0.7]) * 0.02**2, pi=rng.dirichlet(np.ones(body.n_ellipsoids + 1)))
     sigma_n = np.radians(10.0)
-    estep = e_step(y, n, body, pose, mixture, volume_size(VOLUME), normal_noise_rad=sigma_n)
+    estep = e_step(y, n, body.ellipsoids(pose), mixture, volume_size(VOLUME), EMParams(normal_noise_rad=sigma_n))
     i, p = estep.pairs
     assert np.all(np.diff(p) >= 0) and np.all(estep.t[i, p] > 1e-3)
     covariance = mixture.Sigma + sigma_n**2 * normal_spread(n[i], body.ellipsoids(pose), p)

@@ -5,19 +5,11 @@ import pytest
 from tracking_testing import VOLUME, sample_ellipsoids
 
 from stages.joints import JOINT_NAMES
-from stages.tracking.body import load_body
+from stages.tracking.body_file import load_body
 from stages.tracking.em import EMParams, fit
-from stages.tracking.init import (
-    InitParams,
-    body_limbs,
-    deserted_limbs,
-    generic_poses,
-    initialise,
-    load_pose_library,
-    misplaced_limbs,
-    reinitialise_limb,
-    segment_shares,
-)
+from stages.tracking.init import InitParams, initialise
+from stages.tracking.library import generic_poses, load_pose_library
+from stages.tracking.limbs import body_limbs, deserted_limbs, misplaced_limbs, reinitialise_limb, segment_shares
 
 
 @pytest.mark.parametrize("name", ["default", "paper"])
@@ -87,13 +79,13 @@ def test_a_limb_placed_wrong_is_found_and_recovered_locally():
     stuck = fit(y, n, body, wrong, VOLUME, em)
     wrist = JOINT_NAMES.index("l_wrist")
     assert np.linalg.norm(body.joint_positions(stuck.pose)[wrist] - body.joint_positions(truth)[wrist]) > 0.2
-    suspects = misplaced_limbs(body, stuck, len(y))
+    suspects = misplaced_limbs(body_limbs(body), stuck, len(y))
     assert [limb.name for limb in suspects] == ["l_upperarm"]
     recovered = reinitialise_limb(y, n, stuck, suspects[0], VOLUME, em, load_pose_library(body))
     assert recovered.log_likelihood[-1] > stuck.log_likelihood[-1]
     error = np.linalg.norm(recovered.body.joint_positions(recovered.pose) - body.joint_positions(truth), axis=1)
     assert error.max() < 0.03  # metres, every joint
-    assert misplaced_limbs(body, recovered, len(y)) == []
+    assert misplaced_limbs(body_limbs(body), recovered, len(y)) == []
 
 
 @pytest.mark.parametrize("arm", [
@@ -114,7 +106,7 @@ def test_a_limb_is_recovered_from_noisy_data_at_angles_off_the_hypothesis_grid(a
     hanging[[body.dof_names.index(name) for name in arm]] = 0.0
     em = EMParams(max_iterations=15, normal_noise_rad=np.radians(10), min_outlier_prior=0.05)
     stuck = fit(y, n, body, hanging, VOLUME, em)
-    suspects = misplaced_limbs(body, stuck, len(y))
+    suspects = misplaced_limbs(body_limbs(body), stuck, len(y))
     assert [limb.name for limb in suspects] == ["l_upperarm"]
     recovered = reinitialise_limb(y, n, stuck, suspects[0], VOLUME, em, load_pose_library(body))
     error = np.linalg.norm(recovered.body.joint_positions(recovered.pose) - body.joint_positions(truth), axis=1)
@@ -134,16 +126,16 @@ def test_limbs_that_lost_their_data_are_found_by_their_usual_share_when_the_mirr
     good = fit(y, n, body, truth, VOLUME, em)
     usual = segment_shares(body, good.mixture)
     assert usual.sum() == pytest.approx(1.0 - good.mixture.pi[-1])
-    assert deserted_limbs(body, good, usual, len(y)) == []
+    assert deserted_limbs(body_limbs(body), good, usual, len(y)) == []
     folded = truth.copy()
     folded[[body.dof_names.index("l_forearm.flex"), body.dof_names.index("r_forearm.flex")]] = np.radians(150)
     stuck = fit(y, n, body, folded, VOLUME, em)
-    assert misplaced_limbs(body, stuck, len(y)) == []
-    suspects = deserted_limbs(body, stuck, usual, len(y))
+    assert misplaced_limbs(body_limbs(body), stuck, len(y)) == []
+    suspects = deserted_limbs(body_limbs(body), stuck, usual, len(y))
     assert [limb.name for limb in suspects] == ["l_upperarm", "r_upperarm"]
     recovered = stuck
     for limb in suspects:
         recovered = reinitialise_limb(y, n, recovered, limb, VOLUME, em, load_pose_library(body))
     error = np.linalg.norm(recovered.body.joint_positions(recovered.pose) - body.joint_positions(truth), axis=1)
     assert error.max() < 0.03  # metres, every joint
-    assert deserted_limbs(body, recovered, usual, len(y)) == []
+    assert deserted_limbs(body_limbs(body), recovered, usual, len(y)) == []

@@ -1,0 +1,222 @@
+"""Limbs that EM put in the wrong place, found by the data they explain, and their local re-initialisation.
+
+A limb EM put on the wrong side of the body or folded away from its data gets almost no
+observations, and the local minimum holds it there for many frames. A limb's segments are compared
+with its mirror limb's (`misplaced_limbs`) and with their own running level (`deserted_limbs`); a limb
+found either way gets the library's angles for that limb alone (`reinitialise_limb`), and the likelihood
+decides (eq. 12). What Horaud et al. 2009 leave open, like the initialisation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from stages.tracking.body import BodyModel
+from stages.tracking.em import EMParams, FitResult, fit, hypothesis_scores, log_evidence
+from stages.tracking.init import SCORE_SIGMA_M
+from stages.tracking.mixture import Mixture, volume_size
+
+# A limb's segment is taken for misplaced when it explains fewer data than this fraction of what its
+# mirror segment explains: left and right limbs have the same surface, and even a limb held against
+# the body or turned away from most cameras keeps a good part of its mirror's share, while a forearm put
+# on the wrong side of the body by the initialisation explains a small fraction of it.
+LIMB_SHARE_RATIO = 0.3
+# The comparison only means something when the mirror segment itself explains this many observations
+# (a foot or a forearm seen by few cameras is too noisy a reference).
+LIMB_MIN_OBSERVATIONS = 20
+# Observations used to score the joint-angle hypotheses of a limb (the rest of the body fixed).
+_LIMB_SCORE_POINTS = 400
+# Hypotheses closer than this (radians, every DOF of the chain) are one: the library repeats itself.
+_LIMB_HYPOTHESIS_STEP = 0.1
+# Best-scoring limb hypotheses refined by EM on all the data.
+_LIMB_REFINE = 3
+# A re-initialised limb replaces the fit only when the likelihood gains this much per observation (nats):
+# a limb really misplaced gains tenths, while gains of hundredths come from ambiguous data, where taking
+# them flips a forearm back and forth from frame to frame.
+LIMB_MARGIN = 0.02
+# Values per DOF of the grid over the limb's two first joints (shoulder and elbow, hip and knee): the
+# library holds whole-body poses, and an arm reaching out from a leaning torso may be in none of them.
+_LIMB_GRID_LEVELS = 5
+
+
+@dataclass(frozen=True)
+class LimbParams:
+    """When a limb is taken for misplaced (`misplaced_limbs`, `deserted_limbs`).
+
+    Attributes
+    ----------
+    share_ratio : float
+        A limb with a segment explaining fewer data than this fraction of its reference (its mirror
+        segment's data, or its own running level) is misplaced; 0 never.
+    min_observations : float
+        The reference must explain at least this many observations to mean something.
+    """
+
+    share_ratio: float = LIMB_SHARE_RATIO
+    min_observations: float = LIMB_MIN_OBSERVATIONS
+
+
+@dataclass(frozen=True)
+class Limb:
+    """A chain of segments hanging from the torso (arm, leg) and its mirror image.
+
+    Attributes
+    ----------
+    name : str
+        Name of the chain's first segment ("l_upperarm").
+    segments, mirror_segments : (S,) int
+        Segments of the chain (from the torso outwards) and the mirror chain's same segments.
+    dofs, mirror_dofs : (K,) int
+        DOFs of the chain and the mirror chain's corresponding DOFs.
+    mirror_sign : (K,) float
+        A pose mirrored left-right has mirror_dofs = mirror_sign × dofs (twists change sign).
+    """
+
+    name: str
+    segments: np.ndarray
+    mirror_segments: np.ndarray
+    dofs: np.ndarray
+    mirror_dofs: np.ndarray
+    mirror_sign: np.ndarray
+
+
+_MIRROR_PREFIXES = ("l_", "r_")
+
+
+def body_limbs(body: BodyModel) -> list[Limb]:
+    """The limbs of `body`: chains starting at an "l_"/"r_" segment whose parent is neither, with mirrors.
+
+    Mirror segments and DOFs are found by swapping the "l_"/"r_" prefix; the sign of a mirrored DOF is
+    that of its axis against the left-right reflection (x → −x) of the original axis (a rotation axis
+    is a pseudo-vector: (w_x, −w_y, −w_z)).
+    """
+    names = list(body.segment_names)
+
+    def mirror(name):
+        side = name[:2]
+        return ("r_" if side == "l_" else "l_") + name[2:] if side in _MIRROR_PREFIXES else None
+
+    limbs = []
+    for s, name in enumerate(names):
+        parent = body.parent[s]
+        if mirror(name) not in names or (parent >= 0 and mirror(names[parent]) is not None):
+            continue
+        chain = [s]
+        for child in range(s + 1, len(names)):
+            if body.parent[child] in chain:
+                chain.append(child)
+        mirrored = [names.index(mirror(names[c])) for c in chain]
+        dofs = [d for d in range(body.pose_size) if body.dof_segment[d] in chain]
+        dof_names = list(body.dof_names)
+        mirror_dofs = [dof_names.index(mirror(dof_names[d])) for d in dofs]
+        reflected = body.dof_axis[dofs] * np.array([1.0, -1.0, -1.0])
+        sign = np.sign(np.einsum("ka,ka->k", body.dof_axis[mirror_dofs], reflected))
+        limbs.append(Limb(name=name, segments=np.array(chain), mirror_segments=np.array(mirrored),
+                          dofs=np.array(dofs), mirror_dofs=np.array(mirror_dofs), mirror_sign=sign))
+    return limbs
+
+
+def segment_shares(body: BodyModel, mixture: Mixture) -> np.ndarray:
+    """Fraction of the data each segment of `body` explains (S,): the sum of its ellipsoids' priors π_p.
+
+    After a fit the priors are the mean posteriors (the M-step's π_p = (1/I) Σ_i t_ip), so I times a
+    share is the number of observations the segment explains.
+    """
+    return np.bincount(body.ellipsoid_segment, weights=mixture.pi[:-1], minlength=len(body.segment_names))
+
+
+def misplaced_limbs(limbs: list[Limb], result: FitResult, n_observations: int,
+                    params: LimbParams = LimbParams()) -> list[Limb]:
+    """The `limbs` (`body_limbs` of the fitted body) with a segment explaining far fewer data than its mirror
+    segment.
+
+    The data a segment explains are I Σ π_p over its ellipsoids (`segment_shares`). The test is
+    absolute (a share against the mirror's share in the same frame), so a bad start cannot make
+    itself the norm.
+    """
+    per_segment = n_observations * segment_shares(result.body, result.mixture)
+    return [limb for limb in limbs if _starved(per_segment[limb.segments], per_segment[limb.mirror_segments], params)]
+
+
+def deserted_limbs(limbs: list[Limb], result: FitResult, usual_shares: np.ndarray, n_observations: int,
+                   params: LimbParams = LimbParams()) -> list[Limb]:
+    """The `limbs` (`body_limbs` of the fitted body) with a segment explaining far fewer data than it usually
+    does.
+
+    `usual_shares` (S,) are the segments' shares of the data over the recent tracked frames (a running
+    mean of `segment_shares`). A forearm that EM folded onto its upper arm, or turned away from its data,
+    still explains some data, often as many as its mirror (which `misplaced_limbs` compares with), but
+    far fewer than it did a few frames before; so does a limb that has just become hidden, for which
+    the re-initialisation finds nothing better and the fit stays. A share that stays low becomes the
+    usual share within a few tens of frames, which bounds how long a limb is tried again.
+    """
+    per_segment = n_observations * segment_shares(result.body, result.mixture)
+    usual = n_observations * np.asarray(usual_shares)
+    return [limb for limb in limbs if _starved(per_segment[limb.segments], usual[limb.segments], params)]
+
+
+def _starved(own: np.ndarray, reference: np.ndarray, params: LimbParams) -> bool:
+    """Whether a segment explains fewer data than `share_ratio` times a reference of at least `min_observations`."""
+    return bool(np.any((reference >= params.min_observations) & (own < params.share_ratio * reference)))
+
+
+def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Limb, volume: np.ndarray,
+                      em: EMParams, candidates: np.ndarray, *,
+                      rng: np.random.Generator | None = None) -> FitResult:
+    """Re-initialise one limb of a fit locally; returns the better (by likelihood) of the two fits.
+
+    Joint-angle hypotheses for the limb's DOFs come from the pose library (`candidates`, the limb's
+    own values and its mirror's, mirrored), from a grid over its first two joints (`_limb_grid`),
+    from the mirror limb's current angles (people often hold both arms alike) and from the current
+    angles. Each is scored by the likelihood (eq. 12) with the rest of the body fixed, on a
+    subsample, with the limb's priors π set to its mirror's (a limb that explained nothing would
+    otherwise be handicapped by its small prior) and under the initialisation's coarse Σ
+    (`SCORE_SIGMA_M`), not the fit's: grid and library angles are tens of millimetres off at best,
+    and under a Σ of 2-3 cm they lost to the misplaced limb itself (the test with arms off the grid
+    shows it). The best `_LIMB_REFINE` are refined by EM on all the data (the whole body free); the
+    best of them replaces the fit when it is better by `LIMB_MARGIN` nats per observation.
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    body, pose = result.body, result.pose
+    values = np.vstack([candidates[:, limb.dofs], candidates[:, limb.mirror_dofs] * limb.mirror_sign,
+                        pose[limb.mirror_dofs] * limb.mirror_sign, pose[limb.dofs], _limb_grid(body, pose, limb)])
+    values = np.clip(values, body.lower[limb.dofs], body.upper[limb.dofs])
+    _, first = np.unique(np.round(values / _LIMB_HYPOTHESIS_STEP), axis=0, return_index=True)
+    hypotheses = np.repeat(pose[None], len(first), axis=0)
+    hypotheses[:, limb.dofs] = values[np.sort(first)]
+    pi = result.mixture.pi.copy()
+    mine = np.isin(body.ellipsoid_segment, limb.segments)
+    theirs = np.isin(body.ellipsoid_segment, limb.mirror_segments)
+    pi[np.flatnonzero(mine)] = np.maximum(pi[np.flatnonzero(mine)], pi[np.flatnonzero(theirs)])
+    mixture = replace(result.mixture, pi=pi / pi.sum())
+    coarse = replace(mixture, Sigma=np.eye(len(mixture.Sigma)) * SCORE_SIGMA_M**2)
+    V = volume_size(volume)
+    subset = rng.permutation(len(y))[:_LIMB_SCORE_POINTS]
+    ys, ns = y[subset], n[subset]
+    # The rest of the body does not move: its evidence is computed once, the limb's added per hypothesis.
+    rest = log_evidence(ys, ns, body.ellipsoids(pose), coarse, V, which=np.flatnonzero(~mine),
+                        distance=em.distance, normal_noise_rad=em.normal_noise_rad)
+    scores = hypothesis_scores(ys, ns, body.posed_ellipsoids(hypotheses), coarse, V,
+                               which=np.flatnonzero(mine), base=rest, distance=em.distance,
+                               normal_noise_rad=em.normal_noise_rad)[:, 0]
+    best = result
+    for q in hypotheses[np.argsort(scores)[::-1][:_LIMB_REFINE]]:
+        refined = fit(y, n, body, q, volume, em, mixture=mixture)
+        if refined.log_likelihood[-1] > best.log_likelihood[-1]:
+            best = refined
+    if best.log_likelihood[-1] < result.log_likelihood[-1] + LIMB_MARGIN * len(y):
+        return result
+    return best
+
+
+def _limb_grid(body: BodyModel, pose: np.ndarray, limb: Limb) -> np.ndarray:
+    """Limb angles (M, K): every combination of `_LIMB_GRID_LEVELS` values across the joint range of each
+    DOF of the limb's first two segments that the data see (twists, which have a prior, keep their
+    current value, as do the DOFs further down the chain)."""
+    first = np.isin(body.dof_segment[limb.dofs], limb.segments[:2]) & (body.prior_weight[limb.dofs] == 0)
+    axes = [np.linspace(body.lower[d], body.upper[d], _LIMB_GRID_LEVELS) for d in limb.dofs[first]]
+    grid = np.repeat(pose[limb.dofs][None], _LIMB_GRID_LEVELS ** len(axes), axis=0)
+    grid[:, first] = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(axes))
+    return grid

@@ -1,0 +1,172 @@
+"""What the tracker writes for each frame: its estimate (`FrameResult`) and its state after it (`TrackerState`).
+
+Both go to JSON and come back from it (`frame_record`, `read_frame_record`): a run resumes from the
+state after the last frame written, and the export reads the estimates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from stages.joints import JOINT_NAMES
+
+STATUSES = ("tracked", "initialised", "predicted", "lost")
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One frame's estimate.
+
+    Attributes
+    ----------
+    pose : (D,) float
+        Pose vector Λ of the body (see `body`).
+    joints : (17, 3) float
+        Joint centres in `JOINT_NAMES` order, metres, world.
+    log_likelihood : float
+        ln P(Y | Λ) of the frame's data (eq. 12), nats; 0 when not fitted.
+    iterations : int
+        EM iterations (of the refinement, for an initialisation).
+    outlier_fraction : float
+        Mean outlier posterior; 1 when not fitted.
+    status : {"tracked", "initialised", "predicted", "lost"}
+        "predicted" and "lost" frames are not exported.
+    height_m : float
+        Body height used for this frame, metres.
+    doubtful : bool
+        The fit failed the failure checks (`TrackerParams.max_outlier_fraction`, `failure_sigma_m`)
+        and so did a re-initialisation: the better of the two is the estimate, exported but flagged.
+    observations : int
+        Usable observations of the frame (the data the likelihood sums over).
+    joint_support : (17,) float or None
+        Per joint of `JOINT_NAMES`, the observations explained by the segment that places it relative
+        to the joint before it in the skeleton (`joint_support`); None when the frame was not fitted.
+        The export's per-joint confidence comes from it: a limb EM keeps where the data say nothing
+        is still "tracked", and only this says that its data are missing.
+    """
+
+    pose: np.ndarray
+    joints: np.ndarray
+    log_likelihood: float
+    iterations: int
+    outlier_fraction: float
+    status: str
+    height_m: float
+    doubtful: bool = False
+    observations: int = 0
+    joint_support: np.ndarray | None = None
+
+    def to_dict(self) -> dict:
+        """JSON-ready dictionary (lists of floats)."""
+        support = None if self.joint_support is None else np.asarray(self.joint_support).tolist()
+        return {**asdict(self), "pose": self.pose.tolist(), "joints": self.joints.tolist(), "joint_support": support}
+
+    @staticmethod
+    def from_dict(data: dict) -> FrameResult:
+        """The estimate `to_dict` wrote (records written before `joint_support` was saved have none)."""
+        support = data.get("joint_support")
+        return FrameResult(**{**data, "pose": np.asarray(data["pose"], dtype=float),
+                              "joints": np.asarray(data["joints"], dtype=float),
+                              "joint_support": None if support is None else np.asarray(support, dtype=float)})
+
+
+@dataclass(frozen=True)
+class TrackerState:
+    """What the next frame needs from the past; JSON-serialisable so that a run can resume.
+
+    Attributes
+    ----------
+    pose, velocity : (D,) float
+        Last estimated pose and its last frame-to-frame change.
+    height_m : float
+        Current body height, metres.
+    length_factors : (G,) float
+        Current segment-length factors of the groups named by `TrackerParams.estimate_lengths`.
+    height_weight : int
+        Frames that contributed to the height and length estimates (frozen at `scale_frames`).
+    Sigma : (k, k) float
+        Covariance Σ of the last fit, m² (the next frame's EM starts from it).
+    pi : (P + 1,) float
+        Mixture priors π of the last fit.
+    likelihood_level : float
+        Running level of the log-likelihood per observation of good fits (nats).
+    frames_without_fit : int
+        Consecutive frames predicted instead of fitted.
+    lost : bool
+        The next frame with data must re-initialise.
+    since_initialisation : int
+        Frames tracked since a re-initialisation was last tried (`TrackerParams.reinit_every`).
+    segment_shares : (S,) float or None
+        Running level of each segment's share of the data over the tracked frames (`init.segment_shares`,
+        the same exponential average as the likelihood level); None until a tracked frame sets it.
+    recheck : bool
+        The last frame was an initialisation that failed the checks: the next frame tracks from it but
+        also weighs a fresh initialisation against that fit, whether or not the fit passes the checks (a
+        pose fitted to clutter can hold the next frame's data in a wrong optimum that passes them).
+    """
+
+    pose: np.ndarray
+    velocity: np.ndarray
+    height_m: float
+    length_factors: np.ndarray
+    height_weight: int
+    Sigma: np.ndarray
+    pi: np.ndarray
+    likelihood_level: float
+    frames_without_fit: int
+    lost: bool
+    since_initialisation: int = 0
+    segment_shares: np.ndarray | None = None
+    recheck: bool = False
+
+    def to_dict(self) -> dict:
+        """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
+        level = self.likelihood_level if np.isfinite(self.likelihood_level) else None
+        return {**asdict(self), "pose": self.pose.tolist(), "velocity": self.velocity.tolist(),
+                "length_factors": self.length_factors.tolist(), "Sigma": self.Sigma.tolist(),
+                "pi": self.pi.tolist(), "likelihood_level": level,
+                "segment_shares": None if self.segment_shares is None else self.segment_shares.tolist()}
+
+    @staticmethod
+    def from_dict(data: dict) -> TrackerState:
+        return TrackerState(pose=np.asarray(data["pose"], dtype=float),
+                            velocity=np.asarray(data["velocity"], dtype=float),
+                            height_m=float(data["height_m"]),
+                            length_factors=np.asarray(data["length_factors"], dtype=float),
+                            height_weight=int(data["height_weight"]),
+                            Sigma=np.asarray(data["Sigma"], dtype=float), pi=np.asarray(data["pi"], dtype=float),
+                            likelihood_level=np.nan if data["likelihood_level"] is None
+                            else float(data["likelihood_level"]),
+                            frames_without_fit=int(data["frames_without_fit"]), lost=bool(data["lost"]),
+                            since_initialisation=int(data.get("since_initialisation", 0)),
+                            segment_shares=None if data.get("segment_shares") is None
+                            else np.asarray(data["segment_shares"], dtype=float),
+                            recheck=bool(data.get("recheck", False)))
+
+
+def frame_record(frame: int, result: FrameResult, state: TrackerState) -> dict:
+    """The JSON-ready record of one tracked frame: its number, its estimate and the tracker's state after it."""
+    return {"frame": frame, "result": result.to_dict(), "state": state.to_dict()}
+
+
+def read_frame_record(record: dict, frame: int) -> tuple[FrameResult, TrackerState]:
+    """The estimate and state of a `frame_record` of frame `frame`.
+
+    Raises
+    ------
+    ValueError
+        If it is not such a record: fields missing or of the wrong kind, another frame's record, joints
+        or joint support of the wrong shape, an unknown status.
+    """
+    try:
+        estimate, state = FrameResult.from_dict(record["result"]), TrackerState.from_dict(record["state"])
+    except (KeyError, TypeError, ValueError, AttributeError) as error:
+        raise ValueError(f"not a tracking record ({type(error).__name__}: {error})") from None
+    support_shape = None if estimate.joint_support is None else estimate.joint_support.shape
+    if (record.get("frame") != frame or estimate.joints.shape != (len(JOINT_NAMES), 3)
+            or estimate.status not in STATUSES or support_shape not in (None, (len(JOINT_NAMES),))):
+        raise ValueError(f"not the tracking record of frame {frame} "
+                         "(its frame number, joints, joint support or status differ)")
+    return estimate, state
