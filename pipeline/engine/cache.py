@@ -33,7 +33,6 @@ def _hash(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:32]
 
 
-
 @dataclass(frozen=True)
 class Expected:
     """What a stage's manifest must say for it to be up to date (``missing``: upstreams not done)."""
