@@ -13,7 +13,7 @@ from conftest import BACKGROUND_GREY, TINY_SIZE, frame_image, make_capture, tiny
 
 from calib.errors import InputError
 from pipeline.io.capture import Capture, derive_volume
-from pipeline.io.capture.reader import DERIVED_VOLUME_FLOOR_MARGIN_M
+from pipeline.io.capture.volume import DERIVED_VOLUME_FLOOR_MARGIN_M
 from stages.tracking.tracker import TrackerParams
 
 

@@ -13,6 +13,10 @@ sequence length.
 Media sources, in order of preference: ``images/<camera>/<frame:06d>.png|.jpg`` (exact frames, no
 decoding state), ``videos/<camera>.<ext>``, else ``silhouettes/`` alone (a capture with masks only).
 Images are BGR ``(H, W, 3) uint8`` (OpenCV's order), masks ``(H, W) uint8`` in {0, 255}.
+
+This module puts together what the others of the package check: ``capture.yaml``
+(:mod:`~pipeline.io.capture.config`), the media and their frames (:mod:`~pipeline.io.capture.media`) and the
+working volume (:mod:`~pipeline.io.capture.volume`).
 """
 
 from __future__ import annotations
@@ -21,64 +25,37 @@ import dataclasses
 import hashlib
 import json
 import logging
-import math
-import re
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
-import yaml
 
 from calib.camera import Rig
 from calib.errors import InputError
 from calib.formats import load_rig
-from calib.sanity import check_cameras_see_volume, check_intrinsics, check_rig_size
-from calib.world import UNIT_SCALE, WorldTransform, fixed_transform, up_rotation
-from pipeline.io import frames_io, plain_yaml
-from stages.joints import SUBJECT_HEIGHT_RANGE_M
+from calib.sanity import check_intrinsics, check_rig_size
+from calib.world import WorldTransform, fixed_transform
+from pipeline.io import frames_io
+from pipeline.io.capture.config import _read_config
+from pipeline.io.capture.media import (
+    _available_frames,
+    _CameraMedia,
+    _find_backgrounds,
+    _find_image_folders,
+    _find_media,
+    _first_frame_size,
+    _image_size,
+    _iter_video,
+    _select_frames,
+)
+from pipeline.io.capture.volume import working_volume
 
 if TYPE_CHECKING:
     from pipeline.io.auto_frame import AutoFrame
 
 log = logging.getLogger(__name__)
-
-CALIBRATION_FORMATS = ("colmap", "opencv", "anipose", "projection", "qualisys")
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-FRAME_FILE = re.compile(r"^(\d{6,})(\.[A-Za-z]+)$")
-
-#: Height of the derived working volume, metres: a standing adult with raised arms fits.
-DERIVED_VOLUME_HEIGHT_M = 2.3
-#: How far the derived volume reaches below the floor, metres. Reconstructed points outside the volume are
-#: dropped, and the soles' points lie at or a little below z = 0 (a visual hull's lowest points; a floor
-#: found by ``up: auto`` within a few centimetres): a volume starting at z = 0 cut them off.
-DERIVED_VOLUME_FLOOR_MARGIN_M = 0.15
-#: Grid of floor positions tested when deriving the volume (cells per side).
-DERIVED_VOLUME_GRID = 161
-#: Heights (fractions of the volume height) at which a floor position must be in view: the feet and the
-#: middle of the body. Requiring the top of the volume (raised arms) as well left out the rim of the floor
-#: that the cameras, tilted down at the subject, see whole but for the space above 2 m, where the subject
-#: still walks and kicks, and cut the subject off there.
-DERIVED_VOLUME_HEIGHTS = (0.0, 0.5)
-#: Seeking is slower than decoding a few frames; skip ahead by decoding up to this many frames.
-MAX_FRAMES_DECODED_TO_SKIP = 8
-
-_TOP_LEVEL_KEYS = ("fps", "calibration", "subject", "volume", "frames")
-_CALIBRATION_KEYS = ("format", "path", "units", "up")
-
-
-@dataclass(frozen=True)
-class _CameraMedia:
-    """Where one camera's frames live: a video file or an image folder with one suffix."""
-
-    path: Path
-    suffix: str = ""  # image files' suffix; "" for a video
-
-    def frame_path(self, frame: int) -> Path:
-        return self.path / frames_io.frame_name(frame, self.suffix)
 
 
 @dataclass(frozen=True, eq=False)
@@ -139,32 +116,18 @@ class Capture:
             raise InputError(f"{root}: no such capture directory (expected a folder with capture.yaml)")
         config = _read_config(root / "capture.yaml")
         calibration = config["calibration"]
-        calibration_path = root / calibration["path"]
-        if not allow_outside_paths and not _lies_in(calibration_path, root):
-            raise InputError(f"{root / 'capture.yaml'}: calibration.path {calibration['path']!r} leads outside the "
-                             f"capture (expected a path inside {root}, or run --allow-outside-paths)")
-        if not calibration_path.exists():
-            raise InputError(f"{root / 'capture.yaml'}: calibration.path {calibration['path']!r} does not "
-                             f"exist (expected a path relative to {root})")
+        calibration_path = _calibration_path(root, calibration["path"], allow_outside_paths)
 
         camera_media, media = _find_media(root)
         silhouette_media = _find_image_folders(root / "silhouettes", what="silhouettes")
         background_paths = _find_backgrounds(root / "background")
         if media == "silhouettes":
             camera_media = silhouette_media
-        media_names = set(camera_media)
         sizes = {name: _first_frame_size(source, name) for name, source in camera_media.items()}
 
         rig = _load_calibration(calibration["format"], calibration_path, sizes)
-        _check_same_cameras(rig, media_names, where=root / media)
-        for folder, names in (("silhouettes", silhouette_media), ("background", background_paths)):
-            if names:
-                _check_same_cameras(rig, set(names), where=root / folder)
-        for camera in rig:
-            if tuple(camera.size) != sizes[camera.name]:
-                raise InputError(
-                    f"{camera_media[camera.name].path}: image size {sizes[camera.name]} differs from the "
-                    f"calibration's {tuple(camera.size)} for camera {camera.name!r} (expected equal sizes)")
+        _check_media_cameras(rig, root, media, camera_media, {"silhouettes": silhouette_media,
+                                                              "background": background_paths}, sizes)
         calibration_rig = Rig(tuple(camera.with_size(*sizes[camera.name]) for camera in rig))
         auto = calibration["up"] == "auto"  # then the vertical and floor come after the frames are known
         world = fixed_transform(units=calibration["units"], up="+z" if auto else calibration["up"])
@@ -174,16 +137,7 @@ class Capture:
 
         available = _available_frames(camera_media, media, root)
         frame_numbers = _select_frames(config["frames"], available, root / "capture.yaml")
-        for source in silhouette_media.values():
-            missing = [f for f in frame_numbers if not source.frame_path(f).is_file()]
-            if missing:
-                raise InputError(f"{source.path}: no silhouette for frame {missing[0]} "
-                                 f"({len(missing)} missing; expected one mask per processed frame)")
-        for name, path in background_paths.items():
-            size = _image_size(path)
-            if size != sizes[name]:
-                raise InputError(f"{path}: image size {size} differs from camera {name!r}'s {sizes[name]} "
-                                 "(expected the clean plate of that camera)")
+        _check_given_files(frame_numbers, silhouette_media, background_paths, sizes)
         subject = config["subject"] or {}
         capture = cls(root=root, config=config, fps=float(config["fps"]), rig=rig, volume=np.zeros((2, 3)),
                       volume_source="", height_m=subject.get("height_m"), frame_numbers=tuple(frame_numbers),
@@ -197,19 +151,7 @@ class Capture:
             capture = dataclasses.replace(capture, rig=rig, world=found.transform, auto_frame=found)
             log.info("%s", found.describe())
 
-        if config["volume"] is not None:
-            volume = np.array([config["volume"]["min"], config["volume"]["max"]], dtype=np.float64)
-            volume_source = "capture.yaml"
-        else:
-            try:
-                volume, volume_source = derive_volume(rig), "derived"
-            except ValueError as error:
-                raise InputError(f"{calibration_path}: {error} (expected cameras looking at the capture "
-                                 "area, or volume: in capture.yaml)") from None
-            log.info("working volume derived from the calibration: min %s max %s",
-                     np.round(volume[0], 2).tolist(), np.round(volume[1], 2).tolist())
-        if volume_source == "capture.yaml":  # a derived volume is, by construction, what most cameras see
-            check_cameras_see_volume(capture.rig, volume, where=str(calibration_path))
+        volume, volume_source = working_volume(config["volume"], capture.rig, calibration_path)
         return dataclasses.replace(capture, volume=volume, volume_source=volume_source)
 
     @property
@@ -317,285 +259,52 @@ def _stat_digest(files: Iterable[Path], root: Path) -> str:
     return digest.hexdigest()[:32]
 
 
-# ---------------------------------------------------------------------------------------------
-# capture.yaml
+def _calibration_path(root: Path, relative: str, allow_outside_paths: bool) -> Path:
+    """``calibration.path`` resolved against the capture, which it must exist in (or, allowed, outside it)."""
+    calibration_path = root / relative
+    if not allow_outside_paths and not _lies_in(calibration_path, root):
+        raise InputError(f"{root / 'capture.yaml'}: calibration.path {relative!r} leads outside the "
+                         f"capture (expected a path inside {root}, or run --allow-outside-paths)")
+    if not calibration_path.exists():
+        raise InputError(f"{root / 'capture.yaml'}: calibration.path {relative!r} does not "
+                         f"exist (expected a path relative to {root})")
+    return calibration_path
 
 
-def _read_config(path: Path) -> dict:
-    """Parse and validate ``capture.yaml``; return it with defaults filled in."""
-    if not path.is_file():
-        raise InputError(f"{path}: missing (expected a capture.yaml describing the capture, "
-                         "see CAPTURE_FORMAT.md)")
-    try:
-        raw = plain_yaml.load(path.read_text(encoding="utf-8"), str(path))
-    except (yaml.YAMLError, UnicodeDecodeError) as error:
-        first_line = str(error).splitlines()[0] if str(error) else type(error).__name__
-        raise InputError(f"{path}: not valid YAML ({first_line}) (expected a mapping of keys)") from None
-    if raw is None:
-        raise InputError(f"{path}: empty (expected a mapping with at least fps and calibration: {{format, path}}, "
-                         "see CAPTURE_FORMAT.md)")
-    if not isinstance(raw, dict):
-        raise InputError(f"{path}: top level is {type(raw).__name__} "
-                         "(expected a mapping with fps and calibration)")
-    _reject_unknown(raw, _TOP_LEVEL_KEYS, path, "")
-
-    fps = raw.get("fps")
-    if not _is_number(fps) or not fps > 0:
-        raise InputError(f"{path}: fps is {fps!r} (expected a positive number of frames per second)")
-
-    calibration = raw.get("calibration")
-    if not isinstance(calibration, dict):
-        raise InputError(f"{path}: calibration is {calibration!r} (expected a mapping with format and path)")
-    _reject_unknown(calibration, _CALIBRATION_KEYS, path, "calibration.")
-    calibration = {"units": "m", "up": "+z", **calibration}
-    if calibration.get("format") not in CALIBRATION_FORMATS:
-        raise InputError(f"{path}: calibration.format {calibration.get('format')!r} is unknown "
-                         f"(expected one of {', '.join(CALIBRATION_FORMATS)})")
-    if not isinstance(calibration.get("path"), str) or not calibration["path"]:
-        raise InputError(f"{path}: calibration.path is {calibration.get('path')!r} "
-                         "(expected a path relative to the capture directory)")
-    if calibration["units"] not in UNIT_SCALE:
-        raise InputError(f"{path}: calibration.units {calibration['units']!r} is unknown "
-                         f"(expected one of {', '.join(UNIT_SCALE)})")
-    try:
-        if calibration["up"] != "auto":
-            up_rotation(calibration["up"])
-    except InputError:
-        raise InputError(f"{path}: calibration.up {calibration['up']!r} is unknown "
-                         "(expected one of +z, -z, +y, -y, +x, -x, auto)") from None
-
-    subject = raw.get("subject")
-    if subject is not None:
-        if not isinstance(subject, dict):
-            raise InputError(f"{path}: subject is {subject!r} (expected a mapping like {{height_m: 1.75}})")
-        _reject_unknown(subject, ("height_m",), path, "subject.")
-        height = subject.get("height_m")
-        low, high = SUBJECT_HEIGHT_RANGE_M
-        if height is not None and (not _is_number(height) or not low < height <= high):
-            raise InputError(f"{path}: subject.height_m is {height!r} "
-                             f"(expected a height in metres, above {low:g} and at most {high:g})")
-
-    volume = raw.get("volume")
-    if volume is not None:
-        volume = _check_volume(volume, path)
-
-    frames = raw.get("frames") or {}
-    if not isinstance(frames, dict):
-        raise InputError(f"{path}: frames is {frames!r} "
-                         "(expected a mapping like {start: 0, stop: null, step: 1})")
-    _reject_unknown(frames, ("start", "stop", "step"), path, "frames.")
-    frames = {"start": 0, "stop": None, "step": 1, **frames}
-    for key, minimum in (("start", 0), ("step", 1), ("stop", 1)):
-        value = frames[key]
-        if key == "stop" and value is None:
-            continue
-        if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
-            raise InputError(f"{path}: frames.{key} is {value!r} (expected an integer >= {minimum})")
-    if frames["stop"] is not None and frames["stop"] <= frames["start"]:
-        raise InputError(f"{path}: frames.stop {frames['stop']} is not after frames.start {frames['start']} "
-                         "(expected start < stop)")
-    return {"fps": float(fps), "calibration": calibration, "subject": subject, "volume": volume,
-            "frames": frames}
+def _check_media_cameras(rig: Rig, root: Path, media: str, camera_media: Mapping[str, _CameraMedia],
+                         folders: Mapping[str, Mapping], sizes: Mapping[str, tuple[int, int]]) -> None:
+    """The media's cameras, and those of the given ``folders`` (silhouettes/, background/), are the
+    calibration's, and the media's image sizes are those it calibrated."""
+    _check_same_cameras(rig, set(camera_media), where=root / media)
+    for folder, names in folders.items():
+        if names:
+            _check_same_cameras(rig, set(names), where=root / folder)
+    for camera in rig:
+        if tuple(camera.size) != sizes[camera.name]:
+            raise InputError(
+                f"{camera_media[camera.name].path}: image size {sizes[camera.name]} differs from the "
+                f"calibration's {tuple(camera.size)} for camera {camera.name!r} (expected equal sizes)")
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _reject_unknown(section: dict, known: tuple[str, ...], path: Path, prefix: str) -> None:
-    """Refuse keys we do not read: a typo (``volum:``) would otherwise be silently ignored."""
-    for key in section:
-        if key not in known:
-            raise InputError(f"{path}: unknown key {prefix + str(key)!r} "
-                             f"(expected one of {', '.join(prefix + name for name in known)})")
+def _check_given_files(frame_numbers: Sequence[int], silhouette_media: Mapping[str, _CameraMedia],
+                       background_paths: Mapping[str, Path], sizes: Mapping[str, tuple[int, int]]) -> None:
+    """Given silhouettes cover every processed frame; given clean plates have their camera's size."""
+    for source in silhouette_media.values():
+        missing = [f for f in frame_numbers if not source.frame_path(f).is_file()]
+        if missing:
+            raise InputError(f"{source.path}: no silhouette for frame {missing[0]} "
+                             f"({len(missing)} missing; expected one mask per processed frame)")
+    for name, path in background_paths.items():
+        size = _image_size(path)
+        if size != sizes[name]:
+            raise InputError(f"{path}: image size {size} differs from camera {name!r}'s {sizes[name]} "
+                             "(expected the clean plate of that camera)")
 
 
 def _lies_in(path: Path, root: Path) -> bool:
     """Whether ``path`` (``..`` and links followed) is ``root`` or lies under it."""
     path, root = path.resolve(), root.resolve()
     return path == root or root in path.parents
-
-
-def _check_volume(volume: Any, path: Path) -> dict:
-    if not isinstance(volume, dict) or set(volume) != {"min", "max"}:
-        raise InputError(f"{path}: volume is {volume!r} "
-                         "(expected a mapping with min: [x, y, z] and max: [x, y, z])")
-    corners = []
-    for key in ("min", "max"):
-        corner = volume[key]
-        if not isinstance(corner, list) or len(corner) != 3 or not all(_is_number(v) for v in corner):
-            raise InputError(f"{path}: volume.{key} is {corner!r} (expected three numbers in metres)")
-        corners.append([float(v) for v in corner])
-    if not all(lo < hi for lo, hi in zip(*corners, strict=True)):
-        raise InputError(f"{path}: volume.min {corners[0]} is not below volume.max {corners[1]} "
-                         "(expected min < max on every axis)")
-    return {"min": corners[0], "max": corners[1]}
-
-
-# ---------------------------------------------------------------------------------------------
-# Layout
-
-
-def _visible_entries(folder: Path) -> list[Path]:
-    """Entries of ``folder`` in name order, hidden files (``.DS_Store``, ...) skipped."""
-    return sorted(p for p in folder.iterdir() if not p.name.startswith("."))
-
-
-def _find_media(root: Path) -> tuple[dict[str, _CameraMedia], str]:
-    """Camera name -> media source, and which kind of media the capture has."""
-    images = _find_image_folders(root / "images", what="images")
-    videos = _find_videos(root / "videos")
-    if images and videos:
-        log.info("%s: both images/ and videos/ present; reading images/", root)
-    if images:
-        return images, "images"
-    if videos:
-        return videos, "videos"
-    if (root / "silhouettes").is_dir():
-        return {}, "silhouettes"
-    raise InputError(f"{root}: no media found (expected videos/<camera>.mp4, images/<camera>/<frame:06d>.png "
-                     "or silhouettes/<camera>/<frame:06d>.png)")
-
-
-def _find_videos(folder: Path) -> dict[str, _CameraMedia]:
-    if not folder.is_dir():
-        return {}
-    videos = {}
-    for entry in _visible_entries(folder):
-        if not entry.is_file() or entry.suffix.lower() not in VIDEO_SUFFIXES:
-            raise InputError(f"{entry}: not a video file (expected <camera>{{{','.join(VIDEO_SUFFIXES)}}})")
-        if entry.stem in videos:
-            raise InputError(f"{entry}: a second video for camera {entry.stem!r} (expected one per camera)")
-        videos[entry.stem] = _CameraMedia(entry)
-    return videos
-
-
-def _find_image_folders(folder: Path, *, what: str) -> dict[str, _CameraMedia]:
-    """Camera name -> its folder of ``<frame:06d>.<suffix>`` files (one suffix per camera)."""
-    if not folder.is_dir():
-        return {}
-    cameras = {}
-    for entry in _visible_entries(folder):
-        if not entry.is_dir():
-            raise InputError(f"{entry}: not a folder (expected {what}/<camera>/<frame:06d>.png)")
-        suffixes = set()
-        for file in _visible_entries(entry):
-            match = FRAME_FILE.match(file.name)
-            if not match or match.group(2).lower() not in IMAGE_SUFFIXES or not file.is_file():
-                raise InputError(f"{file}: not a frame image (expected files named <frame:06d>.png or .jpg)")
-            suffixes.add(match.group(2))
-        if not suffixes:
-            raise InputError(f"{entry}: no frames (expected {what}/{entry.name}/<frame:06d>.png files)")
-        if len(suffixes) > 1:
-            raise InputError(f"{entry}: frames with mixed suffixes {sorted(suffixes)} "
-                             "(expected one image format)")
-        cameras[entry.name] = _CameraMedia(entry, suffixes.pop())
-    return cameras
-
-
-def _find_backgrounds(folder: Path) -> dict[str, Path]:
-    if not folder.is_dir():
-        return {}
-    backgrounds = {}
-    for entry in _visible_entries(folder):
-        if not entry.is_file() or entry.suffix.lower() not in IMAGE_SUFFIXES:
-            raise InputError(f"{entry}: not a background image (expected background/<camera>.png or .jpg)")
-        backgrounds[entry.stem] = entry
-    return backgrounds
-
-
-def _frame_numbers_in(source: _CameraMedia) -> list[int]:
-    return sorted(int(FRAME_FILE.match(p.name).group(1)) for p in _visible_entries(source.path))
-
-
-def _image_size(path: Path) -> tuple[int, int]:
-    image = frames_io.read_image(path)
-    return image.shape[1], image.shape[0]
-
-
-def _first_frame_size(source: _CameraMedia, camera: str) -> tuple[int, int]:
-    """``(width, height)`` of the camera's first frame (decoding it checks the file is readable)."""
-    if source.suffix:
-        return _image_size(source.frame_path(_frame_numbers_in(source)[0]))
-    for _, image in _iter_video(source.path, [0]):
-        return image.shape[1], image.shape[0]
-    raise AssertionError("unreachable: _iter_video yields or raises")
-
-
-def _video_frame_count(path: Path) -> int:
-    video = cv2.VideoCapture(str(path))
-    try:
-        if not video.isOpened():
-            raise InputError(f"{path}: not a readable video (expected a file OpenCV can decode)")
-        return int(video.get(cv2.CAP_PROP_FRAME_COUNT))
-    finally:
-        video.release()
-
-
-def _iter_video(path: Path, frames: Iterable[int]) -> Iterator[tuple[int, np.ndarray]]:
-    """Decode the increasing ``frames`` of a video with one ``cv2.VideoCapture``."""
-    video = cv2.VideoCapture(str(path))
-    try:
-        if not video.isOpened():
-            raise InputError(f"{path}: not a readable video (expected a file OpenCV can decode)")
-        position = 0  # index of the frame the next read() returns
-        for frame in frames:
-            if frame < position or frame - position > MAX_FRAMES_DECODED_TO_SKIP:
-                video.set(cv2.CAP_PROP_POS_FRAMES, frame)
-                position = frame
-            while position < frame:
-                video.grab()
-                position += 1
-            ok, image = video.read()
-            position += 1
-            if not ok:
-                raise InputError(f"{path}: could not decode frame {frame} (expected a readable frame)")
-            yield frame, image
-    finally:
-        video.release()
-
-
-def _available_frames(camera_media: Mapping[str, _CameraMedia], media: str, root: Path) -> list[int]:
-    """Frame numbers present for every camera; all cameras must have the same ones."""
-    per_camera = {}
-    for name, source in camera_media.items():
-        if media == "videos":
-            count = _video_frame_count(source.path)
-            per_camera[name] = list(range(count))
-        else:
-            per_camera[name] = _frame_numbers_in(source)
-    reference_name = min(per_camera)
-    reference = per_camera[reference_name]
-    for name, frames in sorted(per_camera.items()):
-        if frames != reference:
-            where, reference_file = camera_media[name].path, camera_media[reference_name].path.name
-            if media == "videos":
-                raise InputError(f"{where}: {len(frames)} frames but {reference_file} has {len(reference)} "
-                                 "(expected the same frame count for every camera)")
-            extra = sorted(set(frames) ^ set(reference))
-            raise InputError(f"{where}: frame {extra[0]} is in one of {name!r} and {reference_name!r} but "
-                             "not the other (expected the same frame numbers for every camera)")
-    if not reference:
-        raise InputError(f"{root / media}: the media have no frames (expected at least one)")
-    return reference
-
-
-def _select_frames(frames: dict, available: list[int], config_path: Path) -> list[int]:
-    """Apply ``frames.start/stop/step`` (on frame numbers) to the frames available."""
-    start, stop, step = frames["start"], frames["stop"], frames["step"]
-    last = available[-1]
-    if start > last:
-        raise InputError(f"{config_path}: frames.start {start} is out of range "
-                         f"(expected at most {last}, the last frame of the media)")
-    if stop is not None and stop > last + 1:
-        raise InputError(f"{config_path}: frames.stop {stop} is out of range "
-                         f"(expected at most {last + 1}, one past the last frame of the media)")
-    stop = last + 1 if stop is None else stop
-    selected = [f for f in available if start <= f < stop and (f - start) % step == 0]
-    if not selected:
-        raise InputError(f"{config_path}: frames {start}:{stop}:{step} select no frame of the media "
-                         f"(expected a range overlapping frames {available[0]}..{last})")
-    return selected
 
 
 def _load_calibration(fmt: str, path: Path, sizes: Mapping[str, tuple[int, int]]) -> Rig:
@@ -619,55 +328,6 @@ def _check_same_cameras(rig: Rig, names: set[str], *, where: Path) -> None:
     if calibrated - names:
         raise InputError(f"{where}: calibrated camera {sorted(calibrated - names)[0]!r} has no media here "
                          f"(expected a file or folder for each of {', '.join(rig.names)})")
-
-
-# ---------------------------------------------------------------------------------------------
-# Working volume
-
-
-def derive_volume(rig: Rig, *, height_m: float = DERIVED_VOLUME_HEIGHT_M) -> np.ndarray:
-    """Working volume seen by most cameras, when ``capture.yaml`` gives none.
-
-    Rule: lay a square grid of floor positions (x, y) over the cameras' surroundings (centred on
-    the mean camera position, half-size the largest camera distance from it plus 1 m, or 3 m if the
-    cameras are close together). A position counts as seen by a camera when the vertical segment
-    above it, sampled at :data:`DERIVED_VOLUME_HEIGHTS` (the feet and the body's middle), is in front of
-    the camera and inside its image (`Camera.sees`: the undistorted pinhole model, safe far outside the
-    image where the distortion polynomial is not). Keep the positions seen by a majority of the cameras (at least
-    two), or, if none, by the largest number seen anywhere; the volume is their bounding box,
-    ``-DERIVED_VOLUME_FLOOR_MARGIN_M <= z <= height_m``.
-
-    Returns
-    -------
-    (2, 3) float
-        ``[[x_min, y_min, -margin], [x_max, y_max, height_m]]`` in metres.
-
-    Raises
-    ------
-    ValueError
-        When no camera sees any floor position of the grid.
-    """
-    centres = rig.centres  # (C, 3)
-    middle = centres[:, :2].mean(axis=0)
-    half = max(np.linalg.norm(centres[:, :2] - middle, axis=1).max() + 1.0, 3.0)
-    axis = np.linspace(-half, half, DERIVED_VOLUME_GRID)
-    gx, gy = np.meshgrid(middle[0] + axis, middle[1] + axis, indexing="ij")
-    floor = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (G, 2)
-    seen = np.ones((len(rig), len(floor)), dtype=bool)  # (C, G)
-    for fraction in DERIVED_VOLUME_HEIGHTS:
-        X = np.hstack([floor, np.full((len(floor), 1), fraction * height_m)])  # (G, 3)
-        for c, camera in enumerate(rig):
-            seen[c] &= camera.sees(X)
-    counts = seen.sum(axis=0)  # (G,)
-    needed = max(2, len(rig) // 2 + 1)
-    if counts.max() < needed:
-        needed = counts.max()
-    if needed == 0:
-        raise ValueError("no camera sees the floor near the cameras")
-    kept = floor[counts >= needed]
-    step = axis[1] - axis[0]  # grow by one grid cell so the box covers the kept cells, not their centres
-    return np.array([[*(kept.min(axis=0) - step), -DERIVED_VOLUME_FLOOR_MARGIN_M],
-                     [*(kept.max(axis=0) + step), height_m]])
 
 
 def capture_summary(capture: Capture) -> dict:
