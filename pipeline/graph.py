@@ -1,4 +1,4 @@
-"""The real stage graph: one :class:`~pipeline.engine.runner.Stage` declaration per stage, in run order.
+"""The real stage graph: one :class:`~pipeline.engine.stage.Stage` declaration per stage, in run order.
 
 Adding a stage
 --------------
@@ -44,7 +44,8 @@ from pathlib import Path
 import numpy as np
 
 from calib.formats import save_rig
-from pipeline.engine.runner import Stage, StageContext
+from pipeline.engine.context import StageContext
+from pipeline.engine.stage import Stage
 from pipeline.frame_tasks import reconstruction_task, silhouettes_task
 from pipeline.io import atomic, frames_io, run_layout
 from pipeline.io.capture import Capture, capture_summary

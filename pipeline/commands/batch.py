@@ -44,7 +44,8 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 from calib.errors import InputError
 from pipeline.engine.executors import InProcessExecutor, Workers, local_count, make_executor
-from pipeline.engine.runner import check_output_folder, format_columns, output_lock
+from pipeline.engine.output_folder import check_output_folder, output_lock
+from pipeline.engine.runner import format_columns
 from pipeline.io import atomic
 from pipeline.terminal import PrintableFormatter, printable
 
@@ -390,7 +391,7 @@ def describe(report: CaptureReport) -> str:
 def make_jobs(root: Path, captures: Sequence[Path], out: Path, params: Mapping[str, Any], *,
               allow_outside_paths: bool, worker_log_level: int | None) -> list[CaptureJob]:
     """One job per capture, into ``out/<its path under root>``; refuses, before any run, an ``out`` that
-    overlaps a capture (see :func:`~pipeline.engine.runner.check_output_folder`)."""
+    overlaps a capture (see :func:`~pipeline.engine.output_folder.check_output_folder`)."""
     if Path(out).resolve() == Path(root).resolve():
         raise InputError(f"--out {out}: is the folder of captures (expected a separate output folder)")
     jobs = []

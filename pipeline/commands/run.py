@@ -20,8 +20,10 @@ from calib.errors import InputError
 from pipeline import graph
 from pipeline.engine import run_warnings
 from pipeline.engine.executors import Workers, make_executor
+from pipeline.engine.output_folder import output_lock, storage_error
 from pipeline.engine.params import apply_overrides, default_params, parse_assignments, read_config
-from pipeline.engine.runner import Runner, StageOutcome, format_summary, output_lock, select_stages, storage_error
+from pipeline.engine.runner import Runner, StageOutcome, format_summary
+from pipeline.engine.stage import select_stages
 from pipeline.io.capture import Capture
 from pipeline.io.export_io import check_cutoff, read_joints_csv
 from pipeline.io.run_layout import BVH_FILE, C3D_FILE, JOINTS_FILE, RunLayout
@@ -129,7 +131,7 @@ def run_capture(capture_dir: Path, out: Path, params: Mapping[str, Any], workers
     ------
     InputError
         For a mistake in the capture or the output folder, and for a full, read-only or forbidden disk
-        (:func:`~pipeline.engine.runner.storage_error`), from this process or a worker.
+        (:func:`~pipeline.engine.output_folder.storage_error`), from this process or a worker.
     """
     try:
         with run_warnings.collecting() as warnings:

@@ -10,8 +10,9 @@ import argparse
 from pathlib import Path
 
 from pipeline import graph
+from pipeline.engine.output_folder import read_run_record
 from pipeline.engine.params import apply_overrides, default_params
-from pipeline.engine.runner import graph_status, read_run_record
+from pipeline.engine.status import graph_status
 from pipeline.io.capture import Capture
 from pipeline.io.run_layout import RunLayout
 from pipeline.terminal import printable

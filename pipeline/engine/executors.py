@@ -1,7 +1,7 @@
 """Where per-frame work runs: in this process, in a local process pool, or on a Dask cluster.
 
 All three are ``concurrent.futures.Executor`` objects, so a stage submits chunks of frames the same
-way whatever runs them (see :func:`pipeline.engine.runner.StageContext.map_frames`). A call in another process
+way whatever runs them (see :func:`pipeline.engine.context.StageContext.map_frames`). A call in another process
 (:func:`call_logged`) returns the warnings it logged, and :func:`relog` logs them again here, so that they
 are shown and collected (:mod:`pipeline.engine.run_warnings`) like this process's own:
 

@@ -102,7 +102,7 @@ class WarningLog(logging.Handler):
 
     def _write(self) -> None:
         # Nothing is written before a stage runs into a folder that has no such file yet: a run refused at
-        # once leaves no trace (``runner.output_lock`` removes the folder it made when it stays empty).
+        # once leaves no trace (``output_folder.output_lock`` removes the folder it made when it stays empty).
         if self.path is None or not (self._stage_ran or self.path.exists()):
             return
         frames_io.write_json(self.path, {"warnings": self.kept + self.records})

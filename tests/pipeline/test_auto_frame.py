@@ -19,7 +19,8 @@ from pipeline.cli import main
 from pipeline.evaluate import evaluate_run
 from pipeline.io import frames_io
 from pipeline.io.auto_frame import aim_point
-from pipeline.io.capture import DERIVED_VOLUME_FLOOR_MARGIN_M, Capture
+from pipeline.io.capture import Capture
+from pipeline.io.capture.volume import DERIVED_VOLUME_FLOOR_MARGIN_M
 from pipeline.io.export_io import read_joints_csv, write_joints_csv
 
 TAEKWONDO = Path(__file__).resolve().parents[2] / "data_samples" / "taekwondo"

@@ -28,8 +28,8 @@ from pipeline.commands.batch import (
     make_jobs,
     run_jobs,
 )
+from pipeline.engine.cache import read_manifest
 from pipeline.engine.executors import Workers
-from pipeline.engine.runner import read_manifest
 from pipeline.graph import STAGES
 from pipeline.io.capture import Capture
 from pipeline.lab.bench.batch import BROKEN as BENCH_BROKEN

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline.lab.bench import paper, recipes, speed, suite, unseen
+from pipeline.lab.bench import paper, recipes, speed, suite, tables, targets, unseen
 from pipeline.lab.bench.masks import perturb_mask
 from pipeline.lab.bench.runs import LAUNCHER, run_command, stage_timings
 from pipeline.lab.synth.writer import SynthParams
@@ -290,8 +290,8 @@ def results():
 
 
 def test_targets_are_judged_on_the_measured_numbers(results):
-    verdicts = {(t["suite"], t["target"]): t for t in suite.judge_targets(results)}
-    assert len(verdicts) == len([t for t in suite.TARGETS if t.suite in results])  # exports: test_bench_exports
+    verdicts = {(t["suite"], t["target"]): t for t in targets.judge_targets(results)}
+    assert len(verdicts) == len([t for t in targets.TARGETS if t.suite in results])  # exports: test_bench_exports
     centre = verdicts[("calibration", "camera centre error, worst camera (rigidly aligned)")]
     assert not centre["met"] and centre["value"] == 12.0  # the worst of the board scenarios
     assert verdicts[("calibration", "taekwondo MPJPE, self-calibrated minus true rig")]["met"]
@@ -320,14 +320,14 @@ def test_targets_are_judged_on_the_measured_numbers(results):
 
 def test_a_missing_number_is_a_miss_not_a_crash(results):
     del results["speed"]["tracker"]
-    verdict = next(t for t in suite.judge_targets(results) if "tracker" in t["target"])
+    verdict = next(t for t in targets.judge_targets(results) if "tracker" in t["target"])
     assert math.isnan(verdict["value"]) and not verdict["met"]
 
 
 def test_format_table_aligns_numbers_and_shows_missing_values():
-    table = suite.format_table(("name", "value"), [("a", 1.25), ("b", float("nan")), ("c", None)])
+    table = tables.format_table(("name", "value"), [("a", 1.25), ("b", float("nan")), ("c", None)])
     assert table.splitlines() == ["| name | value |", "|---|---:|", "| a | 1.2 |", "| b | – |", "| c | – |"]
-    assert suite.fmt(True) == "yes" and suite.fmt(3) == "3" and suite.fmt(0.12345, 3) == "0.123"
+    assert tables.fmt(True) == "yes" and tables.fmt(3) == "3" and tables.fmt(0.12345, 3) == "0.123"
 
 
 def test_results_markdown_has_every_section_command_and_verdict(results):

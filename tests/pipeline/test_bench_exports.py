@@ -5,7 +5,7 @@ import numpy as np
 from conftest import stick_figure
 
 from pipeline.io.export_io import read_joints_csv, write_exports, write_joints_csv
-from pipeline.lab.bench import exports, suite
+from pipeline.lab.bench import exports, suite, targets
 from stages.export import ExportParams
 from stages.export.quality import FrameQuality
 
@@ -67,7 +67,7 @@ def test_targets_and_tables_of_the_exports_section():
     section = {"quick": False, "command": "python -m pipeline bench --suite exports", "made": made, "root": "/f",
                "cutoffs_hz": [4.0, 6.0], "judged_cutoff_hz": 6.0,
                "rows": [_row("walk", 22.3, 20.0, 21.6, 9.0), _row("kick", 17.3, 14.0, 17.9, 4.0, disagreement=0.2)]}
-    verdicts = {v["target"]: v for v in suite.judge_targets({"exports": section})}
+    verdicts = {v["target"]: v for v in targets.judge_targets({"exports": section})}
     agreement = verdicts["BVH, TRC, C3D vs joints.csv, largest distance in any frame (worst capture, smoothed or not)"]
     assert agreement["value"] == 0.2 and not agreement["met"]
     ratio = verdicts["smoothing at 6 Hz: wrist acceleration error, smoothed / unsmoothed (worst capture)"]

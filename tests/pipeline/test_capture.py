@@ -12,7 +12,8 @@ import pytest
 from conftest import BACKGROUND_GREY, TINY_SIZE, frame_image, make_capture, tiny_rig, write_config
 
 from calib.errors import InputError
-from pipeline.io.capture import DERIVED_VOLUME_FLOOR_MARGIN_M, Capture, derive_volume
+from pipeline.io.capture import Capture, derive_volume
+from pipeline.io.capture.volume import DERIVED_VOLUME_FLOOR_MARGIN_M
 from stages.tracking.params import TrackerParams
 
 

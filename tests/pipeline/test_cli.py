@@ -27,7 +27,7 @@ from conftest import make_capture, tiny_rig, write_config, write_video
 from calib.errors import InputError
 from calib.formats import load_rig
 from pipeline.cli import SUBCOMMANDS, main
-from pipeline.engine.runner import output_lock
+from pipeline.engine.output_folder import output_lock
 from pipeline.graph import STAGES
 from pipeline.io import atomic, frames_io
 from pipeline.io.run_layout import MANIFEST, WARNINGS_FILE
@@ -467,7 +467,7 @@ def test_an_empty_capture_yaml_says_what_it_must_hold(tiny_capture, tmp_path, ca
 def test_the_examples_given_to_users_name_real_parameters():
     """run --help, the --set error and the params module's docstring show parameters that exist."""
     import pipeline.commands.run as run_command
-    from pipeline import params as params_module
+    from pipeline.engine import params as params_module
     from pipeline.engine.params import apply_overrides, default_params, parse_assignments
 
     examples = re.findall(r"--set (\S+=\S+)", run_command.__doc__)

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from calib.errors import InputError
+from pipeline.engine.context import StageContext
 from pipeline.engine.executors import WORKER_NICENESS, InProcessExecutor, make_executor
-from pipeline.engine.runner import StageContext
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
 

@@ -32,14 +32,15 @@ UNCOVERED = """
 import json, os, sys
 from pathlib import Path
 from pipeline import graph
-from pipeline.engine import runner
+from pipeline.engine import runner, versions
 from pipeline.io.capture import Capture
 from pipeline.engine.executors import make_executor
 from pipeline.engine.params import default_params
 
 repo = Path(runner.__file__).resolve().parents[2]
 roots = tuple(repo / name for name in ("calib", "stages", "pipeline"))
-orchestration = {repo / "pipeline" / "engine" / name for name in ("runner.py", "executors.py", "run_warnings.py")}
+orchestration = {repo / "pipeline" / "engine" / name for name in ("runner.py", "context.py", "executors.py",
+                                                                          "run_warnings.py")}
 capture, out = Capture.open(sys.argv[1]), Path(sys.argv[2])
 
 
@@ -72,7 +73,7 @@ def uncovered(stage):
     runner.Runner._execute = traced
     with make_executor(1) as workers:
         runner.Runner(graph.STAGES, capture, default_params(graph.STAGES), out, workers).run_stage(stage, force=True)
-    inputs = runner.code_inputs(stage)
+    inputs = versions.code_inputs(stage)
     files = {path.resolve() for _, path in inputs.files}
     functions = {code for function in inputs.functions for code in nested(function.__code__)}
     misses = set()

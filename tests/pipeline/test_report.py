@@ -15,17 +15,9 @@ from pipeline.io import frames_io
 from pipeline.io.export_io import write_angles_csv, write_joints_csv
 from pipeline.io.overlay_video import write_overlay_video
 from pipeline.io.run_layout import WARNINGS_FILE, overlay_video_name
-from pipeline.report.page import (
-    JointSequence,
-    angle_groups,
-    build_report,
-    overlay_stills,
-    read_angles_csv,
-    stage_timings,
-    viewer_data,
-    warning_groups,
-    write_report,
-)
+from pipeline.report.figures import angle_groups, overlay_stills, viewer_data
+from pipeline.report.page import build_report, warning_groups, write_report
+from pipeline.report.run_data import JointSequence, read_angles_csv, stage_timings
 from stages.joints import JOINT_NAMES
 
 CHROMIUM_SECONDS = 60

@@ -19,20 +19,15 @@ import numpy as np
 import pytest
 
 from calib.errors import InputError
+from pipeline.engine.cache import describe_outputs, output_changes
+from pipeline.engine.context import consecutive_chunks
 from pipeline.engine.executors import make_executor
+from pipeline.engine.output_folder import output_lock
 from pipeline.engine.params import apply_overrides, default_params
-from pipeline.engine.runner import (
-    Runner,
-    Stage,
-    code_inputs,
-    code_version,
-    consecutive_chunks,
-    describe_outputs,
-    graph_status,
-    output_changes,
-    output_lock,
-    select_stages,
-)
+from pipeline.engine.runner import Runner
+from pipeline.engine.stage import Stage, select_stages
+from pipeline.engine.status import graph_status
+from pipeline.engine.versions import code_inputs, code_version
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
 from pipeline.io.run_layout import LOCK, MANIFEST, MARKER, RUN_RECORD

@@ -34,7 +34,7 @@ from pipeline.commands.batch import BATCH_CSV, SOME_FAILED
 from pipeline.io.run_layout import RunLayout
 from pipeline.lab.bench.runs import REPO, run_pipeline
 from pipeline.lab.bench.speed import prefix_view
-from pipeline.lab.bench.suite import fmt, format_table
+from pipeline.lab.bench.tables import fmt, format_table
 
 SAMPLES = REPO / "data_samples"
 #: The study's good captures: name -> (sample, first frame, end frame); quick: :data:`QUICK_FRAMES` of each.

@@ -34,7 +34,7 @@ from calib.formats import load_rig
 from pipeline.evaluate import evaluate_run
 from pipeline.lab.bench.recipes import generator_version
 from pipeline.lab.bench.runs import REPO, run_pipeline
-from pipeline.lab.bench.suite import format_table
+from pipeline.lab.bench.tables import format_table
 from pipeline.lab.synth.boards import write_board_recording
 
 BOARDS = {"checkerboard": "checkerboard:8x5:0.11", "charuco": "charuco:7x5:0.14:0.084:DICT_4X4_50"}

@@ -1,0 +1,204 @@
+"""Where a capture's frames are: ``images/<camera>/<frame:06d>.png|.jpg``, ``videos/<camera>.<ext>``,
+``silhouettes/`` and ``background/``; the frames every camera has, the ``frames:`` selection, and video
+decoding (one ``cv2.VideoCapture`` per pass, sequential reads)."""
+
+from __future__ import annotations
+
+import logging
+import re
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from calib.errors import InputError
+from pipeline.io import frames_io
+
+log = logging.getLogger(__name__)
+
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+FRAME_FILE = re.compile(r"^(\d{6,})(\.[A-Za-z]+)$")
+
+#: Seeking is slower than decoding a few frames; skip ahead by decoding up to this many frames.
+MAX_FRAMES_DECODED_TO_SKIP = 8
+
+
+@dataclass(frozen=True)
+class _CameraMedia:
+    """Where one camera's frames live: a video file or an image folder with one suffix."""
+
+    path: Path
+    suffix: str = ""  # image files' suffix; "" for a video
+
+    def frame_path(self, frame: int) -> Path:
+        return self.path / frames_io.frame_name(frame, self.suffix)
+
+
+def _visible_entries(folder: Path) -> list[Path]:
+    """Entries of ``folder`` in name order, hidden files (``.DS_Store``, ...) skipped."""
+    return sorted(p for p in folder.iterdir() if not p.name.startswith("."))
+
+
+def _find_media(root: Path) -> tuple[dict[str, _CameraMedia], str]:
+    """Camera name -> media source, and which kind of media the capture has."""
+    images = _find_image_folders(root / "images", what="images")
+    videos = _find_videos(root / "videos")
+    if images and videos:
+        log.info("%s: both images/ and videos/ present; reading images/", root)
+    if images:
+        return images, "images"
+    if videos:
+        return videos, "videos"
+    if (root / "silhouettes").is_dir():
+        return {}, "silhouettes"
+    raise InputError(f"{root}: no media found (expected videos/<camera>.mp4, images/<camera>/<frame:06d>.png "
+                     "or silhouettes/<camera>/<frame:06d>.png)")
+
+
+def _find_videos(folder: Path) -> dict[str, _CameraMedia]:
+    if not folder.is_dir():
+        return {}
+    videos = {}
+    for entry in _visible_entries(folder):
+        if not entry.is_file() or entry.suffix.lower() not in VIDEO_SUFFIXES:
+            raise InputError(f"{entry}: not a video file (expected <camera>{{{','.join(VIDEO_SUFFIXES)}}})")
+        if entry.stem in videos:
+            raise InputError(f"{entry}: a second video for camera {entry.stem!r} (expected one per camera)")
+        videos[entry.stem] = _CameraMedia(entry)
+    return videos
+
+
+def _find_image_folders(folder: Path, *, what: str) -> dict[str, _CameraMedia]:
+    """Camera name -> its folder of ``<frame:06d>.<suffix>`` files (one suffix per camera)."""
+    if not folder.is_dir():
+        return {}
+    cameras = {}
+    for entry in _visible_entries(folder):
+        if not entry.is_dir():
+            raise InputError(f"{entry}: not a folder (expected {what}/<camera>/<frame:06d>.png)")
+        suffixes = set()
+        for file in _visible_entries(entry):
+            match = FRAME_FILE.match(file.name)
+            if not match or match.group(2).lower() not in IMAGE_SUFFIXES or not file.is_file():
+                raise InputError(f"{file}: not a frame image (expected files named <frame:06d>.png or .jpg)")
+            suffixes.add(match.group(2))
+        if not suffixes:
+            raise InputError(f"{entry}: no frames (expected {what}/{entry.name}/<frame:06d>.png files)")
+        if len(suffixes) > 1:
+            raise InputError(f"{entry}: frames with mixed suffixes {sorted(suffixes)} "
+                             "(expected one image format)")
+        cameras[entry.name] = _CameraMedia(entry, suffixes.pop())
+    return cameras
+
+
+def _find_backgrounds(folder: Path) -> dict[str, Path]:
+    if not folder.is_dir():
+        return {}
+    backgrounds = {}
+    for entry in _visible_entries(folder):
+        if not entry.is_file() or entry.suffix.lower() not in IMAGE_SUFFIXES:
+            raise InputError(f"{entry}: not a background image (expected background/<camera>.png or .jpg)")
+        backgrounds[entry.stem] = entry
+    return backgrounds
+
+
+def _frame_numbers_in(source: _CameraMedia) -> list[int]:
+    return sorted(int(FRAME_FILE.match(p.name).group(1)) for p in _visible_entries(source.path))
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    image = frames_io.read_image(path)
+    return image.shape[1], image.shape[0]
+
+
+def _first_frame_size(source: _CameraMedia, camera: str) -> tuple[int, int]:
+    """``(width, height)`` of the camera's first frame (decoding it checks the file is readable)."""
+    if source.suffix:
+        return _image_size(source.frame_path(_frame_numbers_in(source)[0]))
+    for _, image in _iter_video(source.path, [0]):
+        return image.shape[1], image.shape[0]
+    raise AssertionError("unreachable: _iter_video yields or raises")
+
+
+def _video_frame_count(path: Path) -> int:
+    video = cv2.VideoCapture(str(path))
+    try:
+        if not video.isOpened():
+            raise InputError(f"{path}: not a readable video (expected a file OpenCV can decode)")
+        return int(video.get(cv2.CAP_PROP_FRAME_COUNT))
+    finally:
+        video.release()
+
+
+def _iter_video(path: Path, frames: Iterable[int]) -> Iterator[tuple[int, np.ndarray]]:
+    """Decode the increasing ``frames`` of a video with one ``cv2.VideoCapture``.
+
+    The decoder gets OpenCV's thread count: one in a worker's single-threaded block, where frames are the
+    unit of parallelism and a decoder's own threads only add a tenth of CPU time for their synchronisation.
+    """
+    video = cv2.VideoCapture(str(path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, cv2.getNumThreads()])
+    try:
+        if not video.isOpened():
+            raise InputError(f"{path}: not a readable video (expected a file OpenCV can decode)")
+        position = 0  # index of the frame the next read() returns
+        for frame in frames:
+            if frame < position or frame - position > MAX_FRAMES_DECODED_TO_SKIP:
+                video.set(cv2.CAP_PROP_POS_FRAMES, frame)
+                position = frame
+            while position < frame:
+                video.grab()
+                position += 1
+            ok, image = video.read()
+            position += 1
+            if not ok:
+                raise InputError(f"{path}: could not decode frame {frame} (expected a readable frame)")
+            yield frame, image
+    finally:
+        video.release()
+
+
+def _available_frames(camera_media: Mapping[str, _CameraMedia], media: str, root: Path) -> list[int]:
+    """Frame numbers present for every camera; all cameras must have the same ones."""
+    per_camera = {}
+    for name, source in camera_media.items():
+        if media == "videos":
+            count = _video_frame_count(source.path)
+            per_camera[name] = list(range(count))
+        else:
+            per_camera[name] = _frame_numbers_in(source)
+    reference_name = min(per_camera)
+    reference = per_camera[reference_name]
+    for name, frames in sorted(per_camera.items()):
+        if frames != reference:
+            where, reference_file = camera_media[name].path, camera_media[reference_name].path.name
+            if media == "videos":
+                raise InputError(f"{where}: {len(frames)} frames but {reference_file} has {len(reference)} "
+                                 "(expected the same frame count for every camera)")
+            extra = sorted(set(frames) ^ set(reference))
+            raise InputError(f"{where}: frame {extra[0]} is in one of {name!r} and {reference_name!r} but "
+                             "not the other (expected the same frame numbers for every camera)")
+    if not reference:
+        raise InputError(f"{root / media}: the media have no frames (expected at least one)")
+    return reference
+
+
+def _select_frames(frames: dict, available: list[int], config_path: Path) -> list[int]:
+    """Apply ``frames.start/stop/step`` (on frame numbers) to the frames available."""
+    start, stop, step = frames["start"], frames["stop"], frames["step"]
+    last = available[-1]
+    if start > last:
+        raise InputError(f"{config_path}: frames.start {start} is out of range "
+                         f"(expected at most {last}, the last frame of the media)")
+    if stop is not None and stop > last + 1:
+        raise InputError(f"{config_path}: frames.stop {stop} is out of range "
+                         f"(expected at most {last + 1}, one past the last frame of the media)")
+    stop = last + 1 if stop is None else stop
+    selected = [f for f in available if start <= f < stop and (f - start) % step == 0]
+    if not selected:
+        raise InputError(f"{config_path}: frames {start}:{stop}:{step} select no frame of the media "
+                         f"(expected a range overlapping frames {available[0]}..{last})")
+    return selected
