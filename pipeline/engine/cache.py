@@ -53,9 +53,19 @@ def expected_record(stage: Stage, capture: Capture, params: Any, output_root: Pa
             missing.append(upstream)
     for part in stage.capture_parts:
         inputs[f"capture:{part}"] = capture.fingerprint(part)
+    for name, path in (params.input_files() if hasattr(params, "input_files") else {}).items():
+        inputs[f"file:{name}"] = file_digest(path)
     record = {"stage": stage.name, "code_version": code_version(stage), "params": params_to_dict(params),
               "inputs": inputs}
     return Expected(record, _hash(canonical_json(record)), tuple(missing))
+
+
+def file_digest(path: Path) -> str | None:
+    """SHA-256 of a file's bytes (None when it cannot be read: the stage's own check then says why)."""
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None
 
 
 def streamed_key(stage: Stage, capture: Capture, params: Any, output_root: Path, upstream_key: str) -> str:

@@ -27,7 +27,9 @@ class Stage:
     inputs : tuple of str
         Upstream stages whose results it reads (through ``ctx.input_dir(name)``).
     params_type : type or None
-        Frozen dataclass of its parameters (every field with a default), or ``None``.
+        Frozen dataclass of its parameters (every field with a default), or ``None``. Its method
+        ``input_files()``, if it has one, names the files outside the capture that the parameters point
+        to (a body file); their contents are part of the stage's key (:func:`~pipeline.engine.cache.file_digest`).
     capture_parts : tuple of str
         Parts of the capture it reads directly (see :meth:`~pipeline.io.capture.Capture.fingerprint`).
     code : tuple of str

@@ -44,7 +44,7 @@ def load_body(name: str = "default", *, height_m: float | None = None) -> BodyMo
     InputError
         If there is no such body or the file is not a body description (one line naming the file).
     """
-    if _is_path(name):
+    if is_body_path(name):
         path = Path(name)
         try:
             text = path.read_text(encoding="utf-8")
@@ -70,7 +70,7 @@ def load_body(name: str = "default", *, height_m: float | None = None) -> BodyMo
     return body if height_m is None else body.scaled(height_m)
 
 
-def _is_path(name: str) -> bool:
+def is_body_path(name: str) -> bool:
     """Whether a body is named by a file path rather than by a shipped body's name."""
     return "/" in name or "\\" in name or name.endswith((".yaml", ".yml"))
 

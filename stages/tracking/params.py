@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -17,7 +18,7 @@ from calib.errors import InputError
 from stages.checks import check_choice, check_int, check_number
 from stages.joints import SUBJECT_HEIGHT_RANGE_M
 from stages.tracking.body import BodyModel
-from stages.tracking.body_file import load_body
+from stages.tracking.body_file import is_body_path, load_body
 from stages.tracking.distances import DISTANCES
 from stages.tracking.em import EMParams
 from stages.tracking.init import InitParams
@@ -151,6 +152,12 @@ class TrackerParams:
         if not self.failure_sigma_m < self.max_sigma_m:
             raise InputError(f"tracking.failure_sigma_m: expected a value below max_sigma_m ({self.max_sigma_m}), "
                              f"since Σ never grows past that ceiling, got {self.failure_sigma_m}")
+
+    def input_files(self) -> dict[str, Path]:
+        """Files outside the capture and the code that tracking reads, by the parameter naming them: a body
+        file given by its path (a shipped body is part of the code). Their contents belong in the stage's
+        cache key, so that editing the file in place tracks again."""
+        return {"body": Path(self.body)} if is_body_path(self.body) else {}
 
     @functools.cached_property
     def em(self) -> EMParams:

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from calib.errors import InputError
-from pipeline.engine.cache import describe_outputs, output_changes
+from pipeline.engine.cache import describe_outputs, expected_record, output_changes
 from pipeline.engine.context import consecutive_chunks
 from pipeline.engine.executors import make_executor
 from pipeline.engine.output_folder import output_lock
@@ -553,3 +553,22 @@ def test_a_forced_streaming_stage_starts_over(setup, monkeypatch):
     run(stages=RESUMING, force=True)
     assert [entry for entry in work() if entry.startswith("follower")] == [
         f"follower {f}" for f in capture.frame_numbers]
+
+
+def test_a_body_file_given_by_its_path_is_part_of_the_tracking_key(tiny_capture, tmp_path):
+    from importlib import resources
+
+    from pipeline.graph import STAGES
+    from stages.tracking.params import TrackerParams
+
+    tracking = next(stage for stage in STAGES if stage.name == "tracking")
+    capture = Capture.open(tiny_capture)
+    body = tmp_path / "mine.yaml"
+    body.write_text((resources.files("stages.tracking") / "bodies" / "default.yaml").read_text())
+    params = TrackerParams(body=str(body))
+    before = expected_record(tracking, capture, params, tmp_path / "out")
+    body.write_text(body.read_text() + "# edited in place\n")
+    after = expected_record(tracking, capture, params, tmp_path / "out")
+    assert before.record["inputs"]["file:body"] != after.record["inputs"]["file:body"]
+    assert before.key != after.key
+    assert "file:body" not in expected_record(tracking, capture, TrackerParams(), tmp_path / "out").record["inputs"]
