@@ -43,12 +43,8 @@ class TrackerParams:
         EM stops when no joint centre moved more than this in an iteration (metres).
     estimate_lengths : tuple of str
         Length groups of the body (its file's `lengths`) whose factors are estimated over the first
-        `scale_frames` frames; the others stay at the file's proportions; () estimates none. The
-        defaults are the groups the data pin down: the bending elbow and knee bound the upper arm and the
-        shank, a fixed forearm's error would be absorbed by the upper arm (the elbows then sit high), the
-        shoulder width follows narrow-shouldered subjects, and the girth keeps stout bodies from coming
-        out taller. The thigh trades off against the shank, the trunk against the pelvis and head
-        ellipsoids, and the hip width is pushed out by stout thighs, so these stay at the file's values.
+        `scale_frames` frames, with a prior towards the file's proportions; the others keep the file's
+        values, () estimates none. Why these defaults: docs/method.md, "Body dimensions".
     sigma_m : float
         Prediction error (metres, > 0): every frame's EM starts from the previous frame's Σ + σ² I, the
         first from σ² I.
