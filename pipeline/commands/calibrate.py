@@ -347,8 +347,9 @@ def summary(report: dict) -> str:
     return "\n".join(lines)
 
 
-def main(args: argparse.Namespace) -> int:
-    board = parse_board(args.board)
+def checked_sources(args: argparse.Namespace, board: Board) -> tuple[dict[str, Source], dict[str, Source]]:
+    """The intrinsics and extrinsics recordings under BOARDS, by camera, once the arguments and the folders'
+    layout are checked (one-line errors before any detection)."""
     if args.video_step < 1 or args.max_views < 3:
         raise InputError("--video-step must be at least 1 and --max-views at least 3")
     if not args.boards.is_dir():
@@ -366,6 +367,12 @@ def main(args: argparse.Namespace) -> int:
     if extrinsic_sources and only_intrinsics:
         raise InputError(f"{args.boards / 'extrinsics'}: no views of camera {only_intrinsics[0]!r}, expected "
                          f"extrinsics/{only_intrinsics[0]}/ like the other cameras' (or leave out its intrinsics/)")
+    return intrinsic_sources, extrinsic_sources
+
+
+def main(args: argparse.Namespace) -> int:
+    board = parse_board(args.board)
+    intrinsic_sources, extrinsic_sources = checked_sources(args, board)
     floor = floor_views(args.floor, extrinsic_sources)
     args.out.mkdir(parents=True, exist_ok=True)
     _check_overwrite(args.out, args.force)
