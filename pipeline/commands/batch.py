@@ -21,7 +21,6 @@ capture's own per-frame stages run in its task's process, one frame after the ot
 from __future__ import annotations
 
 import argparse
-import atexit
 import concurrent.futures as cf
 import contextlib
 import csv
@@ -30,6 +29,7 @@ import io
 import logging
 import math
 import multiprocessing
+import multiprocessing.forkserver
 import os
 import sys
 import time
@@ -62,7 +62,7 @@ SOME_FAILED = 3
 MEDIA_FOLDERS = ("images", "videos", "silhouettes")
 #: What a capture's task runs, and what checks the parameters: the stages and the scoring. This module imports it
 #: only where a capture runs or the parameters are checked (:func:`check_params`): with a local pool, only the
-#: pool's processes load it, each as it starts (:func:`_start_worker`).
+#: pool's fork server loads it, once for all its processes (:class:`RenewedProcessPool`).
 TASK_MODULES = ("pipeline.commands.run", "pipeline.evaluate")
 #: Top-level packages whose log lines a worker process shows (see :func:`_log_in_worker`).
 LOGGED_PACKAGES = ("calib", "stages", "pipeline")
@@ -249,31 +249,29 @@ def _log_in_worker(name: str, level: int) -> None:
 
 
 def _start_worker(modules: Sequence[str]) -> None:
-    """A worker process's start: import ``modules``, and arrange to end without the interpreter's teardown.
-
-    Unloading numba's LLVM, OpenCV and the rest takes a few tenths of a second per process, which the batch
-    waits for as its pool shuts down, after its last capture; by then every file of the worker's is written and
-    closed, and its log lines are flushed here (as ``python -m pipeline`` itself ends, see pipeline/__main__.py).
-    """
+    """A worker process's start: import ``modules``, which its fork server has imported already (nothing to do)
+    unless that failed (the fork server ignores a failed import; here it shows, with its traceback)."""
     for module in modules:
         importlib.import_module(module)
-    atexit.register(_exit_now)
-
-
-def _exit_now() -> None:
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(0)
 
 
 class RenewedProcessPool(cf.Executor):
-    """A process pool (``spawn``) that starts afresh when one of its processes dies.
+    """A process pool that starts afresh when one of its processes dies, its processes forked from a server
+    process that has imported what a capture needs.
 
     A ``ProcessPoolExecutor`` that loses a process (killed, out of memory, a crash in compiled code) is
     broken for good: the calls running in it fail, and so would every later one. Here only those running
     fail; the next call starts a new pool, so that one capture that ends its process does not fail the
     rest of the study. Unlike :func:`~pipeline.engine.executors.make_executor`'s pool, its processes keep the
     parent's priority: the parent only waits.
+
+    The processes come from multiprocessing's ``forkserver``, which imports :data:`TASK_MODULES` once as it
+    starts (1.3-1.6 s of CPU: numpy, OpenCV, scipy, numba and the stages); each process is a fork of it, with
+    those modules in memory already, the pages shared. With ``spawn`` every process imported them itself, all at
+    once on a machine of few cores, and so did each process of a renewed pool. The server is a clean process
+    (imports only, no work done), so forking it is safe where forking the batch's own process would not be;
+    its processes end with ``os._exit``, without the interpreter's teardown (unloading numba's LLVM, OpenCV
+    and the rest), which the batch would wait for as its pool shuts down.
     """
 
     def __init__(self, count: int) -> None:
@@ -281,12 +279,16 @@ class RenewedProcessPool(cf.Executor):
         self._pool = self._start()
 
     def _start(self) -> cf.ProcessPoolExecutor:
-        """A pool whose processes start now, each importing :data:`TASK_MODULES` first (:func:`_start_worker`)."""
-        pool = cf.ProcessPoolExecutor(max_workers=self.count, mp_context=multiprocessing.get_context("spawn"),
-                                      initializer=_start_worker, initargs=(TASK_MODULES,))
-        for _ in range(self.count):  # a spawn pool starts a process per call while none is idle, up to count
-            pool.submit(int)
-        return pool
+        """A pool of the fork server, which starts importing :data:`TASK_MODULES` now (unless it runs already).
+
+        Its processes are forked on demand, a call starting one while none is idle, up to ``count``: the first
+        call waits until the server has its modules, and this process's own work before it overlaps theirs.
+        """
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload(list(TASK_MODULES))  # for a server not running yet
+        multiprocessing.forkserver.ensure_running()
+        return cf.ProcessPoolExecutor(max_workers=self.count, mp_context=context, initializer=_start_worker,
+                                      initargs=(TASK_MODULES,))
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> cf.Future:
         try:
@@ -432,16 +434,20 @@ def _check_params(overrides: Sequence[tuple[str, Mapping[str, Any]]]) -> None:
     stage_params(overrides)
 
 
-def check_params(workers: Workers, overrides: Sequence[tuple[str, Mapping[str, Any]]]) -> cf.Future:
-    """Check ``overrides`` against the stages' parameters, as ``run`` does before any work: the future's
-    ``result()`` raises the InputError that names a mistake.
+def check_params(workers: Workers, overrides: Sequence[tuple[str, Mapping[str, Any]]]) -> None:
+    """Check ``overrides`` against the stages' parameters, as ``run`` does before any work.
 
-    A local pool's process checks them: it imports the stages for its captures anyway, and this process, which
-    then only waits, need not (1.3 s of CPU, which its workers' start-up would share on a machine of few cores).
-    Otherwise this process does.
+    A local pool's process checks them: it has the stages for its captures anyway, and this process, which then
+    only waits, need not import them (1.3 s of CPU, which the pool's start-up would share on a machine of few
+    cores). Otherwise this process does.
+
+    Raises
+    ------
+    InputError
+        Naming the mistake.
     """
     checker = workers.executor if isinstance(workers.executor, RenewedProcessPool) else InProcessExecutor()
-    return checker.submit(_check_params, overrides)
+    checker.submit(_check_params, overrides).result()
 
 
 def main(args: argparse.Namespace) -> int:
@@ -453,14 +459,13 @@ def main(args: argparse.Namespace) -> int:
         from pipeline.engine.output_folder import output_lock
 
         overrides = read_overrides(args.config, args.assignments)
-        checked = check_params(workers, overrides)
-        captures = find_captures(args.root, skip=args.out)
-        checked.result()
         # Workers show warnings only (-v: everything): the lines of several captures at once would bury the bar.
         worker_level = logging.DEBUG if log.isEnabledFor(logging.DEBUG) else logging.WARNING
         in_process = isinstance(workers.executor, InProcessExecutor)
-        jobs = make_jobs(args.root, captures, args.out, overrides, allow_outside_paths=args.allow_outside_paths,
+        jobs = make_jobs(args.root, find_captures(args.root, skip=args.out), args.out, overrides,
+                         allow_outside_paths=args.allow_outside_paths,
                          worker_log_level=None if in_process else worker_level)
+        check_params(workers, overrides)  # waits for the pool's first process: this process's checks come first
         reports = {job.name: CaptureReport(job.name, "not run") for job in jobs}
         table_path = args.out / BATCH_CSV
         show_progress = not args.quiet and sys.stderr.isatty()
