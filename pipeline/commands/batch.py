@@ -21,7 +21,6 @@ capture's own per-frame stages run in its task's process, one frame after the ot
 from __future__ import annotations
 
 import argparse
-import atexit
 import concurrent.futures as cf
 import contextlib
 import csv
@@ -30,6 +29,7 @@ import io
 import logging
 import math
 import multiprocessing
+import multiprocessing.forkserver
 import os
 import sys
 import time
@@ -39,13 +39,12 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from tqdm import tqdm
-from tqdm.contrib.logging import logging_redirect_tqdm
-
+# This module imports only light modules at its top, so that a local pool's processes start (in main()) before
+# this process loads the heavier ones it needs itself (OpenCV, through the output folder's checks; tqdm): those are
+# imported where they are used, and their loading overlaps the workers' start-up.
 from calib.errors import InputError
 from pipeline.engine.executors import InProcessExecutor, Workers, local_count, make_executor
-from pipeline.engine.output_folder import check_output_folder, output_lock
-from pipeline.engine.runner import format_columns
+from pipeline.engine.params import read_overrides
 from pipeline.io import atomic
 from pipeline.terminal import PrintableFormatter, printable
 
@@ -61,9 +60,9 @@ TRUTH = Path("groundtruth") / "joints.csv"
 SOME_FAILED = 3
 #: A capture's folders of media (see docs/capture_format.md), whose size says how long it takes.
 MEDIA_FOLDERS = ("images", "videos", "silhouettes")
-#: What a capture's task runs: the stages and the scoring. This module imports it only where a capture runs or
-#: the parameters are checked, so that worker processes start importing it before the batch's own process does
-#: (:func:`main`); their start-up then overlaps its checks.
+#: What a capture's task runs, and what checks the parameters: the stages and the scoring. This module imports it
+#: only where a capture runs or the parameters are checked (:func:`check_params`): with a local pool, only the
+#: pool's fork server loads it, once for all its processes (:class:`RenewedProcessPool`).
 TASK_MODULES = ("pipeline.commands.run", "pipeline.evaluate")
 #: Top-level packages whose log lines a worker process shows (see :func:`_log_in_worker`).
 LOGGED_PACKAGES = ("calib", "stages", "pipeline")
@@ -136,14 +135,16 @@ class CaptureJob:
     """One capture to run: everything its task needs, picklable (it may travel to a Dask worker).
 
     ``name`` is its path under the batch's root (the row's name); ``capture`` and ``out`` are absolute, so
-    that a worker started elsewhere finds them; ``worker_log_level`` is None when the task runs in the
-    batch's own process, whose logging is set already.
+    that a worker started elsewhere finds them; ``overrides`` are the parameters asked for as plain data
+    (:func:`~pipeline.engine.params.read_overrides`), which the task makes into the stages' parameters: the
+    batch's process need not import the stages to hold them; ``worker_log_level`` is None when the task runs in
+    the batch's own process, whose logging is set already.
     """
 
     name: str
     capture: Path
     out: Path
-    params: Mapping[str, Any]
+    overrides: Sequence[tuple[str, Mapping[str, Any]]]
     allow_outside_paths: bool = False
     worker_log_level: int | None = None
 
@@ -185,7 +186,7 @@ def process_capture(job: CaptureJob) -> CaptureReport:
     Never raises for the capture's own failure: a user mistake, an unusable result or a bug is reported
     in the row (a bug's traceback in the log), so that the captures beside it carry on.
     """
-    from pipeline.commands.run import run_capture  # see TASK_MODULES
+    from pipeline.commands.run import run_capture, stage_params  # see TASK_MODULES
     from pipeline.evaluate import evaluate_run
     from pipeline.io.export_io import read_joints_csv
     from pipeline.io.run_layout import RunLayout
@@ -194,8 +195,9 @@ def process_capture(job: CaptureJob) -> CaptureReport:
     if job.worker_log_level is not None:
         _log_in_worker(job.name, job.worker_log_level)
     try:
+        params = stage_params(job.overrides)
         with make_executor(1) as workers:
-            result = run_capture(job.capture, job.out, job.params, workers,
+            result = run_capture(job.capture, job.out, params, workers,
                                  allow_outside_paths=job.allow_outside_paths)
         if result.problem is not None:
             raise InputError(result.problem)
@@ -247,31 +249,29 @@ def _log_in_worker(name: str, level: int) -> None:
 
 
 def _start_worker(modules: Sequence[str]) -> None:
-    """A worker process's start: import ``modules``, and arrange to end without the interpreter's teardown.
-
-    Unloading numba's LLVM, OpenCV and the rest takes a few tenths of a second per process, which the batch
-    waits for as its pool shuts down, after its last capture; by then every file of the worker's is written and
-    closed, and its log lines are flushed here (as ``python -m pipeline`` itself ends, see pipeline/__main__.py).
-    """
+    """A worker process's start: import ``modules``, which its fork server has imported already (nothing to do)
+    unless that failed (the fork server ignores a failed import; here it shows, with its traceback)."""
     for module in modules:
         importlib.import_module(module)
-    atexit.register(_exit_now)
-
-
-def _exit_now() -> None:
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(0)
 
 
 class RenewedProcessPool(cf.Executor):
-    """A process pool (``spawn``) that starts afresh when one of its processes dies.
+    """A process pool that starts afresh when one of its processes dies, its processes forked from a server
+    process that has imported what a capture needs.
 
     A ``ProcessPoolExecutor`` that loses a process (killed, out of memory, a crash in compiled code) is
     broken for good: the calls running in it fail, and so would every later one. Here only those running
     fail; the next call starts a new pool, so that one capture that ends its process does not fail the
     rest of the study. Unlike :func:`~pipeline.engine.executors.make_executor`'s pool, its processes keep the
     parent's priority: the parent only waits.
+
+    The processes come from multiprocessing's ``forkserver``, which imports :data:`TASK_MODULES` once as it
+    starts (1.3-1.6 s of CPU: numpy, OpenCV, scipy, numba and the stages); each process is a fork of it, with
+    those modules in memory already, the pages shared. With ``spawn`` every process imported them itself, all at
+    once on a machine of few cores, and so did each process of a renewed pool. The server is a clean process
+    (imports only, no work done), so forking it is safe where forking the batch's own process would not be;
+    its processes end with ``os._exit``, without the interpreter's teardown (unloading numba's LLVM, OpenCV
+    and the rest), which the batch would wait for as its pool shuts down.
     """
 
     def __init__(self, count: int) -> None:
@@ -279,12 +279,16 @@ class RenewedProcessPool(cf.Executor):
         self._pool = self._start()
 
     def _start(self) -> cf.ProcessPoolExecutor:
-        """A pool whose processes start now, each importing :data:`TASK_MODULES` first (:func:`_start_worker`)."""
-        pool = cf.ProcessPoolExecutor(max_workers=self.count, mp_context=multiprocessing.get_context("spawn"),
-                                      initializer=_start_worker, initargs=(TASK_MODULES,))
-        for _ in range(self.count):  # a spawn pool starts a process per call while none is idle, up to count
-            pool.submit(int)
-        return pool
+        """A pool of the fork server, which starts importing :data:`TASK_MODULES` now (unless it runs already).
+
+        Its processes are forked on demand, a call starting one while none is idle, up to ``count``: the first
+        call waits until the server has its modules, and this process's own work before it overlaps theirs.
+        """
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload(list(TASK_MODULES))  # for a server not running yet
+        multiprocessing.forkserver.ensure_running()
+        return cf.ProcessPoolExecutor(max_workers=self.count, mp_context=context, initializer=_start_worker,
+                                      initargs=(TASK_MODULES,))
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> cf.Future:
         try:
@@ -369,6 +373,8 @@ def format_csv(reports: Sequence[CaptureReport]) -> str:
 
 def format_table(reports: Sequence[CaptureReport]) -> str:
     """The table the batch prints: the rows of batch.csv, aligned, "-" for unknown values."""
+    from pipeline.engine.runner import format_columns  # see the imports at the top
+
     header = ("capture", "status", "frames", "estimated", "MPJPE mm", "seconds", "error")
     rows = [header] + [tuple(printable(_cell(getattr(report, field.name))) or "-" for field in fields(CaptureReport))
                        for report in reports]
@@ -388,17 +394,19 @@ def describe(report: CaptureReport) -> str:
 # The command
 
 
-def make_jobs(root: Path, captures: Sequence[Path], out: Path, params: Mapping[str, Any], *,
+def make_jobs(root: Path, captures: Sequence[Path], out: Path, overrides: Sequence[tuple[str, Mapping[str, Any]]], *,
               allow_outside_paths: bool, worker_log_level: int | None) -> list[CaptureJob]:
     """One job per capture, into ``out/<its path under root>``; refuses, before any run, an ``out`` that
     overlaps a capture (see :func:`~pipeline.engine.output_folder.check_output_folder`)."""
+    from pipeline.engine.output_folder import check_output_folder  # see the imports at the top
+
     if Path(out).resolve() == Path(root).resolve():
         raise InputError(f"--out {out}: is the folder of captures (expected a separate output folder)")
     jobs = []
     for capture in captures:
         relative = capture.relative_to(root)
         check_output_folder(out / relative, capture)
-        jobs.append(CaptureJob(relative.as_posix(), capture.absolute(), (out / relative).absolute(), params,
+        jobs.append(CaptureJob(relative.as_posix(), capture.absolute(), (out / relative).absolute(), overrides,
                                allow_outside_paths, worker_log_level))
     return jobs
 
@@ -420,18 +428,44 @@ def largest_first(jobs: Sequence[CaptureJob]) -> list[CaptureJob]:
     return sorted(jobs, key=lambda job: media_bytes(job.capture), reverse=True)
 
 
-def main(args: argparse.Namespace) -> int:
-    # The workers start first: their start-up overlaps the checks below.
-    with capture_workers(args.scheduler) as workers:
-        from pipeline.commands.run import read_params  # see TASK_MODULES
+def _check_params(overrides: Sequence[tuple[str, Mapping[str, Any]]]) -> None:
+    from pipeline.commands.run import stage_params  # see TASK_MODULES
 
-        params = read_params(args.config, args.assignments)
+    stage_params(overrides)
+
+
+def check_params(workers: Workers, overrides: Sequence[tuple[str, Mapping[str, Any]]]) -> None:
+    """Check ``overrides`` against the stages' parameters, as ``run`` does before any work.
+
+    A local pool's process checks them: it has the stages for its captures anyway, and this process, which then
+    only waits, need not import them (1.3 s of CPU, which the pool's start-up would share on a machine of few
+    cores). Otherwise this process does.
+
+    Raises
+    ------
+    InputError
+        Naming the mistake.
+    """
+    checker = workers.executor if isinstance(workers.executor, RenewedProcessPool) else InProcessExecutor()
+    checker.submit(_check_params, overrides).result()
+
+
+def main(args: argparse.Namespace) -> int:
+    # The workers start first: their start-up overlaps this process's imports and checks.
+    with capture_workers(args.scheduler) as workers:
+        from tqdm import tqdm  # see the imports at the top
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        from pipeline.engine.output_folder import output_lock
+
+        overrides = read_overrides(args.config, args.assignments)
         # Workers show warnings only (-v: everything): the lines of several captures at once would bury the bar.
         worker_level = logging.DEBUG if log.isEnabledFor(logging.DEBUG) else logging.WARNING
         in_process = isinstance(workers.executor, InProcessExecutor)
-        jobs = make_jobs(args.root, find_captures(args.root, skip=args.out), args.out, params,
+        jobs = make_jobs(args.root, find_captures(args.root, skip=args.out), args.out, overrides,
                          allow_outside_paths=args.allow_outside_paths,
                          worker_log_level=None if in_process else worker_level)
+        check_params(workers, overrides)  # waits for the pool's first process: this process's checks come first
         reports = {job.name: CaptureReport(job.name, "not run") for job in jobs}
         table_path = args.out / BATCH_CSV
         show_progress = not args.quiet and sys.stderr.isatty()

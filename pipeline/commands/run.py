@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,7 +21,7 @@ from pipeline import graph
 from pipeline.engine import run_warnings
 from pipeline.engine.executors import Workers, make_executor
 from pipeline.engine.output_folder import output_lock, storage_error
-from pipeline.engine.params import apply_overrides, default_params, parse_assignments, read_config
+from pipeline.engine.params import apply_all, default_params, read_overrides
 from pipeline.engine.runner import Runner, StageOutcome, format_summary
 from pipeline.engine.stage import select_stages
 from pipeline.io.capture import Capture
@@ -100,10 +100,13 @@ def closing_lines(out: Path, frames: Sequence[int], outcomes: Sequence[StageOutc
 
 def read_params(config: Path | None, assignments: Sequence[str]) -> dict[str, Any]:
     """Every stage's parameters: the defaults, then the ``--config`` file's, then each ``--set`` assignment."""
-    params = default_params(graph.STAGES)
-    if config is not None:
-        params = apply_overrides(params, read_config(config), source=f"{config}:")
-    return apply_overrides(params, parse_assignments(assignments), source="--set")
+    return stage_params(read_overrides(config, assignments))
+
+
+def stage_params(overrides: Iterable[tuple[str, Mapping[str, Any]]]) -> dict[str, Any]:
+    """Every stage's parameters: the defaults with ``overrides`` (:func:`~pipeline.engine.params.read_overrides`)
+    applied in turn."""
+    return apply_all(default_params(graph.STAGES), overrides)
 
 
 @dataclass(frozen=True)

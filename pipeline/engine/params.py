@@ -98,6 +98,25 @@ def apply_overrides(params: Mapping[str, Any], overrides: Mapping[str, Any], *,
     return result
 
 
+def read_overrides(config: str | Path | None, assignments: Iterable[str]) -> list[tuple[str, dict]]:
+    """What ``--config`` and ``--set`` ask for, in the order they apply: ``(source, {stage: {param: value}})``
+    pairs for :func:`apply_all`, read and parsed but not yet checked against the stages' parameters.
+
+    Plain data, so that a process that only hands them on (a batch's, to its worker processes) need not import
+    the stages whose parameter classes they become.
+    """
+    overrides = [(f"{config}:", read_config(config))] if config is not None else []
+    return overrides + [("--set", parse_assignments(assignments))]
+
+
+def apply_all(params: Mapping[str, Any], overrides: Iterable[tuple[str, Mapping[str, Any]]]) -> dict[str, Any]:
+    """``params`` with each of ``overrides`` (source, values) applied in turn (:func:`apply_overrides`)."""
+    result = dict(params)
+    for source, values in overrides:
+        result = apply_overrides(result, values, source=source)
+    return result
+
+
 def params_to_dict(params: Any) -> dict | None:
     """Plain-data form of a parameter dataclass (tuples become lists), for JSON and cache keys."""
     if params is None:

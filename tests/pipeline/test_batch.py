@@ -6,7 +6,9 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
+import logging
 import os
+import pickle
 import shutil
 import sys
 from pathlib import Path
@@ -28,8 +30,10 @@ from pipeline.commands.batch import (
     make_jobs,
     run_jobs,
 )
+from pipeline.commands.run import read_params, stage_params
 from pipeline.engine.cache import read_manifest
 from pipeline.engine.executors import Workers
+from pipeline.engine.params import read_overrides
 from pipeline.graph import STAGES
 from pipeline.io.capture import Capture
 from pipeline.lab.bench.batch import BROKEN as BENCH_BROKEN
@@ -78,10 +82,10 @@ def test_an_output_folder_overlapping_a_capture_is_refused_before_any_run(tmp_pa
     root = tmp_path / "study"
     capture = touch_capture(root / "s1" / "t1")
     with pytest.raises(InputError, match="is the folder of captures"):
-        make_jobs(root, [capture], root, {}, allow_outside_paths=False, worker_log_level=None)
+        make_jobs(root, [capture], root, (), allow_outside_paths=False, worker_log_level=None)
     with pytest.raises(InputError, match="overlaps the capture"):
-        make_jobs(root, [capture], capture / "out", {}, allow_outside_paths=False, worker_log_level=None)
-    job, = make_jobs(root, [capture], root / "out", {}, allow_outside_paths=False, worker_log_level=None)
+        make_jobs(root, [capture], capture / "out", (), allow_outside_paths=False, worker_log_level=None)
+    job, = make_jobs(root, [capture], root / "out", (), allow_outside_paths=False, worker_log_level=None)
     assert (job.name, job.out) == ("s1/t1", (root / "out" / "s1" / "t1").absolute())
 
 
@@ -155,6 +159,22 @@ def test_a_rerun_skips_what_is_up_to_date_and_retries_what_failed(first_batch, s
     assert stdout.splitlines()[-1] == f"written: {study / 'out' / BATCH_CSV}"
 
 
+def test_a_mistake_in_the_parameters_is_refused_by_the_pool_before_any_run(study, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["batch", str(study), "--out", str(out), "--scheduler", "local:2", "--set", "tracking.no_such=1", "-q"]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.startswith("error: --set tracking.no_such: unknown parameter")
+    assert not out.exists()
+
+
+def test_a_job_holds_the_parameters_as_plain_data_which_its_task_makes_into_the_stages_own(tmp_path):
+    overrides = read_overrides(None, ["tracking.distance=points"])
+    job, = make_jobs(tmp_path, [touch_capture(tmp_path / "t1")], tmp_path / "out", overrides,
+                     allow_outside_paths=False, worker_log_level=logging.WARNING)
+    assert b"stages" not in pickle.dumps(job)  # the batch's process holds it without importing the stages
+    assert stage_params(job.overrides) == read_params(None, ["tracking.distance=points"])
+
+
 def test_without_dask_an_address_says_how_to_install_it(study, tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed now fails
     out = tmp_path / "out"
@@ -171,7 +191,7 @@ def report_or_exit(job: CaptureJob) -> CaptureReport:
 
 
 def test_a_capture_that_ends_its_worker_process_fails_alone_once_the_pool_is_renewed():
-    jobs = [CaptureJob(name, Path(name), Path(name), {}) for name in ("dies", "a", "b", "c")]
+    jobs = [CaptureJob(name, Path(name), Path(name), ()) for name in ("dies", "a", "b", "c")]
     reports = []
     with RenewedProcessPool(1) as pool:
         run_jobs(jobs, Workers(pool, 1, "test"), reports.append, task=report_or_exit)
@@ -200,5 +220,5 @@ def test_the_captures_with_the_most_media_start_first(tmp_path):
             (capture / "videos").mkdir()
             (capture / "videos" / "cam1.mp4").write_bytes(b"x" * size)
             (capture / "calibration.toml").write_bytes(b"x" * 5000)  # not media
-        jobs.append(CaptureJob(name, capture, tmp_path / "out" / name, {}))
+        jobs.append(CaptureJob(name, capture, tmp_path / "out" / name, ()))
     assert [job.name for job in largest_first(jobs)] == ["long", "middle", "short", "none"]
