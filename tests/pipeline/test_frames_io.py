@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import errno
+import os
 import pickle
 
 import cv2
@@ -22,6 +24,28 @@ def test_atomic_output_replaces_only_on_success(tmp_path):
             raise RuntimeError("killed mid-write")
     assert path.read_text() == "first"
     assert [p.name for p in path.parent.iterdir()] == ["result.txt"]  # no temporary file left
+
+
+def test_write_bytes_makes_its_folder_and_leaves_nothing_behind_a_failed_write(tmp_path, monkeypatch):
+    path = tmp_path / "new" / "folder" / "000001.png"
+    atomic.write_bytes(path, b"first")
+    assert path.read_bytes() == b"first"
+
+    def full_disk(descriptor, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "write", full_disk)
+    with pytest.raises(OSError, match="No space left") as raised:
+        atomic.write_bytes(path, b"second")
+    assert raised.value.errno == errno.ENOSPC and raised.value.filename == str(path)  # names the file
+    assert path.read_bytes() == b"first"
+    assert [p.name for p in path.parent.iterdir()] == ["000001.png"]  # no temporary file left
+
+
+def test_temporary_names_differ_and_keep_the_suffix(tmp_path):
+    names = {atomic.temp_path_for(tmp_path / "000001.ply").name for _ in range(1000)}
+    assert len(names) == 1000
+    assert all(name.startswith(atomic.TEMP_PREFIX) and name.endswith("-000001.ply") for name in names)
 
 
 def test_remove_temp_files(tmp_path):
