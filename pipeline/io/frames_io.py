@@ -139,16 +139,18 @@ def _unfiltered_one_bit_png(data: bytes) -> np.ndarray | None:
         elif kind == b"IEND":
             break
         position += length + 12
+    size = height * ((width + 7) // 8 + 1)
     try:
-        rows = np.frombuffer(zlib.decompress(b"".join(pixels)), np.uint8)
+        rows = np.frombuffer(zlib.decompress(b"".join(pixels), zlib.MAX_WBITS, size), np.uint8)  # one buffer
     except zlib.error:
         return None
-    if rows.size != height * ((width + 7) // 8 + 1):
+    if rows.size != size:
         return None
     rows = rows.reshape(height, -1)
     if rows[:, 0].any():  # a row filter: rare for 1-bit images, and OpenCV knows them all
         return None
-    return np.unpackbits(rows[:, 1:], axis=1, count=width) * np.uint8(255)
+    mask = np.unpackbits(rows[:, 1:], axis=1, count=width)
+    return np.multiply(mask, np.uint8(255), out=mask)
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
