@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import errno
+import json
 import os
 import pickle
+import zlib
 
 import cv2
 import numpy as np
@@ -215,6 +217,30 @@ def test_a_changed_value_in_a_json_record_is_noticed(tmp_path):
         frames_io.read_record(path)
     path.write_text(path.read_text()[:-8])
     assert frames_io.file_problem(path).startswith("not valid JSON")
+
+
+@pytest.mark.parametrize("record", [
+    {"frame": 3, "result": {"crc32": [1.5, np.float64(2.25)], "frame": np.arange(3)}},  # the check sorts first
+    {"a": "x\ny", "b": {"a": 1}, "d": [{"crc32": "no"}]},  # in the middle, and a nested key of the same name
+    {"a": 1, "b": [0.1, 0.2]},  # last
+    {},
+    {"é": 1, "z\"": None},  # keys the encoder escapes
+])
+def test_a_record_is_the_json_of_the_record_and_its_check(tmp_path, record):
+    path = tmp_path / "r.json"
+    frames_io.write_record(path, record)
+    check = f"{zlib.crc32(frames_io.to_json(record).encode('utf-8')):08x}"
+    assert path.read_text(encoding="utf-8") == frames_io.to_json({**record, "crc32": check})
+    assert frames_io.file_problem(path) is None
+    assert frames_io.to_json(frames_io.read_record(path)) == frames_io.to_json(record)
+
+
+def test_a_reformatted_record_with_the_same_values_passes_its_check(tmp_path):
+    path = tmp_path / "r.json"
+    frames_io.write_record(path, {"frame": 3, "joints": [[0.1, 0.2, 0.3]]})
+    path.write_text(json.dumps(json.loads(path.read_text()), indent=4))
+    assert frames_io.file_problem(path) is None
+    assert frames_io.read_record(path) == {"frame": 3, "joints": [[0.1, 0.2, 0.3]]}
 
 
 def test_plain_json_has_no_check_to_fail(tmp_path):
