@@ -139,16 +139,18 @@ def _unfiltered_one_bit_png(data: bytes) -> np.ndarray | None:
         elif kind == b"IEND":
             break
         position += length + 12
+    size = height * ((width + 7) // 8 + 1)
     try:
-        rows = np.frombuffer(zlib.decompress(b"".join(pixels)), np.uint8)
+        rows = np.frombuffer(zlib.decompress(b"".join(pixels), zlib.MAX_WBITS, size), np.uint8)  # one buffer
     except zlib.error:
         return None
-    if rows.size != height * ((width + 7) // 8 + 1):
+    if rows.size != size:
         return None
     rows = rows.reshape(height, -1)
     if rows[:, 0].any():  # a row filter: rare for 1-bit images, and OpenCV knows them all
         return None
-    return np.unpackbits(rows[:, 1:], axis=1, count=width) * np.uint8(255)
+    mask = np.unpackbits(rows[:, 1:], axis=1, count=width)
+    return np.multiply(mask, np.uint8(255), out=mask)
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
@@ -334,17 +336,68 @@ def write_record(path: str | os.PathLike, record: dict) -> None:
     the CRC-32 of :func:`to_json` of the rest, so that a changed value is noticed (:func:`read_record`)."""
     if RECORD_CHECK in record:
         raise ValueError(f"write_record: {RECORD_CHECK!r} is the content check's key")
-    write_json(path, {**record, RECORD_CHECK: f"{zlib.crc32(to_json(record).encode('utf-8')):08x}"})
+    text = to_json(record)
+    atomic.write_text(path, _with_check_line(text, record, f"{zlib.crc32(text.encode('utf-8')):08x}"))
 
 
 def read_record(path: str | os.PathLike) -> dict:
     """A JSON record written by :func:`write_record`, without its check; :class:`DamagedFileError` when
     the file is not valid JSON or fails its check."""
-    record = read_json(path)
-    problem = _record_problem(record)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+        record = json.loads(text)
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise DamagedFileError(path, f"not valid JSON ({error})") from None
+    problem = _record_text_problem(text, record)
     if problem:
         raise DamagedFileError(path, problem)
     return {key: value for key, value in record.items() if key != RECORD_CHECK}
+
+
+def _with_check_line(text: str, record: dict, check: str) -> str:
+    """:func:`to_json` of ``record`` with its ``check`` added, from ``text``, :func:`to_json` of ``record``.
+
+    The records hold long lists of floats, which the indented encoder (Python's, not C's) is slow to
+    write; the check is one line at its sorted place among the top-level keys, the lines indented by
+    exactly one space (JSON strings hold no raw newline, deeper lines are indented further).
+    """
+    line = f' "{RECORD_CHECK}": "{check}"'
+    keys = list(record)
+    later = sorted(key for key in keys if key > RECORD_CHECK) if all(isinstance(key, str) for key in keys) else None
+    if later:
+        following = f"\n {json.dumps(later[0])}: "
+        return text.replace(following, f"\n{line},{following}", 1)
+    if later == [] and text.endswith("\n}\n"):  # the check sorts last
+        return f"{text[:-3]},\n{line}\n}}\n"
+    return to_json({**record, RECORD_CHECK: check})  # no line to add it to (an empty record), or odd keys
+
+
+def _record_text_problem(text: str, record: Any) -> str | None:
+    """What is wrong with the record file ``text`` (parsed: ``record``) by its check, or None.
+
+    A file as :func:`write_record` wrote it is :func:`to_json` of the rest plus the check's line: its
+    check is tested on the text without that line, without encoding the record again. Any other text
+    (reformatted by a hand, say) is judged by its values (:func:`_record_problem`).
+    """
+    if isinstance(record, dict) and isinstance(check := record.get(RECORD_CHECK), str):
+        rest = _without_check_line(text, check)
+        if rest is not None and f"{zlib.crc32(rest.encode('utf-8')):08x}" == check:
+            return None
+    return _record_problem(record)
+
+
+def _without_check_line(text: str, check: str) -> str | None:
+    """``text`` without the top-level line of the record check ``check`` (and its comma), or None."""
+    line = f'\n "{RECORD_CHECK}": "{check}"'
+    start = text.find(line)
+    if start < 0:
+        return None
+    end = start + len(line)
+    if text.startswith(",", end):  # a later key follows
+        return text[:start] + text[end + 1:]
+    if text.endswith(",", 0, start):  # the check was the last key
+        return text[:start - 1] + text[end:]
+    return None
 
 
 def _record_problem(record: Any) -> str | None:
@@ -377,7 +430,8 @@ def file_problem(path: str | os.PathLike) -> str | None:
     if suffix == ".ply":
         return ply_problem(data)
     try:
-        document = json.loads(data.decode("utf-8"))
+        text = data.decode("utf-8")
+        document = json.loads(text)
     except (UnicodeDecodeError, json.JSONDecodeError) as error:
         return f"not valid JSON ({error})"
-    return _record_problem(document) if isinstance(document, dict) and RECORD_CHECK in document else None
+    return _record_text_problem(text, document) if isinstance(document, dict) and RECORD_CHECK in document else None

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import errno
+import json
+import os
 import pickle
+import zlib
 
 import cv2
 import numpy as np
@@ -22,6 +26,28 @@ def test_atomic_output_replaces_only_on_success(tmp_path):
             raise RuntimeError("killed mid-write")
     assert path.read_text() == "first"
     assert [p.name for p in path.parent.iterdir()] == ["result.txt"]  # no temporary file left
+
+
+def test_write_bytes_makes_its_folder_and_leaves_nothing_behind_a_failed_write(tmp_path, monkeypatch):
+    path = tmp_path / "new" / "folder" / "000001.png"
+    atomic.write_bytes(path, b"first")
+    assert path.read_bytes() == b"first"
+
+    def full_disk(descriptor, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "write", full_disk)
+    with pytest.raises(OSError, match="No space left") as raised:
+        atomic.write_bytes(path, b"second")
+    assert raised.value.errno == errno.ENOSPC and raised.value.filename == str(path)  # names the file
+    assert path.read_bytes() == b"first"
+    assert [p.name for p in path.parent.iterdir()] == ["000001.png"]  # no temporary file left
+
+
+def test_temporary_names_differ_and_keep_the_suffix(tmp_path):
+    names = {atomic.temp_path_for(tmp_path / "000001.ply").name for _ in range(1000)}
+    assert len(names) == 1000
+    assert all(name.startswith(atomic.TEMP_PREFIX) and name.endswith("-000001.ply") for name in names)
 
 
 def test_remove_temp_files(tmp_path):
@@ -191,6 +217,30 @@ def test_a_changed_value_in_a_json_record_is_noticed(tmp_path):
         frames_io.read_record(path)
     path.write_text(path.read_text()[:-8])
     assert frames_io.file_problem(path).startswith("not valid JSON")
+
+
+@pytest.mark.parametrize("record", [
+    {"frame": 3, "result": {"crc32": [1.5, np.float64(2.25)], "frame": np.arange(3)}},  # the check sorts first
+    {"a": "x\ny", "b": {"a": 1}, "d": [{"crc32": "no"}]},  # in the middle, and a nested key of the same name
+    {"a": 1, "b": [0.1, 0.2]},  # last
+    {},
+    {"é": 1, "z\"": None},  # keys the encoder escapes
+])
+def test_a_record_is_the_json_of_the_record_and_its_check(tmp_path, record):
+    path = tmp_path / "r.json"
+    frames_io.write_record(path, record)
+    check = f"{zlib.crc32(frames_io.to_json(record).encode('utf-8')):08x}"
+    assert path.read_text(encoding="utf-8") == frames_io.to_json({**record, "crc32": check})
+    assert frames_io.file_problem(path) is None
+    assert frames_io.to_json(frames_io.read_record(path)) == frames_io.to_json(record)
+
+
+def test_a_reformatted_record_with_the_same_values_passes_its_check(tmp_path):
+    path = tmp_path / "r.json"
+    frames_io.write_record(path, {"frame": 3, "joints": [[0.1, 0.2, 0.3]]})
+    path.write_text(json.dumps(json.loads(path.read_text()), indent=4))
+    assert frames_io.file_problem(path) is None
+    assert frames_io.read_record(path) == {"frame": 3, "joints": [[0.1, 0.2, 0.3]]}
 
 
 def test_plain_json_has_no_check_to_fail(tmp_path):
