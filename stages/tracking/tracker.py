@@ -57,6 +57,10 @@ from stages.tracking.results import FrameResult, TrackerState
 # Effective number of independent observations one frame's data are worth for the length factors
 # (`length_tempering`).
 EFFECTIVE_LENGTH_OBSERVATIONS = 50
+# After the first `scale_frames` frames, the length belief is refined on every this many tracked frames,
+# each counting for the frames skipped: consecutive frames' evidence is strongly correlated, so the
+# skipped ones add little, and the update's normal equations are the costliest part of a frame's work.
+LENGTH_REFINE_EVERY = 2
 
 
 # Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
@@ -133,8 +137,9 @@ class Tracker:
             margin = 0.0 if doubtful or state.recheck else params.reinit_margin * len(y)
             if result.log_likelihood > tracked.log_likelihood[-1] + margin:
                 return result, new_state
-        if params.estimate_lengths and not learning and not doubtful:
-            tracked = self._refined_lengths(state, y, n, tracked, kappa)
+        if (params.estimate_lengths and not learning and not doubtful
+                and state.since_initialisation % LENGTH_REFINE_EVERY == 0):
+            tracked = self._refined_lengths(state, y, n, tracked, LENGTH_REFINE_EVERY * kappa)
         return self._tracked(state, tracked, len(y), learning, doubtful, tried)
 
     def _belief(self, state: TrackerState) -> np.ndarray:
@@ -217,7 +222,8 @@ class Tracker:
             # tempered by κ; the frame's MAP (with the prior Λ / κ, or `_refined_lengths`'s step) is the
             # new μ, its precision Λ + κ S_f.
             lengths = tracked.body.length_factors
-            information = self._belief(state) + length_tempering(observations) * tracked.length_information
+            every = 1 if learning else LENGTH_REFINE_EVERY
+            information = self._belief(state) + every * length_tempering(observations) * tracked.length_information
         weight += learning
         level = per_obs if not np.isfinite(state.likelihood_level) else (
             (1 - _LEVEL_RATE) * state.likelihood_level + _LEVEL_RATE * per_obs)
