@@ -41,8 +41,8 @@ class TrackerParams:
     displacement_m : float
         EM stops when no joint centre moved more than this in an iteration (metres).
     estimate_lengths : tuple of str
-        Length groups of the body (its file's `lengths`) whose factors are estimated over the first
-        `scale_frames` frames; the others stay at the file's proportions; () estimates none. The
+        Length groups of the body (its file's `lengths`) whose factors are estimated over the sequence
+        (an information filter, `tracker.Tracker`); the others stay at the file's proportions; () none. The
         defaults are the groups the data pin down: the bending elbow and knee bound the upper arm and the
         shank, a fixed forearm's error would be absorbed by the upper arm (the elbows then sit high), the
         shoulder width follows narrow-shouldered subjects, and the girth keeps stout bodies from coming
@@ -81,8 +81,8 @@ class TrackerParams:
     max_predicted_frames : int
         After this many frames without a fit, the subject is lost and the next data re-initialise.
     scale_frames : int
-        Frames over which the height (when unknown: by the initialisations among them) and the length
-        factors keep being estimated.
+        Frames over which the height (when unknown: by the initialisations among them) is estimated and
+        the length factors are unknowns of the EM; later frames refine the lengths by a cheaper update.
     init_headings, init_refine : int
         Initialisation: headings per library pose, hypotheses refined by EM.
     normal_noise_deg : float
