@@ -19,17 +19,8 @@ from conftest import frame_image, make_capture
 
 from calib.errors import InputError
 from pipeline.cli import main
-from pipeline.commands.batch import (
-    BATCH_CSV,
-    SOME_FAILED,
-    CaptureJob,
-    CaptureReport,
-    RenewedProcessPool,
-    find_captures,
-    largest_first,
-    make_jobs,
-    run_jobs,
-)
+from pipeline.commands.batch import BATCH_CSV, SOME_FAILED, find_captures, largest_first, make_jobs
+from pipeline.commands.batch_workers import CaptureJob, CaptureReport, RenewedProcessPool, run_jobs
 from pipeline.commands.run import read_params, stage_params
 from pipeline.engine.cache import read_manifest
 from pipeline.engine.executors import Workers
