@@ -59,9 +59,8 @@ from stages.tracking.results import FrameResult, TrackerState
 EFFECTIVE_LENGTH_OBSERVATIONS = 50
 # After the first `scale_frames` frames, the length belief is refined on every this many tracked frames,
 # each counting for the frames skipped: consecutive frames' evidence is strongly correlated, so the
-# skipped ones add little (a lag-1 correlation of 0.5-0.75), and an update's normal equations cost about
-# as much as a frame's own fit: every 6th frame keeps the tracker near its speed without the refinement.
-LENGTH_REFINE_EVERY = 6
+# skipped ones add little, and the update's normal equations are the costliest part of a frame's work.
+LENGTH_REFINE_EVERY = 2
 
 
 # Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
