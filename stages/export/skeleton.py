@@ -4,13 +4,13 @@ Every exporter and drawing uses this one list, so the BVH hierarchy, the overlay
 3-D view show the same skeleton. The trunk is one bone pelvis -> neck (joints.csv has no spine joints).
 
 One skeleton for every exported frame
-    The tracker estimates the body's segment lengths mostly over its first frames
-    (``TrackerParams.scale_frames``), then refines them in ever smaller steps, so in those first
-    frames the joints belong to a body that is still changing size (a shank 2-3 cm longer than later).
-    A BVH has one set of bone lengths, so it could not reproduce those frames, and a body that
-    shrinks is no real motion. The exports therefore give every frame the *settled* lengths, those of
-    the sequence's last frame (it holds the estimate from the most frames), along each frame's own
-    bone directions (:func:`with_bone_lengths`). The two
+    The tracker estimates the body's segment lengths over its first frames and then freezes them
+    (``TrackerParams.scale_frames``), so in those first frames the joints belong to a body that is
+    still changing size (a shank 2-3 cm longer than later). A BVH has one set of bone lengths, so it
+    could not reproduce those frames, and a body that shrinks is no real motion. The exports
+    therefore give every frame the *settled* lengths, those of the sequence's last frame (the tracker
+    never changes them after they froze, and before that the last frame holds the estimate from the
+    most frames), along each frame's own bone directions (:func:`with_bone_lengths`). The two
     flexible bones keep their own length in every frame: the trunk (pelvis -> neck: the spine bends)
     and the neck (neck -> head: the head nods about a joint between the two).
 """

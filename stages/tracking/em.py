@@ -19,7 +19,7 @@ import numpy as np
 
 from stages.tracking.body import BodyModel, Ellipsoids, Kinematics
 from stages.tracking.distances import distance_named
-from stages.tracking.gauss_newton import PRIOR_SIGMA_RAD, LeastSquares, LengthPrior, gauss_newton_step, length_evidence
+from stages.tracking.gauss_newton import PRIOR_SIGMA_RAD, LeastSquares, gauss_newton_step
 from stages.tracking.mixture import EStep, Mixture, bound_priors, evidence_terms, volume_size
 
 
@@ -43,8 +43,6 @@ class EMParams:
         Also estimate the body's overall size (standing height) with the pose.
     estimate_lengths : bool
         Also estimate the body's segment-length factors with the pose.
-    length_prior : LengthPrior or None
-        Prior on ln ℓ when estimating them; None: the body file's (`LengthPrior.of_body`).
     normal_noise_rad : float
         Angular noise σ_n of the observed normals (radians), for the "normals" distance: each pair's
         covariance is Σ_ip = Σ + σ_n² A_ip A_ipᵀ with A_ip = ∂x_ip/∂n_i (`geometry.normal_spread`);
@@ -68,20 +66,17 @@ class EMParams:
     normal_noise_rad: float = 0.0
     min_outlier_prior: float = 0.0
     max_sigma_m: float = np.inf
-    length_prior: LengthPrior | None = None
 
 
 @dataclass(frozen=True)
 class MStep:
-    """New parameters from one M-step: pose Λ (D,), mixture (Σ, π), the body (its size and lengths), the
-    kinematics of the new pose on that body (the next E-step poses the ellipsoids from them) and, when
-    the lengths were estimated, the data's information about ln ℓ (`gauss_newton.length_information`)."""
+    """New parameters from one M-step: pose Λ (D,), mixture (Σ, π), the body (its size and lengths) and
+    the kinematics of the new pose on that body (the next E-step poses the ellipsoids from them)."""
 
     pose: np.ndarray
     mixture: Mixture
     body: BodyModel
     kin: Kinematics
-    length_information: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -106,9 +101,6 @@ class FitResult:
         Mean posterior of the outlier class at the final pose.
     estep : EStep or None
         The E-step at the final pose and mixture: a fit continued from this one starts from it.
-    length_information : (G, G) float or None
-        With `EMParams.estimate_lengths`, the information the data carry about ln ℓ, the pose marginalised
-        out, from the last M-step's normal equations (`gauss_newton.length_information`); None otherwise.
     """
 
     pose: np.ndarray
@@ -119,7 +111,6 @@ class FitResult:
     log_likelihood: tuple[float, ...]
     outlier_fraction: float
     estep: EStep | None = None
-    length_information: np.ndarray | None = None
 
     @property
     def height_m(self) -> float:
@@ -201,9 +192,9 @@ def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, kin: Kinematics, pose:
     plus, for DOFs with a prior weight, ½ w_d ((Λ_d − Λ̂_d) / PRIOR_SIGMA_RAD)² towards `prior_pose`
     (default: `pose`); joint limits are enforced by clipping each step. Then Σ = Σ t_ip e_ip e_ipᵀ / Σ t_ip
     at the new pose and π_p = (1/I) Σ_i t_ip. With `params.estimate_scale` the body's height, with
-    `estimate_lengths` its segment-length factors ln ℓ (prior `params.length_prior`, by default
-    ½ Σ (ln ℓ_g / body.length_prior_sd_g)²) are further unknowns. `kin` is the kinematics of `pose`
-    on `body`; the pairs' weights t_ip Σ_ip⁻¹ are the E-step's (same pose, same Σ).
+    `estimate_lengths` its segment-length factors ln ℓ (prior ½ Σ (ln ℓ_g / body.length_prior_sd_g)²)
+    are further unknowns. `kin` is the kinematics of `pose` on `body`; the pairs' weights t_ip Σ_ip⁻¹
+    are the E-step's (same pose, same Σ).
 
     With normal noise σ_n, Σ⁻¹ becomes each pair's Σ_ip⁻¹, frozen at the starting pose during the
     Gauss-Newton steps (Σ_ip varies slowly with Λ: only through the ellipsoid's orientation relative to
@@ -217,20 +208,19 @@ def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, kin: Kinematics, pose:
     I, P = estep.t.shape
     i, p = estep.pairs
     t = estep.t[i, p]  # (K,)
-    lengths = params.estimate_lengths and len(body.length_groups) > 0
-    length_prior = params.length_prior if params.length_prior is not None or not lengths else LengthPrior.of_body(body)
     problem = LeastSquares(y, n, i, p, estep.weights, distance, prior_pose if prior_pose is not None else pose,
-                           body.prior_weight / PRIOR_SIGMA_RAD**2, params.estimate_scale, lengths, length_prior)
-    e = information = None
+                           body.prior_weight / PRIOR_SIGMA_RAD**2, params.estimate_scale,
+                           params.estimate_lengths and len(body.length_groups) > 0)
+    e = None
     for _ in range(params.gauss_newton_steps):
-        pose, body, kin, e, information = gauss_newton_step(problem, body, kin, pose)
+        pose, body, kin, e = gauss_newton_step(problem, body, kin, pose)
     Sigma = distance.covariance(n, i, p, e, t, body.ellipsoids(kin), mixture.Sigma, params.normal_noise_rad,
                                 params.max_sigma_m)
     pi = np.empty(P + 1)
     pi[:P] = estep.t.sum(axis=0) / I
     pi[P] = estep.t_outlier.sum() / I
     return MStep(pose=pose, mixture=Mixture(Sigma=Sigma, pi=bound_priors(pi, params.min_outlier_prior)), body=body,
-                 kin=kin, length_information=information if lengths else None)
+                 kin=kin)
 
 
 def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume: np.ndarray,
@@ -262,11 +252,9 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
     converged = len(y) == 0
     iterations = 0
     joints = body.joint_positions(kin)
-    information = None
     while not converged and iterations < params.max_iterations:
         mstep = m_step(y, n, body, kin, pose, mixture, estep, params, prior_pose)
         pose, mixture, body, kin = mstep.pose, mstep.mixture, mstep.body, mstep.kin
-        information = mstep.length_information
         estep = e_step(y, n, body.ellipsoids(kin), mixture, V, params, estep)
         iterations += 1
         history.append(estep.log_likelihood)
@@ -276,21 +264,4 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
         converged = abs(history[-1] - history[-2]) < params.tolerance * len(y) or displacement < params.displacement_m
     outliers = float(estep.t_outlier.mean()) if len(y) else 1.0
     return FitResult(pose=pose, body=body, mixture=mixture, iterations=iterations, converged=converged,
-                     log_likelihood=tuple(history), outlier_fraction=outliers, estep=estep,
-                     length_information=information)
-
-
-def frame_length_evidence(y: np.ndarray, n: np.ndarray, result: FitResult,
-                          params: EMParams = EMParams()) -> tuple[np.ndarray, np.ndarray]:
-    """What one frame's data say about the body's length factors at a fit's solution: the information S
-    (G, G) and the gradient γ (G,) of eq. (14) in ln ℓ with the pose marginalised out
-    (`gauss_newton.length_evidence`), from the fit's final E-step (its t_ip at the final pose and Σ)."""
-    body, estep = result.body, result.estep
-    G = len(body.length_groups)
-    if G == 0 or estep is None or len(estep.t) == 0:
-        return np.zeros((G, G)), np.zeros(G)
-    i, p = estep.pairs
-    problem = LeastSquares(y, n, i, p, estep.weights, distance_named(params.distance), result.pose,
-                           body.prior_weight / PRIOR_SIGMA_RAD**2, False, True,
-                           LengthPrior(mean=np.log(body.length_factors), precision=np.zeros((G, G))))
-    return length_evidence(problem, body, body.fk(result.pose), result.pose)
+                     log_likelihood=tuple(history), outlier_fraction=outliers, estep=estep)

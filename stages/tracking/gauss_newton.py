@@ -1,8 +1,7 @@
 """The M-step's pose update: a damped Gauss-Newton (Levenberg-Marquardt) step on eq. (14) for fixed t_ip.
 
 The unknowns are the pose Λ (D), then, when asked for, ln s of the body's overall size and ln ℓ of its
-segment-length factors (with a Gaussian prior `LengthPrior`: the body file's proportions, or the tracker's
-belief from the frames before). The normal equations are
+segment-length factors (with a prior towards the configured proportions). The normal equations are
 summed per ellipsoid in rigid-velocity coordinates (H_p = Σ_k t_k B_kᵀ Σ⁻¹ B_k, 6 × 6, by the distance:
 `distances.Distance.normal_equations`) and mapped to the DOFs by the segment twists: H = Σ_p T_pᵀ H_p T_p.
 """
@@ -38,29 +37,12 @@ RIDGE = 1e-9
 
 
 @dataclass(frozen=True)
-class LengthPrior:
-    """A Gaussian belief N(mean, precision⁻¹) over the length factors ln ℓ (G,) of a body's length groups.
-
-    The M-step's prior term is ½ (ln ℓ − mean)ᵀ precision (ln ℓ − mean): the body file's proportions
-    (`of_body`: mean 0, precision diag(1 / length_prior_sd²)) or what earlier frames taught the tracker.
-    """
-
-    mean: np.ndarray
-    precision: np.ndarray
-
-    @staticmethod
-    def of_body(body: BodyModel) -> LengthPrior:
-        """The body file's prior: its proportions (ln ℓ = 0) with standard deviations `length_prior_sd`."""
-        return LengthPrior(mean=np.zeros(len(body.length_groups)), precision=np.diag(1.0 / body.length_prior_sd**2))
-
-
-@dataclass(frozen=True)
 class LeastSquares:
     """The weighted least squares of one M-step (eq. 14 for fixed t_ip): data, pairs and priors.
 
     Pairs (i[k], p[k]) are sorted by ellipsoid p; W (K, k, k), lower-triangular, weighs and whitens
     each pair (t_ip Σ_ip⁻¹ = W Wᵀ: the pair's term of eq. 14 is ½ |Wᵀ e|²), `prior` (D,) holds the prior
-    precisions of the DOFs towards `prior_pose`, `length_prior` the prior on ln ℓ (with `estimate_lengths`).
+    precisions of the DOFs towards `prior_pose`.
     """
 
     y: np.ndarray
@@ -73,7 +55,6 @@ class LeastSquares:
     prior: np.ndarray
     estimate_scale: bool
     estimate_lengths: bool
-    length_prior: LengthPrior | None = None
 
     @property
     def starts(self) -> np.ndarray:
@@ -86,24 +67,18 @@ class LeastSquares:
 
     def cost(self, body, pose, e):
         """Eq. (14) for fixed t_ip plus the priors on the weakly observed DOFs and the segment lengths."""
-        lengths = 0.0
-        if self.estimate_lengths:
-            z = np.log(body.length_factors) - self.length_prior.mean
-            lengths = z @ self.length_prior.precision @ z
+        z = np.log(body.length_factors) / body.length_prior_sd if self.estimate_lengths else np.zeros(0)
         return 0.5 * (compiled.whitened_norm2(self.W, e) + (self.prior * (pose - self.prior_pose) ** 2).sum()
-                      + lengths)
+                      + (z**2).sum())
 
 
 def gauss_newton_step(problem: LeastSquares, body: BodyModel, kin: Kinematics, pose: np.ndarray):
     """One Levenberg-Marquardt step on eq. (14) for fixed posteriors, from the pose's kinematics `kin`.
 
     Returns the accepted pose, body, their kinematics and the pairs' residuals there (the current ones
-    when no damping within `LM_TRIES` lowers the cost), and the information the data carry about ln ℓ at
-    the starting pose (`length_information`; (0, 0) without `estimate_lengths`).
+    when no damping within `LM_TRIES` lowers the cost).
     """
     H, g, e = _normal_equations(problem, body, kin, pose)
-    information = (length_information(H, problem.length_prior.precision) if problem.estimate_lengths
-                   else np.zeros((0, 0)))
     D = body.pose_size
     cost = problem.cost(body, pose, e)
     diag = np.diag(H) + RIDGE
@@ -115,34 +90,9 @@ def gauss_newton_step(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
         kin_c = body_c.fk(candidate)
         e_c = problem.residuals(body_c, kin_c)
         if problem.cost(body_c, candidate, e_c) <= cost:
-            return candidate, body_c, kin_c, e_c, information
+            return candidate, body_c, kin_c, e_c
         damping *= LM_GROWTH
-    return pose, body, kin, e, information
-
-
-def length_information(H: np.ndarray, prior_precision: np.ndarray) -> np.ndarray:
-    """The data's information about ln ℓ with the other unknowns marginalised out (G, G), from the normal
-    equations H of `_normal_equations` (lengths last) and the prior precision on ln ℓ they include.
-
-    For the linearised eq. (14), −ln p(data | ln ℓ, Λ) is the quadratic form of H (less the length prior);
-    integrating the pose (and size) out of the Gaussian leaves the Schur complement
-    H_ll − H_lΛ H_ΛΛ⁻¹ H_Λl: a length that the pose can mimic (the upper-arm/forearm split of a straight
-    arm, which moving the elbow along the arm explains as well) keeps little of its H_ll. H is the
-    complete-data (fixed t_ip) curvature, which overstates the observed-data information (the missing
-    information of the E-step's assignments); the caller tempers it.
-    """
-    G = len(prior_precision)
-    if G == 0:
-        return np.zeros((0, 0))
-    rest = H[:-G, :-G] + RIDGE * np.eye(len(H) - G)
-    cross = H[:-G, -G:]
-    try:
-        marginal = H[-G:, -G:] - prior_precision - cross.T @ np.linalg.solve(rest, cross)
-    except np.linalg.LinAlgError:
-        marginal = H[-G:, -G:] - prior_precision - cross.T @ np.linalg.lstsq(rest, cross, rcond=None)[0]
-    marginal = 0.5 * (marginal + marginal.T)
-    values, vectors = np.linalg.eigh(marginal)  # rounding can leave a direction the data do not see below 0
-    return (vectors * np.maximum(values, 0.0)) @ vectors.T
+    return pose, body, kin, e
 
 
 def _normal_equations(problem: LeastSquares, body: BodyModel, kin: Kinematics, pose: np.ndarray):
@@ -171,11 +121,11 @@ def _normal_equations(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
     prior = np.zeros(D + X)
     prior[:D] = problem.prior
     g[:D] += problem.prior * (pose - problem.prior_pose)
-    H += np.diag(prior)
     if problem.estimate_lengths:
         G = len(body.length_groups)
-        H[-G:, -G:] += problem.length_prior.precision
-        g[-G:] += problem.length_prior.precision @ (np.log(body.length_factors) - problem.length_prior.mean)
+        prior[-G:] = 1.0 / body.length_prior_sd**2
+        g[-G:] += np.log(body.length_factors) / body.length_prior_sd**2
+    H += np.diag(prior)
     return H, g, e
 
 
@@ -203,19 +153,3 @@ def _updated_body(problem: LeastSquares, body: BodyModel, step: np.ndarray) -> B
     if problem.estimate_lengths:
         body = body.with_lengths(np.clip(body.length_factors * np.exp(step), *LENGTH_RANGE))
     return body
-
-
-def length_evidence(problem: LeastSquares, body: BodyModel, kin: Kinematics, pose: np.ndarray):
-    """The data's information S (G, G) about ln ℓ and the gradient γ (G,) of eq. (14) in ln ℓ, both with
-    the pose marginalised out, at `pose` (`problem` with `estimate_lengths` and a zero-precision prior).
-
-    With the linearised eq. (14) as a Gaussian in (Λ, ln ℓ), minimising over Λ leaves the quadratic
-    ½ δᵀ S δ + γᵀ δ in δ = Δ ln ℓ, S the Schur complement (`length_information`) and
-    γ = g_l − H_lΛ H_ΛΛ⁻¹ g_Λ; at a converged pose g_Λ ≈ 0, and γ says which way the data pull the lengths.
-    """
-    H, g, _ = _normal_equations(problem, body, kin, pose)
-    G = len(body.length_groups)
-    rest = H[:-G, :-G] + RIDGE * np.eye(len(H) - G)
-    solved = np.linalg.lstsq(rest, np.column_stack([H[:-G, -G:], g[:-G]]), rcond=None)[0]
-    gradient = g[-G:] - H[-G:, :-G] @ solved[:, -1]
-    return length_information(H, problem.length_prior.precision), gradient

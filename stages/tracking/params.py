@@ -42,9 +42,9 @@ class TrackerParams:
     displacement_m : float
         EM stops when no joint centre moved more than this in an iteration (metres).
     estimate_lengths : tuple of str
-        Length groups of the body (its file's `lengths`) whose factors are estimated over the sequence (an
-        information filter, `tracker.Tracker`), with a prior towards the file's proportions; the others keep
-        the file's values, () estimates none. Why these defaults: docs/method.md, "Body dimensions".
+        Length groups of the body (its file's `lengths`) whose factors are estimated over the first
+        `scale_frames` frames, with a prior towards the file's proportions; the others keep the file's
+        values, () estimates none. Why these defaults: docs/method.md, "Body dimensions".
     sigma_m : float
         Prediction error (metres, > 0): every frame's EM starts from the previous frame's Σ + σ² I, the
         first from σ² I.
@@ -78,8 +78,8 @@ class TrackerParams:
     max_predicted_frames : int
         After this many frames without a fit, the subject is lost and the next data re-initialise.
     scale_frames : int
-        Frames over which the height (when unknown: by the initialisations among them) is estimated and
-        the length factors are unknowns of the EM; later frames refine the lengths by a cheaper update.
+        Frames over which the height (when unknown: by the initialisations among them) and the length
+        factors keep being estimated.
     init_headings, init_refine : int
         Initialisation: headings per library pose, hypotheses refined by EM.
     normal_noise_deg : float

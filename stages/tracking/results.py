@@ -86,9 +86,6 @@ class TrackerState:
         Current segment-length factors of the groups named by `TrackerParams.estimate_lengths`.
     height_weight : int
         Frames that contributed to the height and length estimates (frozen at `scale_frames`).
-    length_information : (G, G) float or None
-        Precision Λ of the tracker's belief N(ln ℓ, Λ⁻¹) about the length factors `length_factors`
-        (`Tracker._tracked`); None: the body file's prior (`gauss_newton.LengthPrior.of_body`).
     Sigma : (k, k) float
         Covariance Σ of the last fit, m² (the next frame's EM starts from it).
     pi : (P + 1,) float
@@ -123,7 +120,6 @@ class TrackerState:
     since_initialisation: int = 0
     segment_shares: np.ndarray | None = None
     recheck: bool = False
-    length_information: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
@@ -131,8 +127,7 @@ class TrackerState:
         return {**asdict(self), "pose": self.pose.tolist(), "velocity": self.velocity.tolist(),
                 "length_factors": self.length_factors.tolist(), "Sigma": self.Sigma.tolist(),
                 "pi": self.pi.tolist(), "likelihood_level": level,
-                "segment_shares": None if self.segment_shares is None else self.segment_shares.tolist(),
-                "length_information": None if self.length_information is None else self.length_information.tolist()}
+                "segment_shares": None if self.segment_shares is None else self.segment_shares.tolist()}
 
     @staticmethod
     def from_dict(data: dict) -> TrackerState:
@@ -148,10 +143,7 @@ class TrackerState:
                             since_initialisation=int(data.get("since_initialisation", 0)),
                             segment_shares=None if data.get("segment_shares") is None
                             else np.asarray(data["segment_shares"], dtype=float),
-                            recheck=bool(data.get("recheck", False)),
-                            length_information=None if data.get("length_information") is None
-                            else np.asarray(data["length_information"], dtype=float).reshape(
-                                len(data["length_factors"]), len(data["length_factors"])))
+                            recheck=bool(data.get("recheck", False)))
 
 
 def frame_record(frame: int, result: FrameResult, state: TrackerState) -> dict:

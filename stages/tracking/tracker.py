@@ -6,16 +6,10 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
 
 - first frame and after a loss: automatic initialisation from the data (`init.initialise`);
 - unknown height: estimated by the initialisation (the cloud's top, then EM; averaged over the
-  initialisations of the first `scale_frames` frames). The tracked frames do not refine the height:
-  their EM, with the girth and lengths free as well, drifted it upward on stout bodies;
-- the segment-length and girth factors ln ℓ named by `estimate_lengths` (groups of the body file's
-  `lengths`) are static unknowns with a Gaussian belief N(μ, Λ⁻¹), from the body file's prior, refined
-  by every tracked frame as an information filter: the frame's data information with the pose
-  marginalised out (a Schur complement of the M-step's normal equations, `gauss_newton.length_information`),
-  tempered (`length_tempering`), adds to Λ, so a frame in which the elbow bends counts for the
-  upper-arm/forearm split and a straight-arm one hardly does. Over the first `scale_frames` tracked frames
-  the lengths are unknowns of the M-step (their prior the belief), later ones take one cheap update at
-  the fit's solution (`Tracker._refined_lengths`) for the whole sequence (memory: G + G² numbers);
+  initialisations of the first `scale_frames` frames); the segment-length and girth factors named by
+  `estimate_lengths` (groups of the body file's `lengths`) are estimated with the pose over those frames
+  (prior towards the body file's proportions), then frozen. The tracked frames do not refine the
+  height: their EM, with the girth and lengths free as well, drifted it upward on stout bodies;
 - a frame far worse than usual even after more EM iterations is also fitted from the last pose
   without velocity (`restart_drop`), the better fit kept;
 - failure detection, by absolute checks that a bad start cannot make the norm: an outlier fraction
@@ -45,23 +39,13 @@ import numpy as np
 from stages.tracking.body import BodyModel
 from stages.tracking.body_file import load_body
 from stages.tracking.distances import distance_named
-from stages.tracking.em import EMParams, FitResult, fit, frame_length_evidence
-from stages.tracking.gauss_newton import LENGTH_RANGE, LengthPrior
+from stages.tracking.em import EMParams, FitResult, fit
 from stages.tracking.init import initialise
 from stages.tracking.library import load_pose_library
 from stages.tracking.limbs import body_limbs, deserted_limbs, misplaced_limbs, reinitialise_limb, segment_shares
 from stages.tracking.mixture import Mixture, volume_size
 from stages.tracking.params import TrackerParams
 from stages.tracking.results import FrameResult, TrackerState
-
-# Effective number of independent observations one frame's data are worth for the length factors
-# (`length_tempering`).
-EFFECTIVE_LENGTH_OBSERVATIONS = 50
-# After the first `scale_frames` frames, the length belief is refined on every this many tracked frames,
-# each counting for the frames skipped: consecutive frames' evidence is strongly correlated, so the
-# skipped ones add little, and the update's normal equations are the costliest part of a frame's work.
-LENGTH_REFINE_EVERY = 2
-
 
 # Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
 _LEVEL_RATE = 0.1
@@ -100,7 +84,6 @@ class Tracker:
         self.library = load_pose_library(self.body)
         self.limbs = body_limbs(self.body)
         self._sized: tuple = (None, None)
-        self.length_prior = LengthPrior.of_body(self.body).precision
 
     def track(self, state: TrackerState | None, obs) -> tuple[FrameResult, TrackerState]:
         """Estimate one frame's pose from its observations and the tracker's state (None on the first frame).
@@ -118,12 +101,8 @@ class Tracker:
             return _predict(state, sized, params, len(y))
         if state.lost:
             return self._initialise(state, y, n, sized)
-        learning = bool(params.estimate_lengths) and state.height_weight < params.scale_frames
-        kappa = length_tempering(len(y))
-        em = params.em
-        if learning:  # the frame's prior on ln ℓ: the belief, tempered like the data (`_tracked`)
-            em = replace(em, estimate_lengths=True, length_prior=LengthPrior(
-                mean=np.log(state.length_factors), precision=self._belief(state) / kappa))
+        learning = state.height_weight < params.scale_frames
+        em = replace(params.em, estimate_lengths=learning and bool(params.estimate_lengths))
         prediction = sized.clip(state.pose + state.velocity)
         mixture = Mixture(Sigma=state.Sigma + params.sigma_m**2 * np.eye(len(state.Sigma)), pi=state.pi)
         tracked = self._fit_from(prediction, state, y, n, sized, mixture, em)
@@ -137,30 +116,7 @@ class Tracker:
             margin = 0.0 if doubtful or state.recheck else params.reinit_margin * len(y)
             if result.log_likelihood > tracked.log_likelihood[-1] + margin:
                 return result, new_state
-        if (params.estimate_lengths and not learning and not doubtful
-                and state.since_initialisation % LENGTH_REFINE_EVERY == 0):
-            tracked = self._refined_lengths(state, y, n, tracked, LENGTH_REFINE_EVERY * kappa)
         return self._tracked(state, tracked, len(y), learning, doubtful, tried)
-
-    def _belief(self, state: TrackerState) -> np.ndarray:
-        """Precision Λ of the belief about ln ℓ before the frame (the body file's prior before any frame)."""
-        return self.length_prior if state.length_information is None else state.length_information
-
-    def _refined_lengths(self, state: TrackerState, y, n, tracked: FitResult, kappa: float) -> FitResult:
-        """The fit with the length belief's update by the frame's data at its solution (an extended
-        information filter step), the lengths fixed during its EM.
-
-        The frame's tempered evidence about δ = ln ℓ − μ, ½ κ δᵀ S δ + κ γᵀ δ with the pose marginalised
-        out (`em.frame_length_evidence`), added to the belief ½ δᵀ Λ δ, gives the posterior precision
-        Λ + κ S and mean μ − (Λ + κ S)⁻¹ κ γ: one Gauss-Newton step where the M-step estimation of the
-        first frames iterates to convergence, at the cost of one evaluation of the normal equations.
-        Pinned-down lengths no longer need the pose to move with them, and the steps shrink as 1/frames.
-        """
-        S, gamma = frame_length_evidence(y, n, tracked, self.params.em)
-        precision = self._belief(state) + kappa * S
-        lengths = np.log(tracked.body.length_factors) - np.linalg.solve(precision, kappa * gamma)
-        body = tracked.body.with_lengths(np.clip(np.exp(lengths), *LENGTH_RANGE))
-        return replace(tracked, body=body, length_information=S)
 
     def _sized_body(self, state: TrackerState) -> BodyModel:
         """The body at the state's height and length factors, remembered for the last ones asked.
@@ -211,20 +167,13 @@ class Tracker:
 
     def _tracked(self, state: TrackerState, tracked: FitResult, observations: int, learning: bool, doubtful: bool,
                  tried: bool) -> tuple[FrameResult, TrackerState]:
-        """The estimate of a tracked frame and the state after it: the length belief updated by the frame's
-        evidence (when the fit carries it and passed the checks), the likelihood level and segment shares
-        (exponential averages), the velocity. `learning`: one of the first `scale_frames` frames."""
+        """The estimate of a tracked frame and the state after it: the length factors' running mean (while
+        `learning`), the likelihood level and segment shares (exponential averages), the velocity."""
         per_obs = tracked.log_likelihood[-1] / observations
         height, lengths, weight = state.height_m, state.length_factors, state.height_weight
-        information = state.length_information
-        if tracked.length_information is not None and not doubtful:
-            # The information filter on the static ln ℓ: belief N(μ, Λ⁻¹), frame evidence N(x_f, S_f⁻¹)
-            # tempered by κ; the frame's MAP (with the prior Λ / κ, or `_refined_lengths`'s step) is the
-            # new μ, its precision Λ + κ S_f.
-            lengths = tracked.body.length_factors
-            every = 1 if learning else LENGTH_REFINE_EVERY
-            information = self._belief(state) + every * length_tempering(observations) * tracked.length_information
-        weight += learning
+        if learning:  # running mean of the per-frame estimates of ln ℓ
+            weight += 1
+            lengths = lengths * (tracked.body.length_factors / lengths) ** (1.0 / weight)
         level = per_obs if not np.isfinite(state.likelihood_level) else (
             (1 - _LEVEL_RATE) * state.likelihood_level + _LEVEL_RATE * per_obs)
         shares = segment_shares(tracked.body, tracked.mixture)
@@ -239,7 +188,7 @@ class Tracker:
                                  height_weight=weight, Sigma=tracked.mixture.Sigma, pi=tracked.mixture.pi,
                                  likelihood_level=level, frames_without_fit=0, lost=False,
                                  since_initialisation=0 if tried else state.since_initialisation + 1,
-                                 segment_shares=shares, length_information=information)
+                                 segment_shares=shares)
         result = FrameResult(pose=tracked.pose, joints=tracked.body.joint_positions(tracked.pose),
                              log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
                              outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m,
@@ -303,22 +252,6 @@ class Tracker:
         return result, new_state
 
 
-def length_tempering(observations: int) -> float:
-    """κ, the weight of one frame's data information about the length factors: n_eff / I.
-
-    The Gauss-Newton information counts the I observations as independent errors of spread Σ, but the
-    errors that matter for a length are the body's departure from the ellipsoids and the visual hull's
-    phantom volumes: shared by a whole segment's data, and by consecutive frames. Taken at face value, a
-    few frames would pin the lengths down to a fraction of a per cent and the next frames would barely
-    move them (and, inside an M-step with the belief as prior, not even the pose could adapt). Tempering
-    the likelihood (raising it to the power κ) keeps its shape, so the information-weighted combination
-    of the frames is unchanged, and sizes it to `EFFECTIVE_LENGTH_OBSERVATIONS` independent observations
-    a frame: the scatter of the per-frame estimates about their mean and their correlation from frame to
-    frame, compared with the information they claim, are of that order.
-    """
-    return EFFECTIVE_LENGTH_OBSERVATIONS / max(observations, 1)
-
-
 def joint_support(body: BodyModel, mixture: Mixture, n_observations: int) -> np.ndarray:
     """(17,) observations explained by the segment that places each joint of `JOINT_NAMES`.
 
@@ -365,8 +298,7 @@ def _predict(state: TrackerState, body: BodyModel, params: TrackerParams,
     new_state = TrackerState(pose=pose, velocity=velocity, height_m=state.height_m,
                              length_factors=state.length_factors, height_weight=state.height_weight,
                              Sigma=state.Sigma, pi=state.pi, likelihood_level=state.likelihood_level,
-                             frames_without_fit=gap, lost=lost, segment_shares=state.segment_shares,
-                             length_information=state.length_information)
+                             frames_without_fit=gap, lost=lost, segment_shares=state.segment_shares)
     result = FrameResult(pose=pose, joints=body.joint_positions(pose), log_likelihood=0.0, iterations=0,
                          outlier_fraction=1.0, status="lost" if lost else "predicted", height_m=state.height_m,
                          observations=observations)

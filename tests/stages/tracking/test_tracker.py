@@ -234,28 +234,3 @@ def test_frames_record_the_data_supporting_each_joint_and_a_hidden_forearm_has_l
     support = dict(zip(JOINT_NAMES, result.joint_support, strict=True))
     assert support["l_wrist"] < 0.3 * seen["l_wrist"] and support["r_wrist"] > 0.5 * seen["r_wrist"]
     assert json.loads(json.dumps(result.to_dict()))["joint_support"] == result.joint_support.tolist()
-
-
-def test_length_belief_gathers_information_over_the_sequence_and_resumes(body):
-    """Every tracked frame adds its data information to the length belief (beyond `scale_frames`), and a
-    run resumed from the JSON state continues exactly as the uninterrupted one."""
-    rng = np.random.default_rng(25)
-    poses = _walk(body.scaled(1.75), 5)
-    observations = [_obs(body, pose, rng) for pose in poses]
-    params = TrackerParams(height_m=1.75, init_headings=6, init_refine=2, scale_frames=2)
-    tracking = Tracker(params, VOLUME)
-    result, state = tracking.track(None, observations[0])
-    assert state.length_information is None  # an initialisation: the body file's prior
-    precisions = []
-    for obs in observations[1:4]:
-        result, state = tracking.track(state, obs)
-        assert result.status == "tracked"
-        precisions.append(np.diag(state.length_information))
-    prior = np.diag(tracking.length_prior)
-    assert np.all(precisions[0] > prior) and np.all(np.diff(precisions, axis=0) > 0)  # also after scale_frames
-    assert np.all(np.abs(np.log(state.length_factors)) < 0.05)  # the data are the file's proportions
-    resumed = TrackerState.from_dict(json.loads(json.dumps(state.to_dict(), allow_nan=False)))
-    _, straight = tracking.track(state, observations[4])
-    _, again = Tracker(params, VOLUME).track(resumed, observations[4])
-    np.testing.assert_array_equal(again.length_information, straight.length_information)
-    np.testing.assert_array_equal(again.length_factors, straight.length_factors)

@@ -11,12 +11,10 @@ from stages.tracking.em import (
     Mixture,
     e_step,
     fit,
-    frame_length_evidence,
     hypothesis_scores,
     log_evidence,
     m_step,
 )
-from stages.tracking.gauss_newton import length_information
 from stages.tracking.geometry import normal_spread
 from stages.tracking.mixture import NEGLIGIBLE_POSTERIOR, volume_size
 
@@ -244,30 +242,3 @@ def test_a_fit_with_no_datum_near_the_body_keeps_going_while_estimating_lengths(
                                                    estimate_scale=True, estimate_lengths=True, max_iterations=3))
     assert np.all(np.isfinite(result.pose)) and np.all(np.isfinite(result.mixture.Sigma))
     assert result.outlier_fraction > 0.9
-
-
-def test_length_information_is_the_marginal_precision_of_the_lengths():
-    """The Schur complement of the normal equations is the inverse of the lengths' block of H⁻¹ (the
-    precision of ln ℓ with the pose integrated out), less the prior precision H includes."""
-    rng = np.random.default_rng(16)
-    A = rng.normal(size=(12, 9))
-    prior = np.diag([3.0, 5.0])
-    H = A.T @ A
-    H[-2:, -2:] += prior
-    marginal = np.linalg.inv(np.linalg.inv(H)[-2:, -2:]) - prior
-    np.testing.assert_allclose(length_information(H, prior), marginal, rtol=1e-6, atol=1e-9)
-
-
-def test_frame_length_evidence_points_towards_the_true_lengths(body):
-    """At the true pose on the file's proportions, one information-filter step −S⁻¹γ moves ln ℓ towards
-    the lengths the data were drawn from."""
-    rng = np.random.default_rng(17)
-    truth = random_pose(body, rng, scale=0.3)
-    factors = np.ones(len(body.length_groups))
-    factors[body.length_groups.index("thigh")] = 1.08
-    y, n = sample_ellipsoids(body.with_lengths(factors), truth, 1500, rng, outlier_fraction=0.2)
-    fitted = fit(y, n, body, truth, VOLUME, EMParams(max_iterations=10))
-    S, gamma = frame_length_evidence(y, n, fitted)
-    step = -np.linalg.solve(S + 1e-6 * np.eye(len(S)), gamma)
-    assert np.linalg.eigvalsh(S).min() >= 0
-    assert step[body.length_groups.index("thigh")] > 0.03
