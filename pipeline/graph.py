@@ -229,19 +229,13 @@ def run_reconstruction(ctx: StageContext) -> int:
 EXPORTED_STATUSES = ("tracked", "initialised")
 
 
-def tracking_path(out_dir: Path, frame: int) -> Path:
-    """A frame's record in the tracking stage's folder ``out_dir``: named by the run layout, and a function of this
-    module so that the tracking stage's code version counts it with the record's reader (:func:`read_tracking`)."""
-    return run_layout.tracking_path(out_dir, frame)
-
-
 def read_tracking(folder: Path, frame: int) -> tuple[FrameResult, TrackerState]:
     """One frame's tracking record: its estimate and the tracker's state after it.
 
     Raises :class:`~pipeline.io.frames_io.DamagedFileError` when the record fails its content check or is
     not a record of this frame with a (17, 3) array of joints and a known status.
     """
-    path = tracking_path(folder, frame)
+    path = run_layout.tracking_path(folder, frame)
     record = frames_io.read_record(path)
     try:
         return read_frame_record(record, frame)
@@ -262,7 +256,7 @@ def run_tracking(ctx: StageContext) -> int:
         params = dataclasses.replace(params, height_m=ctx.capture.height_m)
     tracker = Tracker(params, ctx.capture.volume)
     frames = ctx.capture.frame_numbers
-    pending = ctx.pending_frames(lambda frame: [tracking_path(ctx.out_dir, frame)])
+    pending = ctx.pending_frames(lambda frame: [run_layout.tracking_path(ctx.out_dir, frame)])
     done = frames.index(pending[0]) if pending else len(frames)  # frames after a missing one are redone
     state = read_tracking(ctx.out_dir, frames[done - 1])[1] if done else None
     observations_dir = ctx.input_dir("reconstruction")
@@ -274,7 +268,7 @@ def run_tracking(ctx: StageContext) -> int:
             result, state = tracker.track(state, Observations(points, normals))
             if result.status in ("predicted", "lost"):
                 log.warning("frame %d: pose %s, not exported (%d observations)", frame, result.status, len(points))
-            frames_io.write_record(tracking_path(ctx.out_dir, frame), frame_record(frame, result, state))
+            frames_io.write_record(run_layout.tracking_path(ctx.out_dir, frame), frame_record(frame, result, state))
             bar.update(1)
     _warn_volume_contact(faces[done:], frames[done:], ctx.capture.volume)
     return len(frames) - done

@@ -39,11 +39,11 @@ from calib.errors import InputError
 from pipeline.commands.batch_workers import (
     CaptureJob,
     CaptureReport,
-    RenewedProcessPool,
     capture_workers,
+    check_params,
     run_jobs,
 )
-from pipeline.engine.executors import InProcessExecutor, Workers
+from pipeline.engine.executors import InProcessExecutor
 from pipeline.engine.params import read_overrides
 from pipeline.io import atomic
 from pipeline.terminal import printable
@@ -194,28 +194,6 @@ def largest_first(jobs: Sequence[CaptureJob]) -> list[CaptureJob]:
     do its media's bytes, roughly (a capture.yaml that selects a part of its frames is not looked at).
     """
     return sorted(jobs, key=lambda job: media_bytes(job.capture), reverse=True)
-
-
-def _check_params(overrides: Sequence[tuple[str, Mapping[str, Any]]]) -> None:
-    from pipeline.commands.run import stage_params  # see batch_workers.TASK_MODULES
-
-    stage_params(overrides)
-
-
-def check_params(workers: Workers, overrides: Sequence[tuple[str, Mapping[str, Any]]]) -> None:
-    """Check ``overrides`` against the stages' parameters, as ``run`` does before any work.
-
-    A local pool's process checks them: it has the stages for its captures anyway, and this process, which then
-    only waits, need not import them (1.3 s of CPU, which the pool's start-up would share on a machine of few
-    cores). Otherwise this process does.
-
-    Raises
-    ------
-    InputError
-        Naming the mistake.
-    """
-    checker = workers.executor if isinstance(workers.executor, RenewedProcessPool) else InProcessExecutor()
-    checker.submit(_check_params, overrides).result()
 
 
 def main(args: argparse.Namespace) -> int:

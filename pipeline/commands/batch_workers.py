@@ -260,3 +260,25 @@ def run_jobs(jobs: Sequence[CaptureJob], workers: Workers, on_done: Callable[[Ca
                 report = CaptureReport(job.name, "failed", error=f"its worker process was lost ({one_line(error)}; "
                                                                  "this capture or one beside it ended it)")
             on_done(report)
+
+
+def _check_params(overrides: Sequence[tuple[str, Mapping[str, Any]]]) -> None:
+    from pipeline.commands.run import stage_params  # see TASK_MODULES
+
+    stage_params(overrides)
+
+
+def check_params(workers: Workers, overrides: Sequence[tuple[str, Mapping[str, Any]]]) -> None:
+    """Check ``overrides`` against the stages' parameters, as ``run`` does before any work.
+
+    A local pool's process checks them: it has the stages for its captures anyway, and this process, which then
+    only waits, need not import them (1.3 s of CPU, which the pool's start-up would share on a machine of few
+    cores). Otherwise this process does.
+
+    Raises
+    ------
+    InputError
+        Naming the mistake.
+    """
+    checker = workers.executor if isinstance(workers.executor, RenewedProcessPool) else InProcessExecutor()
+    checker.submit(_check_params, overrides).result()
