@@ -118,8 +118,6 @@ REGION_LEVELS = 30
 #: pixels settle (fewer than SETTLED_SHARE of the covered working pixels change from one round to the next).
 MAX_ROUNDS = 5
 SETTLED_SHARE = 0.01
-#: Depths (metres) in front of a camera below which a voxel counts as behind it.
-MIN_DEPTH_M = 1e-3
 # The samples' scatter is measured on at most about this many of them (each gives thousands of pixels).
 SCATTER_SAMPLES = 12
 # The median of a χ² variable with 3 degrees of freedom: ‖I − B‖² / σ² of background pixels under Gaussian
@@ -406,11 +404,8 @@ class _Grid:
         pixels, depths = [], []
         for camera in self.cameras:
             depth = camera.depth(X)
-            # The distortion polynomial folds back far outside the image: a point counts as seen when it
-            # lies in the image both with and without the distortion.
-            x = X @ camera.P[:, :3].T + camera.P[:, 3]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                seen = (depth > MIN_DEPTH_M) & camera.in_image(x[:, :2] / x[:, 2:])
+            # Seen: in the image both without the distortion (which folds back far outside the image) and with it.
+            seen = camera.sees(X)
             uv = np.full((len(X), 2), -1.0)
             uv[seen] = camera.project(X[seen])
             seen &= camera.in_image(uv)

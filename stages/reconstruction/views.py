@@ -12,10 +12,7 @@ import functools
 
 import numpy as np
 
-from calib.camera import Camera
-
-# Points closer than this to a camera's image plane (metres of depth) are treated as behind it.
-MIN_DEPTH_M = 1e-3
+from calib.camera import MIN_VIEW_DEPTH_M, Camera
 
 
 def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[int, int] = (0, 0)) -> np.ndarray:
@@ -38,7 +35,7 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[i
     xyz = R @ X
     xyz += t[:, None]
     z, xy = xyz[2], xyz[:2]
-    seen = z > MIN_DEPTH_M
+    seen = z > MIN_VIEW_DEPTH_M
     inverse_z = np.where(seen, z, np.float32(1.0))
     xy *= np.divide(np.float32(1.0), inverse_z, out=inverse_z)
     if dist is not None:

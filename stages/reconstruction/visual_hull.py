@@ -22,8 +22,7 @@ import cv2
 import numpy as np
 from skimage.measure import marching_cubes
 
-from calib.camera import Camera, Rig
-from stages.reconstruction.views import MIN_DEPTH_M
+from calib.camera import MIN_VIEW_DEPTH_M, Camera, Rig
 
 # A voxel is refined when |φ| at its centre is below this many half diagonals: φ measures distance in
 # the image plane at the point's depth, which grows a little faster than 3-D distance off the optical axis.
@@ -108,8 +107,8 @@ def _hull_distance(cameras: list[Camera], distance_maps: list[np.ndarray], X: np
         sampled = _bilinear(distance, camera.project(X))
         depth = camera.depth(X)
         focal = 0.5 * (camera.K[0, 0] + camera.K[1, 1])
-        metres = sampled * np.maximum(depth, MIN_DEPTH_M) / focal
-        per_view[index] = np.where(depth > MIN_DEPTH_M, np.maximum(metres, -FAR_OUTSIDE_M), -FAR_OUTSIDE_M)
+        metres = sampled * np.maximum(depth, MIN_VIEW_DEPTH_M) / focal
+        per_view[index] = np.where(depth > MIN_VIEW_DEPTH_M, np.maximum(metres, -FAR_OUTSIDE_M), -FAR_OUTSIDE_M)
     order = min(tolerated_views, len(cameras) - 1)
     return np.partition(per_view, order, axis=0)[order]
 

@@ -4,13 +4,14 @@ import numpy as np
 import pytest
 from sphere_scene import ring_rig
 
-from stages.reconstruction.views import MIN_DEPTH_M, VOLUME_FACES, faces_reached, inside_view
+from calib.camera import MIN_VIEW_DEPTH_M
+from stages.reconstruction.views import VOLUME_FACES, faces_reached, inside_view
 
 
 def _inside_view_reference(camera, mask, X):
     """The plain float32 formulation that ``inside_view`` evaluates with fewer passes, on the full image."""
     x, y, z = camera.R.astype(np.float32) @ X + camera.t.astype(np.float32)[:, None]
-    seen = z > MIN_DEPTH_M
+    seen = z > MIN_VIEW_DEPTH_M
     inverse_z = 1.0 / np.where(seen, z, np.float32(1.0))
     x *= inverse_z
     y *= inverse_z
