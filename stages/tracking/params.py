@@ -144,7 +144,7 @@ class TrackerParams:
         for name, (minimum, maximum, above) in _NUMBER_RANGES.items():
             check_number(f"tracking.{name}", getattr(self, name), minimum, maximum, above=above,
                          infinite=name in _MAY_BE_INFINITE)
-        _check_length_groups(self.estimate_lengths, _checked_body(self.body))
+        _check_length_groups(self.estimate_lengths, self.body_model)
         if not self.failure_sigma_m < self.max_sigma_m:
             raise InputError(f"tracking.failure_sigma_m: expected a value below max_sigma_m ({self.max_sigma_m}), "
                              f"since Σ never grows past that ceiling, got {self.failure_sigma_m}")
@@ -154,6 +154,11 @@ class TrackerParams:
         file given by its path (a shipped body is part of the code). Their contents belong in the stage's
         cache key, so that editing the file in place tracks again."""
         return {"body": Path(self.body)} if is_body_path(self.body) else {}
+
+    @functools.cached_property
+    def body_model(self) -> BodyModel:
+        """The body that `body` names, read once: checked here, tracked with by the `Tracker`."""
+        return _checked_body(self.body)
 
     @functools.cached_property
     def em(self) -> EMParams:

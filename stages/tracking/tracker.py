@@ -37,7 +37,6 @@ from dataclasses import replace
 import numpy as np
 
 from stages.tracking.body import BodyModel
-from stages.tracking.body_file import load_body
 from stages.tracking.distances import distance_named
 from stages.tracking.em import EMParams, FitResult, fit
 from stages.tracking.init import initialise
@@ -80,7 +79,7 @@ class Tracker:
         self.params = params
         self.volume = np.asarray(volume, dtype=float)
         volume_size(self.volume)
-        self.body = load_body(params.body).with_length_groups(params.estimate_lengths)
+        self.body = params.body_model.with_length_groups(params.estimate_lengths)
         self.library = load_pose_library(self.body)
         self.limbs = body_limbs(self.body)
         self._sized: tuple = (None, None)
