@@ -148,7 +148,7 @@ def _explained(camera: Camera, uv: np.ndarray, others: Sequence[tuple[Camera, np
     for other, mask in others:
         Y = X[running]
         uv_other = other.project(Y)
-        visible = (other.depth(Y) > 0) & other.in_image(uv_other)
+        visible = other.sees(Y) & other.in_image(uv_other)  # in view without the distortion's fold-back and with it
         pixel = np.floor(uv_other[visible] + 0.5).astype(int)
         hit = np.zeros(len(Y), bool)
         hit[visible] = mask[np.clip(pixel[:, 1], 0, mask.shape[0] - 1), np.clip(pixel[:, 0], 0, mask.shape[1] - 1)] > 0
