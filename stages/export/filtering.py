@@ -15,7 +15,6 @@ the unfiltered estimate.
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import butter, sosfiltfilt
 
 #: Order of each pass; forwards and backwards together make a fourth-order zero-phase filter.
 FILTER_ORDER = 2
@@ -43,6 +42,10 @@ def lowpass(gridded: np.ndarray, rate_hz: float, cutoff_hz: float) -> np.ndarray
     """
     if not 0 < cutoff_hz < rate_hz / 2:
         raise ValueError(f"cut-off {cutoff_hz} Hz must be above 0 and below half the frame rate ({rate_hz / 2} Hz)")
+    # Imported here, not at the top: scipy.signal takes about half a second to import, a wait that
+    # every run would pay before its first frame although smoothing is off unless asked for.
+    from scipy.signal import butter, sosfiltfilt
+
     gridded = np.asarray(gridded, dtype=np.float64)
     sos = butter(FILTER_ORDER, cutoff_hz, btype="low", fs=rate_hz, output="sos")
     default_padding = 3 * (2 * len(sos) + 1)  # sosfiltfilt's own default
