@@ -22,6 +22,12 @@ def test_the_run_command_never_imports_matplotlib():
     assert imported.strip() == "False"  # a quarter of a second to import: the report's plots are SVG instead
 
 
+def test_the_run_command_imports_scipy_signal_only_to_smooth():
+    code = "import sys, pipeline.commands.run; print('scipy.signal' in sys.modules)"
+    imported = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert imported.strip() == "False"  # half a second to import, for a filter that is off by default
+
+
 #: Run in a fresh interpreter: each stage of pipeline.graph, run again on a finished output folder, in a
 #: child forked before any stage ran (so no cache a stage fills hides code from another), under a
 #: profiler (every Python function called) and an audit hook (every file opened). Prints, per stage,
