@@ -74,12 +74,14 @@ def tracker_speed(run_dir: Path, capture: Capture, frames: list[int]) -> dict:
     tracker.track(None, Observations(*observations[0]))
     first_call = time.perf_counter() - started
     state, seconds, statuses, counts = None, [], [], []
+    cpu_started = time.process_time()
     for points, normals in observations:
         started = time.perf_counter()
         result, state = tracker.track(state, Observations(points, normals))
         seconds.append(time.perf_counter() - started)
         statuses.append(result.status)
         counts.append(len(points))
+    cpu_seconds = time.process_time() - cpu_started
     seconds, statuses = np.array(seconds), np.array(statuses)
     tracked = statuses == "tracked"
     return {
@@ -87,6 +89,7 @@ def tracker_speed(run_dir: Path, capture: Capture, frames: list[int]) -> dict:
         "observations_mean": float(np.mean(counts)),
         "fps_tracked": float(tracked.sum() / seconds[tracked].sum()) if tracked.any() else 0.0,
         "fps_all": float(len(seconds) / seconds.sum()),
+        "fps_all_cpu": float(len(seconds) / cpu_seconds),
         "ms_tracked_median": float(1000.0 * np.median(seconds[tracked])) if tracked.any() else float("nan"),
         "ms_tracked_p90": float(1000.0 * np.percentile(seconds[tracked], 90)) if tracked.any() else float("nan"),
         "ms_initialisation": float(1000.0 * seconds[~tracked].mean()) if (~tracked).any() else 0.0,
