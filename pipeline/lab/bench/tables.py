@@ -72,8 +72,9 @@ def format_speed(speed: dict) -> str:
     if tracker:
         lines += ["", f"Tracker alone (`Tracker.track` in-process on the long run's {tracker['frames']} observation "
                       f"files, {tracker['observations_mean']:.0f} observations per frame on average): "
-                      f"{tracker['fps_all']:.1f} frames/s over all frames ({fmt(tracker.get('fps_all_cpu'))} in the process's "
-                      f"CPU time, which other work on the machine does not slow), {tracker['fps_tracked']:.1f} over "
+                      f"{tracker['fps_all']:.1f} frames/s over all frames ({fmt(tracker.get('fps_all_cpu'))} in the "
+                      f"process's CPU time, which other work on the machine does not slow), "
+                      f"{tracker['fps_tracked']:.1f} over "
                       f"tracked frames (median {fmt(tracker.get('ms_tracked_median'), 0)} ms, 90th percentile "
                       f"{fmt(tracker.get('ms_tracked_p90'), 0)} ms per frame); an initialisation takes "
                       f"{tracker['ms_initialisation']:.0f} ms; loading the compiled code, once per process, "
