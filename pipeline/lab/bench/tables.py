@@ -73,7 +73,7 @@ def format_speed(speed: dict) -> str:
         lines += ["", f"Tracker alone (`Tracker.track` in-process on the long run's {tracker['frames']} observation "
                       f"files, {tracker['observations_mean']:.0f} observations per frame on average): "
                       f"{tracker['fps_all']:.1f} frames/s over all frames ({fmt(tracker.get('fps_all_cpu'))} in the "
-                      f"process's CPU time, which other work on the machine does not slow), "
+                      f"process's CPU time, which the machine's other work sways less), "
                       f"{tracker['fps_tracked']:.1f} over "
                       f"tracked frames (median {fmt(tracker.get('ms_tracked_median'), 0)} ms, 90th percentile "
                       f"{fmt(tracker.get('ms_tracked_p90'), 0)} ms per frame); an initialisation takes "
