@@ -270,7 +270,7 @@ def _inside_enough(
     running = np.arange(X.shape[1])
     for index, (camera, (mask, corner)) in enumerate(zip(cameras, masks, strict=True)):
         tested = running[camera_of[running] != index]
-        inside = inside_view(camera, mask, X[:, tested], corner)
+        inside = inside_view(camera, mask, X.take(tested, axis=1), corner)  # take: X[:, tested], several times faster
         known[index, tested] = inside
         misses[tested] += ~inside  # tested holds each point once
         running = running[misses[running] <= tolerated_views]
@@ -287,7 +287,7 @@ def _inside_each(cameras, masks, camera_of: np.ndarray, X: np.ndarray, known: np
     result[camera_of, np.arange(X.shape[1])] = True
     for index, (camera, (mask, corner)) in enumerate(zip(cameras, masks, strict=True)):
         asked = np.flatnonzero((known[index] < 0) & (camera_of != index))
-        result[index, asked] = inside_view(camera, mask, X[:, asked], corner)
+        result[index, asked] = inside_view(camera, mask, X.take(asked, axis=1), corner)
     return result
 
 
@@ -315,7 +315,7 @@ def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, i
     X = ray_points(np.concatenate([origins[ray]] * 2), np.concatenate([directions[ray]] * 2),
                    np.concatenate([t_in, t_out]))
     inside = _inside_each(cameras, masks, np.concatenate([own, own]), X,
-                          known[:, np.concatenate([sample + inner[idx], sample + outer[idx]])])
+                          known.take(np.concatenate([sample + inner[idx], sample + outer[idx]]), axis=1))
     inside_in = inside[:, :len(idx)]  # (C, E')
     flips = inside_in & ~inside[:, len(idx):]
     view, end = np.nonzero(flips)  # one crossing per (view, end), grouped by view
