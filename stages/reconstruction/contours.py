@@ -166,7 +166,8 @@ def cone_normals(camera: Camera, normalised: np.ndarray, tangents: np.ndarray, o
     ray = np.hstack([normalised, np.ones((len(normalised), 1))]) @ camera.R
     along = along @ camera.R[:2]
     # ray × along, as np.cross computes it (without its generic axis handling, which cost more than this).
-    normals = ray[:, (1, 2, 0)] * along[:, (2, 0, 1)] - ray[:, (2, 0, 1)] * along[:, (1, 2, 0)]
+    normals = (ray.take((1, 2, 0), axis=1) * along.take((2, 0, 1), axis=1)
+               - ray.take((2, 0, 1), axis=1) * along.take((1, 2, 0), axis=1))  # take: faster than ray[:, (1, 2, 0)]
     flip = np.einsum("ij,ij->i", normals, beside @ camera.R[:2]) < 0
     normals[flip] *= -1.0
     return normals / np.maximum(row_norms(normals), 1e-15)
