@@ -78,6 +78,8 @@ def _hysteresis(evidence2: np.ndarray, params: SilhouetteParams) -> np.ndarray:
     seeded = np.zeros(count, np.uint8)  # (count,) 255 for the regions holding a strong pixel
     seeded[labels[strong > 0]] = 255
     seeded[0] = 0
+    if seeded[1:].all():  # every region holds one (about half of the frames): the mask is the weak one
+        return weak
     return np.take(seeded, labels)
 
 
