@@ -54,8 +54,8 @@ def silhouette_from_evidence(view: Evidence, shadow: np.ndarray | None, params: 
     region = view.region
     y0, y1, x0, x1 = y0 + region[0].start, y1 + region[0].start, x0 + region[1].start, x1 + region[1].start
     frame_box = (slice(y0, y1), slice(x0, x1))  # the same in the working-resolution frame
-    exposed = cv2.multiply(background.B_sharp[frame_box], view.noise.gains, dtype=cv2.CV_32F)  # G B in the box
-    matte = _matte(mask[box], view.I_sharp[frame_box], exposed, view.alpha[box], ds)
+    matte = _matte(mask[box], view.I_sharp[frame_box], background.B_sharp[frame_box], view.noise.gains,
+                   view.alpha[box], ds)
     if ds > 1:
         score = _full_resolution_score(matte, image, background.image, view.noise, (y0 * ds, x0 * ds), ds)
     else:
@@ -97,7 +97,8 @@ class _Matte:
 _MASK_SCORE = np.where(np.arange(256) > 0, np.float32(SCORE_FLOOR), np.float32(-SCORE_FLOOR))
 
 
-def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, downsample: int) -> _Matte:
+def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, gains: tuple[float, float, float], alpha: np.ndarray,
+           downsample: int) -> _Matte:
     """The person's share φ of the pixels near the outline, and what it was measured against.
 
     A pixel on a blurred edge mixes the person's colour F and the background's, λB:
@@ -105,9 +106,9 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, do
     nearby (pixels ``CORE_DEPTH_PX`` inside it) and λ the mean brightness distortion of the pixels just
     outside (1, or less in the person's shadow). The true outline runs where φ = 1/2; a fixed threshold
     would keep the whole blurred edge of a high-contrast outline and grow the silhouette. ``I`` (h, w, 3)
-    uint8 and the exposed background ``B`` = GB (h, w, 3) float32 are not blurred, so the edge is as sharp
-    as the camera made it. φ is measured within ``MATTE_RADIUS_PX`` of the outline, on both sides;
-    elsewhere (and where F is too close to the background to measure it) the mask decides, with a small
+    uint8 and the background ``B`` (h, w, 3) uint8, exposed by the frame's ``gains`` G, are not blurred, so the
+    edge is as sharp as the camera made it. φ is measured within ``MATTE_RADIUS_PX`` of the outline, on both
+    sides; elsewhere (and where F is too close to the background to measure it) the mask decides, with a small
     magnitude so that interpolation still places the outline between pixels.
     """
     depth = _disk(max(1, round(CORE_DEPTH_PX / downsample)))
@@ -130,7 +131,9 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, do
     lam = np.where(n_outside > 0, alpha_sum.ravel().take(index) / np.maximum(n_outside, 1.0), np.float32(1.0))  # λ
     F = sums[:3] / np.maximum(n_core, 1.0)  # (3, n)
     at = _channel_index(index, 3)
-    phi, EE = _share(I.ravel().take(at), F, lam * B.ravel().take(at))
+    # GB at those pixels only, as cv2.multiply(B, gains, dtype=CV_32F) makes it: the product in double, rounded.
+    exposed = (B.ravel().take(at) * np.array(gains)[:, None]).astype(np.float32)  # (3, n)
+    phi, EE = _share(I.ravel().take(at), F, lam * exposed)
     measured = np.flatnonzero((n_core > 0) & (EE > MIN_MATTE_CONTRAST**2))
     share = phi.take(measured) - 0.5
     score.ravel()[index.take(measured)] = share
