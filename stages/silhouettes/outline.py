@@ -40,7 +40,7 @@ def silhouette_from_evidence(view: Evidence, shadow: np.ndarray | None, params: 
         return silhouette
     evidence2 = view.difference2
     if shadow is not None and shadow.any():
-        evidence2 = np.where(shadow, view.chroma2, evidence2)
+        evidence2 = cv2.copyTo(view.chroma2, shadow.view(np.uint8), evidence2.copy())  # np.where at a third of its cost
     mask = _clean_mask(_hysteresis(evidence2, params), params, ds, image.shape[0] * image.shape[1] / ds**2)
     x, y, w, h = cv2.boundingRect(mask)
     if w == 0:
