@@ -236,13 +236,14 @@ def _redraw(
     are components (drawn when large enough), odd depths are holes (erased when large enough; the hole's
     border pixels belong to the component around it and are drawn back).
     """
-    parents = hierarchy[:, 3]  # (K,) index of the enclosing contour, -1 at the top
-    depth = np.zeros(len(contours), int)
-    for index in range(len(contours)):
-        parent = parents[index]
+    # Python lists for the loops over contours (a numpy scalar costs several times a list item to read).
+    parents = hierarchy[:, 3].tolist()  # (K,) index of the enclosing contour, -1 at the top
+    depths = [0] * len(contours)
+    for index, parent in enumerate(parents):
         while parent >= 0:
-            depth[index] += 1
+            depths[index] += 1
             parent = parents[parent]
+    depth = np.array(depths)
     areas = np.array([cv2.contourArea(contour) for contour in contours])  # (K,) pixels
     is_component = depth % 2 == 0
     min_component = max(
@@ -251,15 +252,18 @@ def _redraw(
     )
     max_hole = params.max_hole_fraction * areas[is_component & (areas >= min_component)].sum()
     mask = np.zeros(shape, np.uint8)
-    inside = np.zeros(len(contours), np.uint8)  # (K,) value of the redrawn mask inside each contour
-    for index in np.argsort(depth, kind="stable"):
+    inside = [0] * len(contours)  # (K,) value of the redrawn mask inside each contour
+    component, area = is_component.tolist(), areas.tolist()
+    for index in np.argsort(depth, kind="stable").tolist():
         around = inside[parents[index]] if parents[index] >= 0 else 0
         inside[index] = around
-        if is_component[index] and around == 0 and areas[index] >= min_component:
-            cv2.drawContours(mask, contours, index, 255, cv2.FILLED)
+        # Each contour is drawn alone: given them all, OpenCV's binding would convert every one at each call.
+        contour = (contours[index],)
+        if component[index] and around == 0 and area[index] >= min_component:
+            cv2.drawContours(mask, contour, 0, 255, cv2.FILLED)
             inside[index] = 255
-        elif not is_component[index] and around == 255 and areas[index] >= max_hole:
-            cv2.drawContours(mask, contours, index, 0, cv2.FILLED)
-            cv2.drawContours(mask, contours, index, 255, 1)
+        elif not component[index] and around == 255 and area[index] >= max_hole:
+            cv2.drawContours(mask, contour, 0, 0, cv2.FILLED)
+            cv2.drawContours(mask, contour, 0, 255, 1)
             inside[index] = 0
     return mask
