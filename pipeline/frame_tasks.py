@@ -121,7 +121,8 @@ def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: Silhouet
         backgrounds = [cached_background_model(background_path(out_dir, camera), params,
                                                floors.get(camera, NOISE_SIGMA_MIN)) for camera in names]
         floor = cached_floor_geometry(capture.rig, capture.volume, params)
-        streams = [capture.iter_images(camera, chunk) for camera in names]
+        # A frame's images are done with once its masks are written, before the next frame is decoded.
+        streams = [capture.iter_images(camera, chunk, reuse=True) for camera in names]
         for frame, views in zip(chunk, zip(*streams, strict=True), strict=True):
             masks = extract_silhouettes([image for _, image in views], backgrounds, floor, params)
             _write_masks(out_dir, names, frame, _checked(masks, capture, params))

@@ -101,9 +101,12 @@ def _cells(mask: np.ndarray, cell: int) -> tuple[np.ndarray, tuple[int, int]]:
     return cv2.compare(cv2.resize(box, (cols, rows), interpolation=cv2.INTER_AREA), 0, cv2.CMP_GT), (left, top)
 
 
-def _part_blocks(labels: np.ndarray, part_labels: np.ndarray, cell: int) -> np.ndarray:
-    """(h cell, w cell) uint8 255 on the pixels of the blocks ``labels`` (h, w) gives one of ``part_labels``."""
-    chosen = np.isin(labels, part_labels).astype(np.uint8) * np.uint8(255)
+def _part_blocks(labels: np.ndarray, part_labels: int | np.ndarray, cell: int) -> np.ndarray:
+    """(h cell, w cell) uint8 255 on the pixels of the blocks ``labels`` (h, w) gives one of ``part_labels``
+    (one label, or an array of them)."""
+    # One part: a comparison, a fraction of np.isin's cost.
+    chosen = (labels == part_labels) if np.ndim(part_labels) == 0 else np.isin(labels, part_labels)
+    chosen = chosen.view(np.uint8) * np.uint8(255)
     return cv2.resize(chosen, (labels.shape[1] * cell, labels.shape[0] * cell), interpolation=cv2.INTER_NEAREST)
 
 
@@ -148,15 +151,18 @@ def _explained(camera: Camera, uv: np.ndarray, others: Sequence[tuple[Camera, np
     for other, mask in others:
         Y = X[running]
         uv_other = other.project(Y)
-        visible = other.sees(Y) & other.in_image(uv_other)  # in view without the distortion's fold-back and with it
-        pixel = np.floor(uv_other[visible] + 0.5).astype(int)
-        hit = np.zeros(len(Y), bool)
-        hit[visible] = mask[np.clip(pixel[:, 1], 0, mask.shape[0] - 1), np.clip(pixel[:, 0], 0, mask.shape[1] - 1)] > 0
-        inside[running] += hit
-        misses[running] += visible & ~hit
-        running = running[misses[running] <= tolerated]
+        # In view without the distortion's fold-back and with it; only these points are counted, by flat
+        # indices (gathers and scatters of the points in view rather than masks over all the running ones).
+        visible = np.flatnonzero(other.sees(Y) & other.in_image(uv_other))
+        pixel = np.floor(uv_other.take(visible, axis=0) + 0.5).astype(np.intp)
+        height, width = mask.shape
+        hit = mask.ravel().take(np.clip(pixel[:, 1], 0, height - 1) * width + np.clip(pixel[:, 0], 0, width - 1)) > 0
+        seen = running.take(visible)  # (m,) indices in X of the points in view, each once
+        inside[seen[hit]] += 1
+        misses[seen[~hit]] += 1
+        running = running[misses.take(running) <= tolerated]
     # Inside at least two others (the only other of a two-camera rig), outside at most ``tolerated`` of those
     # that see it: inside >= max(min(2, others), seen - tolerated).
     explained = np.zeros(len(X), bool)
-    explained[running] = inside[running] >= min(2, len(others))
+    explained[running] = inside.take(running) >= min(2, len(others))
     return explained.reshape(len(uv), POINTS_PER_RAY).any(axis=1)

@@ -40,7 +40,7 @@ def silhouette_from_evidence(view: Evidence, shadow: np.ndarray | None, params: 
         return silhouette
     evidence2 = view.difference2
     if shadow is not None and shadow.any():
-        evidence2 = np.where(shadow, view.chroma2, evidence2)
+        evidence2 = cv2.copyTo(view.chroma2, shadow.view(np.uint8), evidence2.copy())  # np.where at a third of its cost
     mask = _clean_mask(_hysteresis(evidence2, params), params, ds, image.shape[0] * image.shape[1] / ds**2)
     x, y, w, h = cv2.boundingRect(mask)
     if w == 0:
@@ -54,8 +54,8 @@ def silhouette_from_evidence(view: Evidence, shadow: np.ndarray | None, params: 
     region = view.region
     y0, y1, x0, x1 = y0 + region[0].start, y1 + region[0].start, x0 + region[1].start, x1 + region[1].start
     frame_box = (slice(y0, y1), slice(x0, x1))  # the same in the working-resolution frame
-    exposed = cv2.multiply(background.B_sharp[frame_box], view.noise.gains, dtype=cv2.CV_32F)  # G B in the box
-    matte = _matte(mask[box], view.I_sharp[frame_box], exposed, view.alpha[box], ds)
+    matte = _matte(mask[box], view.I_sharp[frame_box], background.B_sharp[frame_box], view.noise.gains,
+                   view.alpha[box], ds)
     if ds > 1:
         score = _full_resolution_score(matte, image, background.image, view.noise, (y0 * ds, x0 * ds), ds)
     else:
@@ -78,6 +78,8 @@ def _hysteresis(evidence2: np.ndarray, params: SilhouetteParams) -> np.ndarray:
     seeded = np.zeros(count, np.uint8)  # (count,) 255 for the regions holding a strong pixel
     seeded[labels[strong > 0]] = 255
     seeded[0] = 0
+    if seeded[1:].all():  # every region holds one (about half of the frames): the mask is the weak one
+        return weak
     return np.take(seeded, labels)
 
 
@@ -95,7 +97,8 @@ class _Matte:
 _MASK_SCORE = np.where(np.arange(256) > 0, np.float32(SCORE_FLOOR), np.float32(-SCORE_FLOOR))
 
 
-def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, downsample: int) -> _Matte:
+def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, gains: tuple[float, float, float], alpha: np.ndarray,
+           downsample: int) -> _Matte:
     """The person's share φ of the pixels near the outline, and what it was measured against.
 
     A pixel on a blurred edge mixes the person's colour F and the background's, λB:
@@ -103,9 +106,9 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, do
     nearby (pixels ``CORE_DEPTH_PX`` inside it) and λ the mean brightness distortion of the pixels just
     outside (1, or less in the person's shadow). The true outline runs where φ = 1/2; a fixed threshold
     would keep the whole blurred edge of a high-contrast outline and grow the silhouette. ``I`` (h, w, 3)
-    uint8 and the exposed background ``B`` = GB (h, w, 3) float32 are not blurred, so the edge is as sharp
-    as the camera made it. φ is measured within ``MATTE_RADIUS_PX`` of the outline, on both sides;
-    elsewhere (and where F is too close to the background to measure it) the mask decides, with a small
+    uint8 and the background ``B`` (h, w, 3) uint8, exposed by the frame's ``gains`` G, are not blurred, so the
+    edge is as sharp as the camera made it. φ is measured within ``MATTE_RADIUS_PX`` of the outline, on both
+    sides; elsewhere (and where F is too close to the background to measure it) the mask decides, with a small
     magnitude so that interpolation still places the outline between pixels.
     """
     depth = _disk(max(1, round(CORE_DEPTH_PX / downsample)))
@@ -128,7 +131,9 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, alpha: np.ndarray, do
     lam = np.where(n_outside > 0, alpha_sum.ravel().take(index) / np.maximum(n_outside, 1.0), np.float32(1.0))  # λ
     F = sums[:3] / np.maximum(n_core, 1.0)  # (3, n)
     at = _channel_index(index, 3)
-    phi, EE = _share(I.ravel().take(at), F, lam * B.ravel().take(at))
+    # GB at those pixels only, as cv2.multiply(B, gains, dtype=CV_32F) makes it: the product in double, rounded.
+    exposed = (B.ravel().take(at) * np.array(gains)[:, None]).astype(np.float32)  # (3, n)
+    phi, EE = _share(I.ravel().take(at), F, lam * exposed)
     measured = np.flatnonzero((n_core > 0) & (EE > MIN_MATTE_CONTRAST**2))
     share = phi.take(measured) - 0.5
     score.ravel()[index.take(measured)] = share
@@ -231,13 +236,14 @@ def _redraw(
     are components (drawn when large enough), odd depths are holes (erased when large enough; the hole's
     border pixels belong to the component around it and are drawn back).
     """
-    parents = hierarchy[:, 3]  # (K,) index of the enclosing contour, -1 at the top
-    depth = np.zeros(len(contours), int)
-    for index in range(len(contours)):
-        parent = parents[index]
+    # Python lists for the loops over contours (a numpy scalar costs several times a list item to read).
+    parents = hierarchy[:, 3].tolist()  # (K,) index of the enclosing contour, -1 at the top
+    depths = [0] * len(contours)
+    for index, parent in enumerate(parents):
         while parent >= 0:
-            depth[index] += 1
+            depths[index] += 1
             parent = parents[parent]
+    depth = np.array(depths)
     areas = np.array([cv2.contourArea(contour) for contour in contours])  # (K,) pixels
     is_component = depth % 2 == 0
     min_component = max(
@@ -246,15 +252,18 @@ def _redraw(
     )
     max_hole = params.max_hole_fraction * areas[is_component & (areas >= min_component)].sum()
     mask = np.zeros(shape, np.uint8)
-    inside = np.zeros(len(contours), np.uint8)  # (K,) value of the redrawn mask inside each contour
-    for index in np.argsort(depth, kind="stable"):
+    inside = [0] * len(contours)  # (K,) value of the redrawn mask inside each contour
+    component, area = is_component.tolist(), areas.tolist()
+    for index in np.argsort(depth, kind="stable").tolist():
         around = inside[parents[index]] if parents[index] >= 0 else 0
         inside[index] = around
-        if is_component[index] and around == 0 and areas[index] >= min_component:
-            cv2.drawContours(mask, contours, index, 255, cv2.FILLED)
+        # Each contour is drawn alone: given them all, OpenCV's binding would convert every one at each call.
+        contour = (contours[index],)
+        if component[index] and around == 0 and area[index] >= min_component:
+            cv2.drawContours(mask, contour, 0, 255, cv2.FILLED)
             inside[index] = 255
-        elif not is_component[index] and around == 255 and areas[index] >= max_hole:
-            cv2.drawContours(mask, contours, index, 0, cv2.FILLED)
-            cv2.drawContours(mask, contours, index, 255, 1)
+        elif not component[index] and around == 255 and area[index] >= max_hole:
+            cv2.drawContours(mask, contour, 0, 0, cv2.FILLED)
+            cv2.drawContours(mask, contour, 0, 255, 1)
             inside[index] = 0
     return mask

@@ -50,6 +50,17 @@ def test_video_capture_reads_and_seeks(tmp_path):
     assert [frame for frame, _ in capture.iter_images("cam2", wanted)] == wanted
 
 
+def test_video_frames_decoded_into_one_array_on_request(tmp_path):
+    capture = Capture.open(make_capture(tmp_path / "c", media="videos", n_frames=6))
+    wanted = [0, 1, 4]
+    fresh = [image for _, image in capture.iter_images("cam1", wanted)]
+    reused = []
+    for frame, image in capture.iter_images("cam1", wanted, reuse=True):
+        np.testing.assert_array_equal(image, fresh[wanted.index(frame)])
+        reused.append(image)
+    assert reused[0] is reused[1] is reused[2]  # each frame overwrote the one before
+
+
 def test_frame_range_selects_on_frame_numbers(tiny_capture):
     write_config(tiny_capture, frames={"start": 1, "stop": 4, "step": 2})
     assert Capture.open(tiny_capture).frame_numbers == (1, 3)

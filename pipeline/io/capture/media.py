@@ -134,17 +134,21 @@ def _video_frame_count(path: Path) -> int:
         video.release()
 
 
-def _iter_video(path: Path, frames: Iterable[int]) -> Iterator[tuple[int, np.ndarray]]:
+def _iter_video(path: Path, frames: Iterable[int], *, reuse: bool = False) -> Iterator[tuple[int, np.ndarray]]:
     """Decode the increasing ``frames`` of a video with one ``cv2.VideoCapture``.
 
     The decoder gets OpenCV's thread count: one in a worker's single-threaded block, where frames are the
     unit of parallelism and a decoder's own threads only add a tenth of CPU time for their synchronisation.
+    With ``reuse``, every frame is decoded into the array of the one before (which the caller must be done
+    with): a new array per frame costs more than the copy it holds, as the memory of large arrays comes
+    fresh from the system and each of its pages faults in on the first write.
     """
     video = cv2.VideoCapture(str(path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, cv2.getNumThreads()])
     try:
         if not video.isOpened():
             raise InputError(f"{path}: not a readable video (expected a file OpenCV can decode)")
         position = 0  # index of the frame the next read() returns
+        image = None
         for frame in frames:
             if frame < position or frame - position > MAX_FRAMES_DECODED_TO_SKIP:
                 video.set(cv2.CAP_PROP_POS_FRAMES, frame)
@@ -152,7 +156,7 @@ def _iter_video(path: Path, frames: Iterable[int]) -> Iterator[tuple[int, np.nda
             while position < frame:
                 video.grab()
                 position += 1
-            ok, image = video.read()
+            ok, image = video.read(image if reuse else None)
             position += 1
             if not ok:
                 raise InputError(f"{path}: could not decode frame {frame} (expected a readable frame)")

@@ -164,18 +164,20 @@ class Capture:
         """Whether precomputed silhouettes come with the capture."""
         return bool(self.silhouette_media)
 
-    def iter_images(self, camera: str, frames: Iterable[int]) -> Iterator[tuple[int, np.ndarray]]:
+    def iter_images(self, camera: str, frames: Iterable[int], *,
+                    reuse: bool = False) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(frame, image (H, W, 3) uint8 BGR)`` for increasing ``frames`` of ``camera``.
 
         One decoder stays open for the whole iteration; a video is read sequentially, seeking
         only when the next wanted frame is behind or far ahead. Close the generator (or exhaust
-        it) to release the decoder.
+        it) to release the decoder. ``reuse``: a video's frames may all be decoded into one array,
+        overwritten by the next frame, for a caller done with each frame before it asks for the next.
         """
         if not self.has_images:
             raise ValueError("iter_images: this capture has silhouettes only (check has_images)")
         source = self.camera_media[camera]
         expected = tuple(self.rig[camera].size)
-        images = (_iter_video(source.path, frames) if self.media == "videos"
+        images = (_iter_video(source.path, frames, reuse=reuse) if self.media == "videos"
                   else ((f, frames_io.read_image(source.frame_path(f))) for f in frames))
         for frame, image in images:
             size = (image.shape[1], image.shape[0])
