@@ -66,6 +66,12 @@ class Ellipsoids:
     t: np.ndarray
     semi_axes: np.ndarray
 
+    @functools.cached_property
+    def shapes(self) -> tuple[np.ndarray, np.ndarray]:
+        """M_p = R_p diag(a²) R_pᵀ and M_p² (E, 3, 3) each (`compiled.shapes`), computed once per posed body:
+        an EM iteration's E-step, normal equations and Σ update all use the same ones."""
+        return compiled.shapes(self.R, self.semi_axes)
+
 
 @dataclass(frozen=True)
 class BodyModel:
@@ -186,11 +192,21 @@ class BodyModel:
         return _forward_kinematics(self, np.asarray(pose, dtype=float))
 
     def ellipsoids(self, pose_or_kin: np.ndarray | Kinematics) -> Ellipsoids:
-        """World ellipsoids (R_p, t_p, semi-axes) of a pose (D,) or of its kinematics."""
+        """World ellipsoids (R_p, t_p, semi-axes) of a pose (D,) or of its kinematics.
+
+        The ellipsoids of the last kinematics asked for are remembered (with their `Ellipsoids.shapes`):
+        an EM iteration asks for those of one pose four times (normal equations, step, Σ, E-step).
+        """
+        last = self.__dict__.get("_last_posed")
+        if last is not None and last[0] is pose_or_kin:
+            return last[1]
         kin = self._kinematics(pose_or_kin)
         R, t = compiled.place_ellipsoids(kin.R, kin.t, self.ellipsoid_segment, self.ellipsoid_rotation,
                                          self.ellipsoid_centre)
-        return Ellipsoids(R=R, t=t, semi_axes=self.semi_axes)
+        posed = Ellipsoids(R=R, t=t, semi_axes=self.semi_axes)
+        if isinstance(pose_or_kin, Kinematics):  # a pose array may be changed in place; kinematics are not
+            self.__dict__["_last_posed"] = (pose_or_kin, posed)
+        return posed
 
     def posed_ellipsoids(self, poses: np.ndarray) -> Ellipsoids:
         """`ellipsoids` of many poses (H, D) at once, as arrays with a leading pose axis (H, E, ...)."""
