@@ -117,13 +117,14 @@ def e_step(y, n, t, M, M2, semi_axes, Sigma, log_pi, log_outlier, noise2, log_ne
     t_ip : (I, P); t_outlier : (I,); log_likelihood : float;
     pairs : (2, K) int (datum, ellipsoid), sorted by ellipsoid;
     weights : (K, 3, 3) lower-triangular W with t_ip Σ_ip⁻¹ = W Wᵀ (the M-step's whitening, eq. 14);
-    best : (I,) int, each datum's ellipsoid of largest posterior (the next E-step's `first`).
+    best : (I,) int, each datum's ellipsoid of largest posterior (the next E-step's `first`);
+    explained : (P,) Σ_i t_ip, summed in datum order (the bits of numpy's t_ip.sum(axis=0)).
     """
     I = y.shape[0]
     reach, largest = _bounds(semi_axes, Sigma, log_pi, log_negligible, noise2)
-    log_evidence, posterior, pairs, weights, best = _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi,
-                                                             np.full(I, log_outlier), noise2, prune, True, first)
-    return posterior, np.exp(log_outlier - log_evidence), log_evidence.sum(), pairs, weights, best
+    log_evidence, posterior, pairs, weights, best, explained = _mixture(
+        y, n, t, M, M2, reach, Sigma, largest, log_pi, np.full(I, log_outlier), noise2, prune, True, first)
+    return posterior, np.exp(log_outlier - log_evidence), log_evidence.sum(), pairs, weights, best, explained
 
 
 @njit(cache=True, error_model="numpy")
@@ -160,7 +161,8 @@ def hypothesis_scores(y, n, blocks, t, M, M2, semi_axes, Sigma, log_pi, log_base
 
 @njit(cache=True, error_model="numpy")
 def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, prune, posteriors, first):
-    """Per datum ln(exp(b_i) + Σ_p π_p N_ip) and, with `posteriors`, t_ip and the pairs above `prune`.
+    """Per datum ln(exp(b_i) + Σ_p π_p N_ip) and, with `posteriors`, t_ip, the pairs above `prune` and
+    Σ_i t_ip per ellipsoid.
 
     The pair's algebra is written out in this one loop rather than in a helper: a helper taking arrays
     that LLVM does not inline costs more than the arithmetic.
@@ -176,6 +178,7 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
     room = I * P if posteriors else 0
     kept_i, kept_p, kept_precision = np.empty(room, np.int64), np.empty(room, np.int64), np.empty((room, 6))
     per_ellipsoid = np.zeros(P + 1, np.int64)
+    explained = np.zeros(P)
     best = first.copy()
     K = 0
     inverse_largest = 1.0 / largest
@@ -232,6 +235,7 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
         for k in range(m):
             p = passed[k]
             posterior[i, p] = scaled[k] / evidence
+            explained[p] += posterior[i, p]
             if posterior[i, p] > prune:
                 kept_i[K], kept_p[K] = i, p
                 for j in range(6):
@@ -246,7 +250,7 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
         start[kept_p[k]] += 1
         pairs[0, slot], pairs[1, slot] = kept_i[k], kept_p[k]
         _cholesky(kept_precision[k], posterior[kept_i[k], kept_p[k]], weights, slot)
-    return evidence_log, posterior, pairs, weights, best
+    return evidence_log, posterior, pairs, weights, best, explained
 
 
 @njit(cache=True, error_model="numpy")
@@ -336,7 +340,8 @@ def normal_equations(y, n, i, p, W, t, M, root):
 
     Returns
     -------
-    e : (K, 3); r : (K, 3); Bw : (K, 3, 6); H : (P, 6, 6); g : (P, 6); e_scale : (K, 3)
+    e : (K, 3); r : (K, 3); Bw : (K, 3, 6); H : (P, 6, 6); g : (P, 6); e_scale : (K, 3);
+    norm2 : float, Σ_k |r_k|² summed as `whitened_norm2` sums it (the same bits).
     """
     K, P = i.shape[0], t.shape[0]
     e = np.empty((K, 3))
@@ -346,6 +351,7 @@ def normal_equations(y, n, i, p, W, t, M, root):
     g = np.zeros((P, 6))
     e_scale = np.empty((K, 3))
     B = np.empty((3, 6))
+    norm2 = 0.0
     for k in range(K):
         q, d = p[k], i[k]
         u0, u1, u2, lam, x0, x1, x2 = _normal_point(n, d, M, t, q)
@@ -373,6 +379,7 @@ def normal_equations(y, n, i, p, W, t, M, root):
             for a in range(b, 3):
                 acc += W[k, a, b] * e[k, a]
             r[k, b] = acc
+            norm2 += acc * acc
             for j in range(6):
                 acc = 0.0
                 for a in range(b, 3):
@@ -386,7 +393,7 @@ def normal_equations(y, n, i, p, W, t, M, root):
         for j in range(6):
             for l in range(j):
                 H[q, j, l] = H[q, l, j]
-    return e, r, Bw, H, g, e_scale
+    return e, r, Bw, H, g, e_scale, norm2
 
 
 @njit(cache=True, error_model="numpy")

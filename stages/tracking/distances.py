@@ -170,7 +170,8 @@ class Distance:
         used = posterior > PRUNE_POSTERIOR
         weights = np.linalg.cholesky(W) * np.sqrt(posterior[used])[:, None, None]  # t_ip Σ⁻¹ = W Wᵀ, Σ shared
         return EStep(t=t, t_outlier=np.exp(log_outlier - peak) / evidence, log_likelihood=log_likelihood,
-                     pairs=np.stack([i[used], p[used]]), weights=weights, best=t.argmax(axis=1))
+                     pairs=np.stack([i[used], p[used]]), weights=weights, best=t.argmax(axis=1),
+                     explained=t.sum(axis=0))
 
     def log_evidence(self, y: np.ndarray, n: np.ndarray, chosen: Ellipsoids, mixture: Mixture, log_pi: np.ndarray,
                      base: np.ndarray, normal_noise_rad: float) -> np.ndarray:
@@ -200,7 +201,8 @@ class Distance:
     def normal_equations(self, y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, W: np.ndarray,
                          kin: Kinematics, ellipsoids: Ellipsoids, scale: bool):
         """The pairs' residuals e and, whitened, r = Wᵀ e and Bw = Wᵀ B (B = de/d(ω, v)); per ellipsoid
-        H_p = Σ Bwᵀ Bw (P, 6, 6) and g_p = Σ Bwᵀ r (P, 6); and de/d(ln s) (or None without `scale`).
+        H_p = Σ Bwᵀ Bw (P, 6, 6) and g_p = Σ Bwᵀ r (P, 6); de/d(ln s) (or None without `scale`); and Σ |Wᵀ e|²
+        (twice eq. 14's data term, summed as `compiled.whitened_norm2` sums it).
 
         The pairs (i, p) are sorted by ellipsoid, W (K, k, k) whitens them (t_ip Σ_ip⁻¹ = W Wᵀ).
         """
@@ -214,7 +216,7 @@ class Distance:
             block = Bw[a:b].reshape(-1, 6)
             H6[p[a]] = block.T @ block
         g6[p[starts]] = np.add.reduceat(np.einsum("kai,ka->ki", Bw, r), starts)
-        return res.e, r, Bw, H6, g6, res.J_scale
+        return res.e, r, Bw, H6, g6, res.J_scale, compiled.whitened_norm2(W, res.e)
 
     def covariance(self, n: np.ndarray, i: np.ndarray, p: np.ndarray, e: np.ndarray, t: np.ndarray,
                    ellipsoids: Ellipsoids, Sigma: np.ndarray, normal_noise_rad: float,
@@ -313,11 +315,12 @@ class CompiledNormals(NormalsDistance):
     def e_step(self, y, n, ellipsoids, mixture, log_outlier, normal_noise_rad, previous):
         P = len(ellipsoids.t)
         first = np.zeros(len(y), dtype=int) if previous is None else previous.best
-        t, t_outlier, log_likelihood, pairs, weights, best = compiled.e_step(
+        t, t_outlier, log_likelihood, pairs, weights, best, explained = compiled.e_step(
             y, n, ellipsoids.t, *ellipsoids.shapes, ellipsoids.semi_axes,
             mixture.Sigma, np.log(mixture.pi[:P]), log_outlier, normal_noise_rad**2, np.log(NEGLIGIBLE_POSTERIOR),
             PRUNE_POSTERIOR, first)
-        return EStep(t=t, t_outlier=t_outlier, log_likelihood=log_likelihood, pairs=pairs, weights=weights, best=best)
+        return EStep(t=t, t_outlier=t_outlier, log_likelihood=log_likelihood, pairs=pairs, weights=weights, best=best,
+                     explained=explained)
 
     def log_evidence(self, y, n, chosen, mixture, log_pi, base, normal_noise_rad):
         return compiled.log_evidence(y, n, chosen.t, *chosen.shapes, chosen.semi_axes,
@@ -337,9 +340,9 @@ class CompiledNormals(NormalsDistance):
         return compiled.residuals(y, n, i, p, ellipsoids.t, ellipsoids.shapes[0])
 
     def normal_equations(self, y, n, i, p, W, kin, ellipsoids, scale):
-        e, r, Bw, H6, g6, J_scale = compiled.normal_equations(
+        e, r, Bw, H6, g6, J_scale, norm2 = compiled.normal_equations(
             y, n, i, p, W, ellipsoids.t, ellipsoids.shapes[0], kin.t[0])
-        return e, r, Bw, H6, g6, J_scale if scale else None
+        return e, r, Bw, H6, g6, J_scale if scale else None, norm2
 
     def covariance(self, n, i, p, e, t, ellipsoids, Sigma, normal_noise_rad, max_sigma_m):
         """Without normal noise, `Distance.covariance`. With it, each pair's residual is e_k = z_k + w_k with

@@ -217,7 +217,7 @@ def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, kin: Kinematics, pose:
     Sigma = distance.covariance(n, i, p, e, t, body.ellipsoids(kin), mixture.Sigma, params.normal_noise_rad,
                                 params.max_sigma_m)
     pi = np.empty(P + 1)
-    pi[:P] = estep.t.sum(axis=0) / I
+    pi[:P] = estep.explained / I
     pi[P] = estep.t_outlier.sum() / I
     return MStep(pose=pose, mixture=Mixture(Sigma=Sigma, pi=bound_priors(pi, params.min_outlier_prior)), body=body,
                  kin=kin)

@@ -67,9 +67,12 @@ class LeastSquares:
 
     def cost(self, body, pose, e):
         """Eq. (14) for fixed t_ip plus the priors on the weakly observed DOFs and the segment lengths."""
+        return self.cost_from(body, pose, compiled.whitened_norm2(self.W, e))
+
+    def cost_from(self, body, pose, norm2):
+        """`cost` from its data term Σ |Wᵀ e|² (`norm2`), which the normal equations sum on the way."""
         z = np.log(body.length_factors) / body.length_prior_sd if self.estimate_lengths else np.zeros(0)
-        return 0.5 * (compiled.whitened_norm2(self.W, e) + (self.prior * (pose - self.prior_pose) ** 2).sum()
-                      + (z**2).sum())
+        return 0.5 * (norm2 + (self.prior * (pose - self.prior_pose) ** 2).sum() + (z**2).sum())
 
 
 def gauss_newton_step(problem: LeastSquares, body: BodyModel, kin: Kinematics, pose: np.ndarray):
@@ -78,9 +81,9 @@ def gauss_newton_step(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
     Returns the accepted pose, body, their kinematics and the pairs' residuals there (the current ones
     when no damping within `LM_TRIES` lowers the cost).
     """
-    H, g, e = _normal_equations(problem, body, kin, pose)
+    H, g, e, norm2 = _normal_equations(problem, body, kin, pose)
     D = body.pose_size
-    cost = problem.cost(body, pose, e)
+    cost = problem.cost_from(body, pose, norm2)
     diag = np.diag(H) + RIDGE
     damping = LM_DAMPING
     for _ in range(LM_TRIES):
@@ -96,13 +99,13 @@ def gauss_newton_step(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
 
 
 def _normal_equations(problem: LeastSquares, body: BodyModel, kin: Kinematics, pose: np.ndarray):
-    """H (D + X, D + X) and g (D + X,) of the linearised eq. (14) with its priors, and the residuals e.
+    """H (D + X, D + X) and g (D + X,) of the linearised eq. (14) with its priors, the residuals e and Σ |Wᵀ e|².
 
     The pose block comes from the distance's per-ellipsoid blocks (`compiled.pose_normal_equations`);
     the X columns of the size and the length factors are summed per pair's ellipsoid like the pose's.
     """
     W, D = problem.W, body.pose_size
-    e, r, Bw, H6, g6, J_scale = problem.distance.normal_equations(
+    e, r, Bw, H6, g6, J_scale, norm2 = problem.distance.normal_equations(
         problem.y, problem.n, problem.i, problem.p, W, kin, body.ellipsoids(kin), problem.estimate_scale)
     extra = _extra_columns(problem, body, pose, e, J_scale)  # (K,k,X)
     X = extra.shape[2]
@@ -126,7 +129,7 @@ def _normal_equations(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
         prior[-G:] = 1.0 / body.length_prior_sd**2
         g[-G:] += np.log(body.length_factors) / body.length_prior_sd**2
     H += np.diag(prior)
-    return H, g, e
+    return H, g, e, norm2
 
 
 def _extra_columns(problem: LeastSquares, body: BodyModel, pose: np.ndarray, e: np.ndarray,

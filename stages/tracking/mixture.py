@@ -76,6 +76,8 @@ class EStep:
         pairs in the M-step of the same iteration (eq. 14's term is ½ |Wᵀ e|²).
     best : (I,) int
         Each datum's ellipsoid of largest posterior (where the next iteration's E-step starts).
+    explained : (P,) float
+        Σ_i t_ip, the data each ellipsoid explains (the M-step's I π_p), as t.sum(axis=0) sums it.
     """
 
     t: np.ndarray
@@ -84,12 +86,14 @@ class EStep:
     pairs: np.ndarray
     weights: np.ndarray
     best: np.ndarray
+    explained: np.ndarray
 
     @staticmethod
     def empty(P: int, k: int) -> EStep:
         """The E-step of no data: no posteriors, no pairs, ln P = 0."""
         return EStep(t=np.zeros((0, P)), t_outlier=np.zeros(0), log_likelihood=0.0,
-                     pairs=np.zeros((2, 0), dtype=int), weights=np.zeros((0, k, k)), best=np.zeros(0, dtype=int))
+                     pairs=np.zeros((2, 0), dtype=int), weights=np.zeros((0, k, k)), best=np.zeros(0, dtype=int),
+                     explained=np.zeros(P))
 
 
 def volume_size(volume: np.ndarray) -> float:

@@ -29,7 +29,9 @@ def test_residuals_match_the_reference(pairs):
 def test_normal_equations_match_the_reference(pairs):
     y, n, i, p, kin, ell, rng = pairs
     L = np.tril(rng.normal(size=(len(i), 3, 3))) + 3.0 * np.eye(3)  # any lower-triangular weights
-    e, r, Bw, H, g, e_scale = compiled.normal_equations(y, n, i, p, L, ell.t, shape_matrices(ell, 2.0), kin.t[0])
+    e, r, Bw, H, g, e_scale, norm2 = compiled.normal_equations(y, n, i, p, L, ell.t, shape_matrices(ell, 2.0),
+                                                               kin.t[0])
+    assert norm2 == compiled.whitened_norm2(L, e)  # the same sum in the same order: the step's cost is unchanged
     ref = NormalsDistance().residuals(y, n, i, p, kin, ell, jacobian=True, scale=True)
     Lt = L.transpose(0, 2, 1)
     np.testing.assert_allclose(e, ref.e, atol=1e-14)
