@@ -188,8 +188,9 @@ def _mixture(y, n, t, M, M2, reach, Sigma, largest, log_pi, log_base, noise2, pr
     for i in range(I):
         peak = log_base[i]  # the largest term of the evidence met so far
         m = 0  # pairs of this datum not skipped: passed[:m]
-        for step in range(P):
-            p = (first[i] + step) % P
+        p = first[i] - 1  # the ellipsoids from first[i] on, wrapping round (no integer division per pair)
+        for _ in range(P):
+            p = p + 1 if p + 1 < P else 0
             limit = reach[p, 1] - 2.0 * peak  # squared Mahalanobis distance of a negligible pair
             d0, d1, d2 = y[i, 0] - t[p, 0], y[i, 1] - t[p, 1], y[i, 2] - t[p, 2]
             gap = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - reach[p, 0]
@@ -475,8 +476,11 @@ def noisy_covariance(n, i, p, e, weight, M, M2, noise2, Sigma, iterations):
             spread[k, j] = noise2 * s[j]
         total += weight[k]
     S = Sigma.copy()
+    S1, S2 = np.empty((3, 3)), np.empty((3, 3))
     for _ in range(iterations):
-        S1, S2 = np.zeros((3, 3)), np.zeros((3, 3))
+        # the sums in scalars (kept in registers), added in the same order as into arrays
+        p00 = p11 = p22 = p01 = p02 = p12 = 0.0  # S₁
+        q00 = q11 = q22 = q01 = q02 = q12 = 0.0  # S₂
         for k in range(K):
             a, d, g = S[0, 0] + spread[k, 0], S[1, 1] + spread[k, 1], S[2, 2] + spread[k, 2]
             b, c, f = S[0, 1] + spread[k, 3], S[0, 2] + spread[k, 4], S[1, 2] + spread[k, 5]
@@ -486,18 +490,20 @@ def noisy_covariance(n, i, p, e, weight, M, M2, noise2, Sigma, iterations):
             v1 = h * (c01 * e[k, 0] + c11 * e[k, 1] + c12 * e[k, 2])
             v2 = h * (c02 * e[k, 0] + c12 * e[k, 1] + c22 * e[k, 2])
             w, wh = weight[k], weight[k] * h
-            S1[0, 0] += wh * c00
-            S1[1, 1] += wh * c11
-            S1[2, 2] += wh * c22
-            S1[0, 1] += wh * c01
-            S1[0, 2] += wh * c02
-            S1[1, 2] += wh * c12
-            S2[0, 0] += w * v0 * v0
-            S2[1, 1] += w * v1 * v1
-            S2[2, 2] += w * v2 * v2
-            S2[0, 1] += w * v0 * v1
-            S2[0, 2] += w * v0 * v2
-            S2[1, 2] += w * v1 * v2
+            p00 += wh * c00
+            p11 += wh * c11
+            p22 += wh * c22
+            p01 += wh * c01
+            p02 += wh * c02
+            p12 += wh * c12
+            q00 += w * v0 * v0
+            q11 += w * v1 * v1
+            q22 += w * v2 * v2
+            q01 += w * v0 * v1
+            q02 += w * v0 * v2
+            q12 += w * v1 * v2
+        S1[0, 0], S1[1, 1], S1[2, 2], S1[0, 1], S1[0, 2], S1[1, 2] = p00, p11, p22, p01, p02, p12
+        S2[0, 0], S2[1, 1], S2[2, 2], S2[0, 1], S2[0, 2], S2[1, 2] = q00, q11, q22, q01, q02, q12
         for a_ in range(3):
             for b_ in range(a_):
                 S1[a_, b_], S2[a_, b_] = S1[b_, a_], S2[b_, a_]
