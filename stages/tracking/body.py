@@ -234,7 +234,9 @@ class BodyModel:
         """
         T = np.zeros((len(self.segment_names), 6, self.pose_size))
         w = kin.axis.T  # (3,D)
-        v = np.where(self.dof_revolute[None, :], np.cross(kin.origin, kin.axis).T, w)
+        o = kin.origin.T
+        moment = np.stack([o[1] * w[2] - o[2] * w[1], o[2] * w[0] - o[0] * w[2], o[0] * w[1] - o[1] * w[0]])  # o × w
+        v = np.where(self.dof_revolute[None, :], moment, w)
         T[:, :3, :] = np.where(self.dof_revolute[None, :], w, 0.0)[None]
         T[:, 3:, :] = v[None]
         return T * self.moves.T[:, None, :]

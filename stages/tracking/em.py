@@ -260,7 +260,7 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
         history.append(estep.log_likelihood)
         moved = joints
         joints = body.joint_positions(kin)
-        displacement = np.linalg.norm(joints - moved, axis=1).max()
+        displacement = np.sqrt(((joints - moved) ** 2).sum(axis=1)).max()
         converged = abs(history[-1] - history[-2]) < params.tolerance * len(y) or displacement < params.displacement_m
     outliers = float(estep.t_outlier.mean()) if len(y) else 1.0
     return FitResult(pose=pose, body=body, mixture=mixture, iterations=iterations, converged=converged,

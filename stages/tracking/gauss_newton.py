@@ -71,8 +71,10 @@ class LeastSquares:
 
     def cost_from(self, body, pose, norm2):
         """`cost` from its data term Σ |Wᵀ e|² (`norm2`), which the normal equations sum on the way."""
-        z = np.log(body.length_factors) / body.length_prior_sd if self.estimate_lengths else np.zeros(0)
-        return 0.5 * (norm2 + (self.prior * (pose - self.prior_pose) ** 2).sum() + (z**2).sum())
+        total = norm2 + (self.prior * (pose - self.prior_pose) ** 2).sum()
+        if self.estimate_lengths:
+            total += ((np.log(body.length_factors) / body.length_prior_sd) ** 2).sum()
+        return 0.5 * total
 
 
 def gauss_newton_step(problem: LeastSquares, body: BodyModel, kin: Kinematics, pose: np.ndarray):
