@@ -192,21 +192,11 @@ class BodyModel:
         return _forward_kinematics(self, np.asarray(pose, dtype=float))
 
     def ellipsoids(self, pose_or_kin: np.ndarray | Kinematics) -> Ellipsoids:
-        """World ellipsoids (R_p, t_p, semi-axes) of a pose (D,) or of its kinematics.
-
-        The ellipsoids of the last kinematics asked for are remembered (with their `Ellipsoids.shapes`):
-        an EM iteration asks for those of one pose four times (normal equations, step, Σ, E-step).
-        """
-        last = self.__dict__.get("_last_posed")
-        if last is not None and last[0] is pose_or_kin:
-            return last[1]
+        """World ellipsoids (R_p, t_p, semi-axes) of a pose (D,) or of its kinematics."""
         kin = self._kinematics(pose_or_kin)
         R, t = compiled.place_ellipsoids(kin.R, kin.t, self.ellipsoid_segment, self.ellipsoid_rotation,
                                          self.ellipsoid_centre)
-        posed = Ellipsoids(R=R, t=t, semi_axes=self.semi_axes)
-        if isinstance(pose_or_kin, Kinematics):  # a pose array may be changed in place; kinematics are not
-            self.__dict__["_last_posed"] = (pose_or_kin, posed)
-        return posed
+        return Ellipsoids(R=R, t=t, semi_axes=self.semi_axes)
 
     def posed_ellipsoids(self, poses: np.ndarray) -> Ellipsoids:
         """`ellipsoids` of many poses (H, D) at once, as arrays with a leading pose axis (H, E, ...)."""
