@@ -233,7 +233,7 @@ FOREIGN_NOTES = (
     "the 15 scored joints, the worst frame's MPJPE, and the median IoU of the silhouette stage's masks with "
     "`groundtruth/masks/` over all frames and cameras. Every run is fresh: fps is frames over the run's wall time, "
     "video decoding included. The tracker's milliseconds per frame are its own, every frame included, timed "
-    "again in the bench's process on the run's observations (the tracking stage streams alongside the "
+    "again (in CPU time) in the bench's process on the run's observations (the tracking stage streams alongside the "
     "reconstruction, so its manifest time is mostly waiting), and as a multiple of `data_samples/taekwondo` "
     "(same motion, window and rig, rendered by `pipeline.lab.synth`) run the same way (× ref.); then how many frames "
     "ended in each status "
