@@ -9,7 +9,6 @@ the files do not store, comes from the media.
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ import scipy.linalg
 from calib import _parse
 from calib.camera import Rig
 from calib.errors import InputError
+from calib.formats import natural_key
 
 #: Extension the writer gives each camera's file (the name is everything before the first dot).
 FILE_SUFFIX = ".P.txt"
@@ -25,8 +25,6 @@ FILE_SUFFIX = ".P.txt"
 # det(M) of the left 3x3 block below this fraction of |M|^3 (cube of the largest singular value) means
 # a camera at infinity or a degenerate matrix: no finite centre, no K R to recover.
 SINGULAR_RATIO = 1e-12
-
-_DIGITS = re.compile(r"(\d+)")
 
 
 def decompose(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -46,11 +44,6 @@ def decompose(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     K, R = K @ D, D @ R
     t = np.linalg.solve(K, P[:, 3])
     return K / K[2, 2], R, t
-
-
-def _natural_key(path: Path) -> list:
-    """Sort key putting ``cam2`` before ``cam10``: digit runs compare as numbers."""
-    return [int(part) if part.isdigit() else part for part in _DIGITS.split(path.name)]
 
 
 def read_matrix(path: Path) -> np.ndarray:
@@ -90,7 +83,8 @@ def load(path: Path, image_sizes: dict[str, tuple[int, int]]) -> Rig:
     if not path.is_dir():
         raise InputError(f"{path}: no such directory, expected a folder of 3x4 projection matrices "
                          "(one text file per camera)")
-    files = sorted((p for p in path.iterdir() if p.is_file() and not p.name.startswith(".")), key=_natural_key)
+    files = sorted((p for p in path.iterdir() if p.is_file() and not p.name.startswith(".")),
+                   key=lambda p: natural_key(p.name))
     if not files:
         raise InputError(f"{path}: no projection matrix files, expected one text file per camera")
     cameras = []

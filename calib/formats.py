@@ -9,6 +9,7 @@ the file and the key.
 from __future__ import annotations
 
 import importlib
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from types import ModuleType
@@ -20,6 +21,15 @@ FORMATS = ("colmap", "opencv", "anipose", "projection", "qualisys")
 #: Formats whose readers take the image sizes of the media: opencv and projection store none, qualisys the
 #: sensor's (the videos may be recorded smaller, and marker-only cameras have none).
 SIZELESS_FORMATS = ("opencv", "projection", "qualisys")
+
+
+_DIGITS = re.compile(r"(\d+)")
+
+
+def natural_key(text: str) -> list:
+    """Sort key putting ``cam2`` before ``cam10``: digit runs compare as numbers (file names of cameras and
+    views are ordered this way wherever a folder is listed)."""
+    return [int(part) if part.isdigit() else part for part in _DIGITS.split(text)]
 
 
 def _reader(fmt: str) -> ModuleType:

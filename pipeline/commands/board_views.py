@@ -3,7 +3,6 @@ the board was found in them (the input side of :mod:`pipeline.commands.calibrate
 
 from __future__ import annotations
 
-import re
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -15,12 +14,11 @@ from tqdm import tqdm
 
 from calib.board import Board, Detection, detect
 from calib.errors import InputError
+from calib.formats import natural_key
+from pipeline.io.capture.media import VIDEO_SUFFIXES
 
+#: Board views may also be still images of formats a capture's frames are not ("bmp", "tif").
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
-
-_DIGITS = re.compile(r"(\d+)")
-
 
 @dataclass(frozen=True)
 class Source:
@@ -35,10 +33,6 @@ class Source:
 
     def describe(self) -> str:
         return f"{self.path} ({len(self.images)} images)" if self.images else str(self.path)
-
-
-def natural_key(text: str) -> list:
-    return [int(part) if part.isdigit() else part for part in _DIGITS.split(text)]
 
 
 def _visible(folder: Path) -> list[Path]:

@@ -31,8 +31,8 @@ import yaml
 from calib.board import Board, parse_board
 from calib.calibrate import DISTORTION_MODELS, Intrinsics, RigCalibration, calibrate_intrinsics, calibrate_rig
 from calib.errors import InputError
-from calib.formats import save_rig
-from pipeline.commands.board_views import CameraViews, Source, detect_all, find_sources, natural_key, spread
+from calib.formats import natural_key, save_rig
+from pipeline.commands.board_views import CameraViews, Source, detect_all, find_sources, spread
 from pipeline.io import atomic, plain_yaml
 
 PARTS = ("intrinsics", "extrinsics")
