@@ -11,16 +11,15 @@ import numpy as np
 
 from calib.camera import Camera
 from calib.errors import InputError
-from stages.background.hull import VoxelGrid, disk, hull_cover, tolerated_views, working_camera
+from stages.background.hull import VoxelGrid, hull_cover, tolerated_views, working_camera
 from stages.background.samples import (
-    CHANNEL_SUM,
     CONTESTED_SHARE,
     MIN_SAMPLES,
     CameraSamples,
     masked_median,
     plain_median,
 )
-from stages.silhouettes import SilhouetteParams, background_model, extract_silhouette
+from stages.silhouettes import CHANNEL_SUM, SilhouetteParams, background_model, disk, extract_silhouette
 
 #: A covered share at or above this at a pixel that is not contested means an unchanging colour over most
 #: samples there: the subject standing still, or the background itself.

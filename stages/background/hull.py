@@ -3,7 +3,6 @@ covers in each view (steps 3 and 4 of :mod:`stages.background`)."""
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from dataclasses import replace
 
@@ -11,6 +10,7 @@ import cv2
 import numpy as np
 
 from calib.camera import Camera
+from stages.silhouettes import disk
 
 #: Voxel side of the hull (metres); larger in a large volume, so that the grid holds at most MAX_VOXELS.
 VOXEL_M = 0.03
@@ -132,9 +132,3 @@ def hull_cover(masks: Sequence[np.ndarray], grid: VoxelGrid, tolerated: int) -> 
         cover[where[where >= 0]] = 255
         covers.append(cv2.dilate(cover.reshape(mask.shape), disk(grid.fine_radius[c])) > 0)
     return covers, int(occupied.sum())
-
-
-@functools.cache
-def disk(radius: int) -> np.ndarray:
-    """Disk-shaped structuring element of ``radius`` pixels, made once per radius."""
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from calib.errors import InputError
-from stages.silhouettes import NOISE_SIGMA_MAX, NOISE_SIGMA_MIN, SAMPLE_STRIDE
+from stages.silhouettes import CHANNEL_SUM, NOISE_SIGMA_MAX, NOISE_SIGMA_MIN, SAMPLE_STRIDE
 
 #: Frames sampled per camera, spread over the whole sequence: every pixel the subject leaves for a few
 #: tenths of the sequence then has a handful of bare samples.
@@ -36,8 +36,6 @@ SCATTER_SAMPLES = 12
 # The median of a χ² variable with 3 degrees of freedom: ‖I − B‖² / σ² of background pixels under Gaussian
 # noise of σ per channel.
 CHI2_3_MEDIAN = 2.366
-# cv2.transform's matrix summing the three channels of each pixel.
-CHANNEL_SUM = np.ones((1, 3), np.float32)
 
 
 @dataclass(frozen=True, eq=False)

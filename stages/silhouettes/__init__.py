@@ -46,6 +46,7 @@ import numpy as np
 
 from calib.errors import InputError
 from stages.silhouettes.evidence import (
+    CHANNEL_SUM,
     NOISE_SIGMA_MAX,
     NOISE_SIGMA_MIN,
     SAMPLE_STRIDE,
@@ -55,13 +56,30 @@ from stages.silhouettes.evidence import (
     measure_evidence,
     median_background,
 )
-from stages.silhouettes.outline import silhouette_from_evidence
+from stages.silhouettes.outline import disk, silhouette_from_evidence
 from stages.silhouettes.params import SHADOW_TESTS, SilhouetteParams
 from stages.silhouettes.shadows import FloorGeometry, floor_geometry, floor_shadows
 
-__all__ = ["NOISE_SIGMA_MAX", "NOISE_SIGMA_MIN", "SAMPLE_STRIDE", "SHADOW_TESTS", "BackgroundModel", "Evidence",
-           "FloorGeometry", "SilhouetteParams", "background_model", "extract_silhouette", "extract_silhouettes",
-           "floor_geometry", "floor_shadows", "measure_evidence", "median_background", "silhouette_from_evidence"]
+__all__ = [
+    "CHANNEL_SUM",
+    "NOISE_SIGMA_MAX",
+    "NOISE_SIGMA_MIN",
+    "SAMPLE_STRIDE",
+    "SHADOW_TESTS",
+    "BackgroundModel",
+    "Evidence",
+    "FloorGeometry",
+    "SilhouetteParams",
+    "background_model",
+    "disk",
+    "extract_silhouette",
+    "extract_silhouettes",
+    "floor_geometry",
+    "floor_shadows",
+    "measure_evidence",
+    "median_background",
+    "silhouette_from_evidence",
+]
 
 
 def extract_silhouette(

@@ -42,7 +42,7 @@ COARSE_MARGIN = 3
 # and is not trusted.
 EXPOSURE_RATIO_RANGE = (0.7, 1.4)
 # cv2.transform's matrix summing the three channels of each pixel.
-_CHANNEL_SUM = np.ones((1, 3), np.float32)
+CHANNEL_SUM = np.ones((1, 3), np.float32)
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,7 +88,7 @@ def background_model(background: np.ndarray, params: SilhouetteParams, *,
     # A shift of the background by κ pixels changes a pixel by about κ times the gradient, which the
     # range of each channel over the 3x3 neighbourhood (two pixels across) measures twice over.
     spread = cv2.morphologyEx(B, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8))  # (h, w, 3) uint8
-    squared_gradient = cv2.transform(cv2.multiply(spread, spread, dtype=cv2.CV_32F), _CHANNEL_SUM) / 4.0
+    squared_gradient = cv2.transform(cv2.multiply(spread, spread, dtype=cv2.CV_32F), CHANNEL_SUM) / 4.0
     jitter = params.background_jitter_px
     texture_variance = squared_gradient * np.float32(jitter * jitter / 3.0)
     sample_B = _channels_first(B_sharp[::SAMPLE_STRIDE, ::SAMPLE_STRIDE]).reshape(3, -1)  # the frame's is unblurred
@@ -327,7 +327,7 @@ def _evidence(
     g_k and g_k².
     """
     gains = np.array([noise.gains], np.float32)  # (1, 3)
-    II = cv2.transform(cv2.multiply(I, I, dtype=cv2.CV_32F), _CHANNEL_SUM)  # (h', w') I·I
+    II = cv2.transform(cv2.multiply(I, I, dtype=cv2.CV_32F), CHANNEL_SUM)  # (h', w') I·I
     IB = cv2.transform(cv2.multiply(I, model.B[region], dtype=cv2.CV_32F), gains)  # (h', w') I·GB
     BB = cv2.transform(model.B2[region], gains * gains)  # (h', w') GB·GB
     alpha = cv2.divide(IB, BB + np.float32(BACKGROUND_ENERGY_FLOOR))  # (h', w') α

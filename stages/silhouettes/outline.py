@@ -73,7 +73,7 @@ def _hysteresis(evidence2: np.ndarray, params: SilhouetteParams) -> np.ndarray:
     """
     strong = cv2.compare(evidence2, float(params.strong_threshold**2), cv2.CMP_GT)
     weak = cv2.compare(evidence2, float(params.weak_threshold**2), cv2.CMP_GT)
-    weak = cv2.bitwise_or(cv2.morphologyEx(weak, cv2.MORPH_OPEN, _disk(1)), strong)
+    weak = cv2.bitwise_or(cv2.morphologyEx(weak, cv2.MORPH_OPEN, disk(1)), strong)
     count, labels = cv2.connectedComponents(weak, connectivity=8)
     seeded = np.zeros(count, np.uint8)  # (count,) 255 for the regions holding a strong pixel
     seeded[labels[strong > 0]] = 255
@@ -111,14 +111,14 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, gains: tuple[float, f
     sides; elsewhere (and where F is too close to the background to measure it) the mask decides, with a small
     magnitude so that interpolation still places the outline between pixels.
     """
-    depth = _disk(max(1, round(CORE_DEPTH_PX / downsample)))
+    depth = disk(max(1, round(CORE_DEPTH_PX / downsample)))
     radius = max(1, round(MATTE_RADIUS_PX / downsample))
     size = (2 * radius + 1, 2 * radius + 1)
     width = mask.shape[1]
     score = cv2.LUT(mask, _MASK_SCORE)
     core = cv2.erode(mask, depth, borderType=cv2.BORDER_REPLICATE)
     outside = cv2.compare(cv2.dilate(mask, depth), 0, cv2.CMP_EQ)
-    band = cv2.compare(cv2.dilate(mask, _disk(radius)), cv2.erode(mask, _disk(radius), borderType=cv2.BORDER_REPLICATE),
+    band = cv2.compare(cv2.dilate(mask, disk(radius)), cv2.erode(mask, disk(radius), borderType=cv2.BORDER_REPLICATE),
                        cv2.CMP_GT)
     index = _flat_nonzero(band)  # (n,) flat indices of the pixels near the outline: np.take is the fastest gather
     I, B = np.ascontiguousarray(I), np.ascontiguousarray(B)
@@ -202,11 +202,11 @@ def _full_resolution_score(
 
 
 @functools.cache
-def _disk(radius: int) -> np.ndarray:
+def disk(radius: int) -> np.ndarray:
     """Read-only disk-shaped structuring element, built once per radius (several are used per frame)."""
-    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-    disk.flags.writeable = False
-    return disk
+    element = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    element.flags.writeable = False
+    return element
 
 
 def _clean_mask(mask: np.ndarray, params: SilhouetteParams, scale: int, frame_area: float) -> np.ndarray:
@@ -217,9 +217,9 @@ def _clean_mask(mask: np.ndarray, params: SilhouetteParams, scale: int, frame_ar
     """
     opening, closing = round(params.opening_px / scale), round(params.closing_px / scale)
     if opening > 0:
-        mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, _disk(opening))
+        mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, disk(opening))
     if closing > 0:
-        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, _disk(closing))
+        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, disk(closing))
     contours, hierarchy = cv2.findContours(mask, cv2.RETR_TREE, cv2.CHAIN_APPROX_SIMPLE)
     if not contours:
         return mask
