@@ -66,12 +66,6 @@ class Ellipsoids:
     t: np.ndarray
     semi_axes: np.ndarray
 
-    @functools.cached_property
-    def shapes(self) -> tuple[np.ndarray, np.ndarray]:
-        """M_p = R_p diag(a²) R_pᵀ and M_p² (E, 3, 3) each (`compiled.shapes`), computed once per posed body:
-        an EM iteration's E-step, normal equations and Σ update all use the same ones."""
-        return compiled.shapes(self.R, self.semi_axes)
-
 
 @dataclass(frozen=True)
 class BodyModel:
@@ -80,7 +74,7 @@ class BodyModel:
     Attributes
     ----------
     name : str
-        Configuration name (the YAML file stem).
+        The body file's `name` (a shipped body's is its file stem; a body given by its path keeps its own).
     height_m : float
         Standing height the lengths are scaled to, metres.
     segment_names : tuple of str

@@ -8,12 +8,12 @@ on a machine pays for compilation). The maths is the same as the numpy reference
 against which the tests check these functions:
 
 - x_ip = t_p + λ M_p n_i with M_p = R_p diag(a_p²) R_pᵀ and λ = (n_iᵀ M_p n_i)^(-1/2) (eq. 4);
-- A_ip = ∂x_ip/∂n_i = λ (M_p − λ² u uᵀ), u = M_p n_i (symmetric; `distances.normal_spread`);
+- A_ip = ∂x_ip/∂n_i = λ (M_p − λ² u uᵀ), u = M_p n_i (symmetric; `geometry.normal_spread`);
 - Σ_ip = Σ + σ_n² A_ip² and the component density π_p N(y_i | x_ip, Σ_ip) (eqs. 11-13);
 - the rigid derivative de/d(ω, v) = [x]× − A_ip [n_i]×, −I (`distances` module docstring).
 
 Ellipsoid shapes enter as M (P, 3, 3) and M² (P, 3, 3) (`shapes`); a symmetric 3 × 3 sum is returned as its
-six distinct entries in `distances.SYMMETRIC_ENTRIES` order (00, 11, 22, 01, 02, 12). Every loop runs on one
+six distinct entries in `geometry.SYMMETRIC_ENTRIES` order (00, 11, 22, 01, 02, 12). Every loop runs on one
 core: numba's threads were tried, and on a machine shared with other work they made the tracker several
 times slower. The loops stay in this one module although it is long: numba's disk cache of a function is
 invalidated only when its own file changes, not when a helper compiled into it from another file does,
@@ -52,7 +52,7 @@ def _normal_point(n, i, M, t, p):
 
 @njit(cache=True, error_model="numpy")
 def _spread(M, M2, p, u0, u1, u2, lam):
-    """A² = λ² (M² − λ² (w uᵀ + u wᵀ) + λ⁴ |u|² u uᵀ), w = M u, as six entries (`distances.normal_spread`)."""
+    """A² = λ² (M² − λ² (w uᵀ + u wᵀ) + λ⁴ |u|² u uᵀ), w = M u, as six entries (`geometry.normal_spread`)."""
     w0 = M[p, 0, 0] * u0 + M[p, 0, 1] * u1 + M[p, 0, 2] * u2
     w1 = M[p, 1, 0] * u0 + M[p, 1, 1] * u1 + M[p, 1, 2] * u2
     w2 = M[p, 2, 0] * u0 + M[p, 2, 1] * u1 + M[p, 2, 2] * u2
@@ -81,7 +81,7 @@ def e_step(y, n, t, M, M2, semi_axes, Sigma, log_pi, log_outlier, noise2, log_ne
     """Posteriors t_ip (eq. 13), ln P(Y | Λ) (eq. 12) and the M-step's pairs, for Σ_ip = Σ + σ_n² A_ip².
 
     A pair is skipped (t_ip = 0) when a lower bound on its Mahalanobis distance shows its joint density
-    below `em.NEGLIGIBLE_POSTERIOR` times the largest term of the datum's evidence met so far, the outlier
+    below `mixture.NEGLIGIBLE_POSTERIOR` times the largest term of the datum's evidence met so far, the outlier
     term or a pair's (det Σ_ip ≥ det Σ bounds the rest); the skipped pairs then change the evidence by
     less than P times that fraction. Visiting first the ellipsoid that explained the datum best in the
     previous iteration (`first`) makes that largest term a real pair's at once. Σ_ip ⪯
@@ -106,7 +106,7 @@ def e_step(y, n, t, M, M2, semi_axes, Sigma, log_pi, log_outlier, noise2, log_ne
     noise2 : float
         σ_n² (rad²).
     log_negligible : float
-        ln of that fraction (`em.NEGLIGIBLE_POSTERIOR`).
+        ln of that fraction (`mixture.NEGLIGIBLE_POSTERIOR`).
     prune : float
         Pairs with t_ip above this are returned for the M-step.
     first : (I,) int
@@ -337,7 +337,7 @@ def normal_equations(y, n, i, p, W, t, M, root):
     For pair k with lower-triangular weight W_k (t_ip Σ_ip⁻¹ = W Wᵀ): r_k = W_kᵀ e_k, Bw_k = W_kᵀ B_k with
     B_k = de/d(ω, v) = [[x]× − A [n]×, −I] (3 × 6), and per ellipsoid H_p = Σ Bwᵀ Bw (6 × 6),
     g_p = Σ Bwᵀ r (6,). Also de/d(ln s) = −(x − c) for a scaling of the body about its root c
-    (`distances.residuals`, ∂x/∂y = 0 for this distance).
+    (`Distance.residuals`, ∂x/∂y = 0 for this distance).
 
     Returns
     -------
@@ -463,8 +463,8 @@ def pose_normal_equations(H6, g6, ellipsoid_segment, moves, axis, origin, revolu
 
 @njit(cache=True, error_model="numpy")
 def noisy_covariance(n, i, p, e, weight, M, M2, noise2, Sigma, iterations):
-    """EM for Σ in e_k = z_k + w_k, z ~ N(0, Σ), w ~ N(0, σ_n² A_k²) (`em._noisy_covariance`): `iterations`
-    updates Σ ← Σ − Σ (S₁/T) Σ + Σ (S₂/T) Σ from `Sigma`, with S₁ = Σ_k t_k Σ_k⁻¹,
+    """EM for Σ in e_k = z_k + w_k, z ~ N(0, Σ), w ~ N(0, σ_n² A_k²) (`distances.CompiledNormals.covariance`):
+    `iterations` updates Σ ← Σ − Σ (S₁/T) Σ + Σ (S₂/T) Σ from `Sigma`, with S₁ = Σ_k t_k Σ_k⁻¹,
     S₂ = Σ_k t_k Σ_k⁻¹ e_k e_kᵀ Σ_k⁻¹, Σ_k = Σ + σ_n² A_k² and T = Σ_k t_k (t = `weight`)."""
     K = i.shape[0]
     spread = np.empty((K, 6))

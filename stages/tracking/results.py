@@ -99,7 +99,7 @@ class TrackerState:
     since_initialisation : int
         Frames tracked since a re-initialisation was last tried (`TrackerParams.reinit_every`).
     segment_shares : (S,) float or None
-        Running level of each segment's share of the data over the tracked frames (`init.segment_shares`,
+        Running level of each segment's share of the data over the tracked frames (`limbs.segment_shares`,
         the same exponential average as the likelihood level); None until a tracked frame sets it.
     recheck : bool
         The last frame was an initialisation that failed the checks: the next frame tracks from it but
