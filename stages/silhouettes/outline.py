@@ -120,7 +120,7 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, gains: tuple[float, f
     outside = cv2.compare(cv2.dilate(mask, depth), 0, cv2.CMP_EQ)
     band = cv2.compare(cv2.dilate(mask, disk(radius)), cv2.erode(mask, disk(radius), borderType=cv2.BORDER_REPLICATE),
                        cv2.CMP_GT)
-    index = _flat_nonzero(band)  # (n,) flat indices of the pixels near the outline: np.take is the fastest gather
+    index = flat_nonzero(band)  # (n,) flat indices of the pixels near the outline: np.take is the fastest gather
     I, B = np.ascontiguousarray(I), np.ascontiguousarray(B)
     # The core's colour sum and both pixel counts in one pass: sums of 8-bit integers, exact in float32.
     sums = cv2.boxFilter(cv2.merge([cv2.bitwise_and(I, I, mask=core), core, outside]), cv2.CV_32F, size,
@@ -153,7 +153,7 @@ def _channel_index(index: np.ndarray, channels: int) -> np.ndarray:
     return channels * index + np.arange(channels).reshape(-1, *[1] * index.ndim)
 
 
-def _flat_nonzero(mask: np.ndarray) -> np.ndarray:
+def flat_nonzero(mask: np.ndarray) -> np.ndarray:
     """(n,) int32 flat indices of the nonzero pixels of the (h, w) uint8 ``mask``, in order: as
     ``np.flatnonzero`` at half the cost (OpenCV's scan, then the indices from its (x, y) points)."""
     points = cv2.findNonZero(mask)  # (n, 2) or (n, 1, 2) x, y by OpenCV version; None when there are none

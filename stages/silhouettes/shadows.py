@@ -13,6 +13,7 @@ import numpy as np
 from calib.camera import Camera
 from calib.errors import InputError
 from stages.silhouettes.evidence import Evidence, _working_shape
+from stages.silhouettes.outline import flat_nonzero
 from stages.silhouettes.params import SilhouetteParams
 
 # The floor test looks at the floor behind blocks of FLOOR_BLOCK x FLOOR_BLOCK working pixels at once
@@ -95,9 +96,10 @@ def _floor_points(camera: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def _working_pixel(camera: Camera, shape: tuple[int, int], downsample: int, X: np.ndarray) -> np.ndarray:
     """(n,) int32 flat index of the working pixel (of a frame of ``shape``) where ``camera`` sees ``X``
-    (n, 3); -1 where it does not (behind it, outside the image)."""
+    (n, 3); -1 where it does not (outside its field of view, where the distortion would fold a point back
+    into the image, or outside the image)."""
     uv = camera.project(X)
-    seen = (camera.depth(X) > 0) & camera.in_image(uv)
+    seen = camera.sees(X) & camera.in_image(uv)
     height, width = shape
     cols = np.clip(np.floor((uv[:, 0] + 0.5) / downsample), 0, width - 1)
     rows = np.clip(np.floor((uv[:, 1] + 0.5) / downsample), 0, height - 1)
@@ -129,13 +131,13 @@ def floor_shadows(views: Sequence[Evidence], floor: FloorGeometry, params: Silho
     shadows = []
     for index, (view, darkening) in enumerate(zip(views, darkenings, strict=True)):
         shadow = np.zeros(view.shadow_like.shape, bool)
-        rows, cols = _nonzero(view.shadow_like)
-        if len(rows) == 0:
+        at = flat_nonzero(view.shadow_like.view(np.uint8)) if shadow.size else np.zeros(0, np.int32)
+        if len(at) == 0:
             shadows.append(shadow)
             continue
+        rows, cols = np.divmod(at, np.int32(shadow.shape[1]))  # (n,) in the region
         blocks = (((rows + view.region[0].start) // FLOOR_BLOCK) * _blocks(view.I_sharp.shape[1])
                   + (cols + view.region[1].start) // FLOOR_BLOCK)
-        at = rows * shadow.shape[1] + cols  # (n,) flat indices in the region
         needed = SHADOW_AGREEMENT * darkening.ravel().take(at)  # (n,)
         votes_for = np.zeros(len(rows), np.int32)
         votes_against = np.zeros(len(rows), np.int32)
@@ -149,16 +151,6 @@ def floor_shadows(views: Sequence[Evidence], floor: FloorGeometry, params: Silho
         shadow.ravel()[at] = (votes_for > 0) & (votes_for >= votes_against)
         shadows.append(shadow)
     return shadows
-
-
-def _nonzero(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(rows, cols) (n,) int32 of the set pixels of the (h, w) bool ``mask`` in raster order: as ``np.nonzero``,
-    at a fraction of its cost (OpenCV's scan for nonzero bytes)."""
-    points = cv2.findNonZero(mask.view(np.uint8)) if mask.any() else None  # (n, 1, 2) x, y; None when there are none
-    if points is None:
-        return np.zeros(0, np.int32), np.zeros(0, np.int32)
-    cols, rows = points.reshape(-1, 2).T
-    return rows, cols
 
 
 def _floor_look(view: Evidence, darkening: np.ndarray, params: SilhouetteParams) -> np.ndarray:
