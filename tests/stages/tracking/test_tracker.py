@@ -44,9 +44,10 @@ def _obs(body, pose, rng, count=600):
 def test_tracks_a_sequence_from_an_automatic_start(body):
     rng = np.random.default_rng(20)
     truth = _walk(body.scaled(1.75), 6)
+    tracker = Tracker(PARAMS, VOLUME)  # one tracker over the sequence, as the tracking stage runs it
     state, errors, statuses, doubtful = None, [], [], []
     for pose in truth:
-        result, state = Tracker(PARAMS, VOLUME).track(state, _obs(body, pose, rng))
+        result, state = tracker.track(state, _obs(body, pose, rng))
         errors.append(np.linalg.norm(result.joints - body.joint_positions(pose), axis=1).mean())
         statuses.append(result.status)
         doubtful.append(result.doubtful)
@@ -58,11 +59,12 @@ def test_tracks_a_sequence_from_an_automatic_start(body):
 def test_empty_and_degenerate_frames_are_predicted_never_nan(body):
     rng = np.random.default_rng(21)
     pose = _walk(body, 1)[0]
-    _, state = Tracker(PARAMS, VOLUME).track(None, _obs(body, pose, rng))
+    tracker = Tracker(PARAMS, VOLUME)
+    _, state = tracker.track(None, _obs(body, pose, rng))
     empty = SimpleNamespace(points=np.zeros((0, 3)), normals=np.zeros((0, 3)))
     nan_rows = SimpleNamespace(points=np.full((50, 3), np.nan), normals=np.ones((50, 3)))
     for obs in [empty, nan_rows]:
-        result, state = Tracker(PARAMS, VOLUME).track(state, obs)
+        result, state = tracker.track(state, obs)
         assert result.status == "predicted"
         assert np.all(np.isfinite(result.joints)) and np.all(np.isfinite(result.pose))
 
@@ -78,13 +80,14 @@ def test_all_outlier_frames_are_flagged_not_dropped_and_tracking_recovers(body):
     """A frame that was fitted is estimated (the better of the fit and a re-initialisation), flagged."""
     rng = np.random.default_rng(22)
     poses = _walk(body, 3)
-    _, state = Tracker(PARAMS, VOLUME).track(None, _obs(body, poses[0], rng))
+    tracker = Tracker(PARAMS, VOLUME)
+    _, state = tracker.track(None, _obs(body, poses[0], rng))
     noise = SimpleNamespace(points=rng.uniform(VOLUME[0], VOLUME[1], (600, 3)),
                             normals=np.tile([0.0, 0.0, 1.0], (600, 1)))
-    result, state = Tracker(PARAMS, VOLUME).track(state, noise)
+    result, state = tracker.track(state, noise)
     assert result.status in ("tracked", "initialised") and result.doubtful
     assert np.all(np.isfinite(result.joints))
-    result, state = Tracker(PARAMS, VOLUME).track(state, _obs(body, poses[2], rng))
+    result, state = tracker.track(state, _obs(body, poses[2], rng))
     assert result.status in ("tracked", "initialised") and not result.doubtful
     assert np.linalg.norm(result.joints - body.joint_positions(poses[2]), axis=1).mean() < 0.02
 
@@ -103,10 +106,11 @@ def test_segment_shares_are_learnt_over_tracked_frames_and_round_trip(body):
     and average them, and they survive the JSON state of a resumed run."""
     rng = np.random.default_rng(24)
     poses = _walk(body, 3)
-    result, state = Tracker(PARAMS, VOLUME).track(None, _obs(body, poses[0], rng))
+    tracker = Tracker(PARAMS, VOLUME)
+    result, state = tracker.track(None, _obs(body, poses[0], rng))
     assert result.status == "initialised" and state.segment_shares is None
     for pose in poses[1:]:
-        result, state = Tracker(PARAMS, VOLUME).track(state, _obs(body, pose, rng))
+        result, state = tracker.track(state, _obs(body, pose, rng))
         assert result.status == "tracked"
     shares = state.segment_shares
     assert shares.shape == (len(body.segment_names),) and np.all(shares > 0) and shares.sum() < 1.0
@@ -139,9 +143,10 @@ def test_only_the_named_length_groups_are_estimated(body):
     rng = np.random.default_rng(23)
     truth = _walk(body.scaled(1.75), 3)
     params = TrackerParams(height_m=1.75, init_headings=6, init_refine=2, estimate_lengths=("shank",))
+    tracker = Tracker(params, VOLUME)  # its sized body must follow the length factors as they are learnt
     state = None
     for pose in truth:
-        result, state = Tracker(params, VOLUME).track(state, _obs(body, pose, rng))
+        result, state = tracker.track(state, _obs(body, pose, rng))
     assert state.length_factors.shape == (1,)
     assert abs(np.log(state.length_factors[0])) < 0.05  # the data are the file's proportions
     fixed = TrackerParams(height_m=1.75, init_headings=6, init_refine=2, estimate_lengths=())
@@ -154,9 +159,10 @@ def test_unknown_height_comes_from_the_initialisation_and_tracked_frames_keep_it
     truth = _walk(body.scaled(1.62), 4)
     params = TrackerParams(height_m=None, init_headings=6, init_refine=2)
     heights, statuses = [], []
+    tracker = Tracker(params, VOLUME)  # its sized body must follow the height once it is estimated
     state = None
     for pose in truth:
-        result, state = Tracker(params, VOLUME).track(state, _obs(body.scaled(1.62), pose, rng))
+        result, state = tracker.track(state, _obs(body.scaled(1.62), pose, rng))
         heights.append(state.height_m)
         statuses.append(result.status)
     assert statuses[0] == "initialised" and set(statuses[1:]) == {"tracked"}
@@ -171,12 +177,13 @@ def test_a_stop_after_fast_motion_is_tracked_from_the_last_pose(body, restart_dr
     rng = np.random.default_rng(24)
     params = TrackerParams(height_m=1.75, init_headings=6, init_refine=2, restart_drop=restart_drop)
     pose = _walk(body.scaled(1.75), 1)[0]
-    _, state = Tracker(params, VOLUME).track(None, _obs(body, pose, rng))
-    _, state = Tracker(params, VOLUME).track(state, _obs(body, pose, rng))  # a tracked frame sets the level
+    tracker = Tracker(params, VOLUME)
+    _, state = tracker.track(None, _obs(body, pose, rng))
+    _, state = tracker.track(state, _obs(body, pose, rng))  # a tracked frame sets the level
     jump = np.zeros(body.pose_size)
     jump[0], jump[3], jump[body.dof_names.index("r_shank.flex")] = 0.8, 1.5, 1.5
     state = TrackerState(**{**vars(state), "velocity": jump})
-    result, _ = Tracker(params, VOLUME).track(state, _obs(body, pose, rng))
+    result, _ = tracker.track(state, _obs(body, pose, rng))
     error = np.linalg.norm(result.joints - body.joint_positions(pose), axis=1).mean()
     if np.isfinite(restart_drop):
         assert result.status == "tracked" and error < 0.02
@@ -213,9 +220,10 @@ def test_frames_record_the_data_supporting_each_joint_and_a_hidden_forearm_has_l
     are gone (hidden) explains almost nothing though the frame is still tracked."""
     rng = np.random.default_rng(25)
     poses = _walk(body, 3)
-    result, state = Tracker(PARAMS, VOLUME).track(None, _obs(body, poses[0], rng))
+    tracker = Tracker(PARAMS, VOLUME)
+    result, state = tracker.track(None, _obs(body, poses[0], rng))
     assert result.observations > 0 and result.joint_support.shape == (17,)
-    result, state = Tracker(PARAMS, VOLUME).track(state, _obs(body, poses[1], rng))
+    result, state = tracker.track(state, _obs(body, poses[1], rng))
     seen = dict(zip(JOINT_NAMES, result.joint_support, strict=True))
     explained = result.observations * np.bincount(body.ellipsoid_segment, weights=state.pi[:-1])  # per segment
     for joint, segment in [("l_elbow", "l_upperarm"), ("l_wrist", "l_forearm"), ("pelvis", "pelvis"),
@@ -229,7 +237,7 @@ def test_frames_record_the_data_supporting_each_joint_and_a_hidden_forearm_has_l
         local = (obs.points - ellipsoids.t[e]) @ ellipsoids.R[e] / ellipsoids.semi_axes[e]
         inside |= np.linalg.norm(local, axis=1) < 1.5
     hidden = SimpleNamespace(points=obs.points[~inside], normals=obs.normals[~inside])
-    result, state = Tracker(PARAMS, VOLUME).track(state, hidden)
+    result, state = tracker.track(state, hidden)
     assert result.status == "tracked" and result.observations == len(hidden.points)
     support = dict(zip(JOINT_NAMES, result.joint_support, strict=True))
     assert support["l_wrist"] < 0.3 * seen["l_wrist"] and support["r_wrist"] > 0.5 * seen["r_wrist"]
