@@ -21,6 +21,7 @@ The readers come with the dev extra (``pip install -e .[dev]``); without them th
 from __future__ import annotations
 
 import csv
+import os
 import subprocess
 import warnings
 from pathlib import Path
@@ -185,7 +186,7 @@ def run_exports(out: Path, captures: Path, *, quick: bool, workers: int) -> dict
     for capture in find_captures(FOREIGN_ROOT):
         name, path = selected(capture, out / "exports", quick=quick)
         rows.append(run_capture(name, path, out / "exports" / name, workers=workers))
-    return {"root": str(FOREIGN_ROOT), "rows": rows, "cutoffs_hz": list(CUTOFFS_HZ),
+    return {"root": os.path.relpath(FOREIGN_ROOT, REPO), "rows": rows, "cutoffs_hz": list(CUTOFFS_HZ),
             "judged_cutoff_hz": JUDGED_CUTOFF_HZ}
 
 

@@ -22,6 +22,7 @@ taekwondo, rendered by :mod:`pipeline.lab.synth`) run through the same path into
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -163,4 +164,5 @@ def run_foreign(out: Path, captures: Path, *, quick: bool, workers: int) -> dict
     for capture in found:
         name, path = selected(capture, out / "foreign", quick=quick)
         rows.append(with_reference(run_capture(name, path, out / "foreign" / name, workers=workers), reference_ms))
-    return {"root": str(FOREIGN_ROOT), "rows": rows, "reference": with_reference(reference_row, reference_ms)}
+    return {"root": os.path.relpath(FOREIGN_ROOT, REPO), "rows": rows,
+            "reference": with_reference(reference_row, reference_ms)}

@@ -85,7 +85,8 @@ def format_results(results: dict, figure_links: dict[str, str] | None = None, *,
              f"Drawn by `python -m pipeline bench`{origin}; each section names the command that measured it. "
              "`make bench` runs every suite (`ARGS=\"--suite NAME\"` for one of "
              f"{', '.join(SUITES)}, `--quick` for a smoke run); `python -m pipeline bench --report-only --docs "
-             "docs` redraws docs/results.md and docs/figures/ from the stored results without measuring again.",
+             "docs` redraws docs/results.md and docs/figures/ from the stored results without measuring again. "
+             "Comparisons measured by hand, each with its command, are in docs/results_by_hand.md (not redrawn).",
              "", "## Targets", "", format_targets(results)]
     from pipeline.lab.bench.calibration import CALIBRATION_NOTES, format_calibration
 
