@@ -24,8 +24,6 @@ from pipeline.io.run_layout import RunLayout
 from pipeline.terminal import printable
 from stages.export.metrics import JointMetrics, evaluate_joints, mask_iou
 
-#: Where the evaluation writes, inside the run's output directory.
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("out_dir", type=Path, help="output directory of a run (holds export/joints.csv)")

@@ -43,7 +43,6 @@ from pipeline.commands.batch_workers import (
     check_params,
     run_jobs,
 )
-from pipeline.engine.executors import InProcessExecutor
 from pipeline.engine.params import read_overrides
 from pipeline.io import atomic
 from pipeline.terminal import printable
@@ -207,7 +206,7 @@ def main(args: argparse.Namespace) -> int:
         overrides = read_overrides(args.config, args.assignments)
         # Workers show warnings only (-v: everything): the lines of several captures at once would bury the bar.
         worker_level = logging.DEBUG if log.isEnabledFor(logging.DEBUG) else logging.WARNING
-        in_process = isinstance(workers.executor, InProcessExecutor)
+        in_process = workers.in_process
         jobs = make_jobs(args.root, find_captures(args.root, skip=args.out), args.out, overrides,
                          allow_outside_paths=args.allow_outside_paths,
                          worker_log_level=None if in_process else worker_level)

@@ -47,7 +47,6 @@ from stages.export.skeleton import settled_lengths, with_bone_lengths
 from stages.export.trc import MARKER_NAMINGS, format_trc
 from stages.joints import JOINT_NAMES
 
-#: File names inside ``<out>/export/``.
 #: Millimetres per metre: C3D points are in millimetres.
 MM_PER_M = 1000.0
 

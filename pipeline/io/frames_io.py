@@ -364,8 +364,8 @@ def _with_check_line(text: str, record: dict, check: str) -> str:
     line = f' "{RECORD_CHECK}": "{check}"'
     keys = list(record)
     later = sorted(key for key in keys if key > RECORD_CHECK) if all(isinstance(key, str) for key in keys) else None
-    if later:
-        following = f"\n {json.dumps(later[0])}: "
+    following = f"\n {json.dumps(later[0])}: " if later else None
+    if following is not None and following in text:
         return text.replace(following, f"\n{line},{following}", 1)
     if later == [] and text.endswith("\n}\n"):  # the check sorts last
         return f"{text[:-3]},\n{line}\n}}\n"

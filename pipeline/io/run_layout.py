@@ -92,24 +92,13 @@ class RunLayout:
     def manifest(self, stage: str) -> Path:
         return self.stage_dir(stage) / MANIFEST
 
-    def marker(self, stage: str) -> Path:
-        return self.stage_dir(stage) / MARKER
-
     @property
     def run_record(self) -> Path:
         return self.root / RUN_RECORD
 
     @property
-    def lock(self) -> Path:
-        return self.root / LOCK
-
-    @property
     def warnings(self) -> Path:
         return self.root / WARNINGS_FILE
-
-    @property
-    def rig(self) -> Path:
-        return self.stage_dir("calibration") / RIG_FILE
 
     @property
     def capture_summary(self) -> Path:

@@ -12,6 +12,7 @@ from conftest import make_capture
 
 from pipeline.cli import main
 from pipeline.graph import STAGES
+from pipeline.io.run_layout import STAGE_NAMES
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -20,6 +21,17 @@ def test_the_run_command_never_imports_matplotlib():
     code = "import sys, pipeline.commands.run, pipeline.report.page; print('matplotlib' in sys.modules)"
     imported = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert imported.strip() == "False"  # a quarter of a second to import: the report's plots are SVG instead
+
+
+def test_the_run_command_never_imports_the_lab():
+    code = ("import sys, pipeline.commands.run, pipeline.report.page; "
+            "print(sorted(m for m in sys.modules if m.startswith('pipeline.lab')))")
+    imported = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert imported.strip() == "[]"  # benchmarks and synthetic captures are not part of a run
+
+
+def test_the_run_layout_names_the_graph_stages():
+    assert STAGE_NAMES == tuple(stage.name for stage in STAGES)  # a copy: the report cannot import the graph
 
 
 def test_the_run_command_imports_scipy_signal_only_to_smooth():

@@ -79,7 +79,7 @@ class Capture:
     volume : (2, 3) float
         Working volume ``[min, max]``, metres, world frame; from ``capture.yaml`` or derived.
     volume_source : str
-        ``"capture.yaml"`` or ``"derived"`` (see :func:`derive_volume`).
+        ``"capture.yaml"`` or ``"derived"`` (see :func:`pipeline.io.capture.volume.derive_volume`).
     height_m : float or None
         Subject's standing height, if given.
     frame_numbers : tuple of int
