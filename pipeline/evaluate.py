@@ -38,6 +38,10 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Where a capture keeps its ground-truth joints (CAPTURE_FORMAT.md), scored when present.
+TRUTH_FILE = Path("groundtruth") / "joints.csv"
+
+
 def default_truth(out_dir: str | os.PathLike) -> Path:
     """The ground-truth joints.csv of the capture a run was made from (``capture_dir`` in capture.json)."""
     summary_path = RunLayout(out_dir).capture_summary
@@ -46,7 +50,7 @@ def default_truth(out_dir: str | os.PathLike) -> Path:
     if not capture_dir:
         raise InputError(f"{summary_path}: no capture_dir recorded, so the ground truth is unknown "
                          "(expected --truth <capture>/groundtruth/joints.csv)")
-    truth = Path(capture_dir) / "groundtruth" / "joints.csv"
+    truth = Path(capture_dir) / TRUTH_FILE
     if not truth.is_file():
         raise InputError(f"{truth}: the run's capture has no ground truth (expected --truth <joints.csv>)")
     return truth

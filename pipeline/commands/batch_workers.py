@@ -28,8 +28,6 @@ from pipeline.terminal import PrintableFormatter
 
 log = logging.getLogger(__name__)
 
-#: A capture's ground truth, scored when present.
-TRUTH = Path("groundtruth") / "joints.csv"
 #: What a capture's task runs, and what checks the parameters: the stages and the scoring. Imported only where a
 #: capture runs or the parameters are checked: with a local pool, only the pool's fork server loads it, once for
 #: all its processes (:class:`RenewedProcessPool`).
@@ -99,7 +97,7 @@ def process_capture(job: CaptureJob) -> CaptureReport:
     in the row (a bug's traceback in the log), so that the captures beside it carry on.
     """
     from pipeline.commands.run import run_capture, stage_params  # see TASK_MODULES
-    from pipeline.evaluate import evaluate_run
+    from pipeline.evaluate import TRUTH_FILE, evaluate_run
     from pipeline.io.export_io import read_joints_csv
     from pipeline.io.run_layout import RunLayout
 
@@ -114,7 +112,7 @@ def process_capture(job: CaptureJob) -> CaptureReport:
         if result.problem is not None:
             raise InputError(result.problem)
         estimated = len(read_joints_csv(RunLayout(job.out).joints)[0])
-        truth = job.capture / TRUTH
+        truth = job.capture / TRUTH_FILE
         mpjpe = float(evaluate_run(job.out, truth=truth)["mpjpe_mm"]) if truth.is_file() else None
     except Exception as error:  # this capture's failure, whatever it is, must not end the batch
         if not isinstance(error, InputError):

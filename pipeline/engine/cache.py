@@ -21,17 +21,10 @@ from pipeline.engine.stage import Stage
 from pipeline.engine.versions import code_version
 from pipeline.io import atomic
 from pipeline.io.capture import Capture
+from pipeline.io.digest import DIGEST_HEX, canonical_json, text_digest
 from pipeline.io.run_layout import MANIFEST, MARKER
 
 log = logging.getLogger(__name__)
-
-def canonical_json(value: Any) -> str:
-    return json.dumps(value, sort_keys=True, separators=(",", ":"), allow_nan=False)
-
-
-def _hash(text: str) -> str:
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:32]
-
 
 @dataclass(frozen=True)
 class Expected:
@@ -57,7 +50,7 @@ def expected_record(stage: Stage, capture: Capture, params: Any, output_root: Pa
         inputs[f"file:{name}"] = file_digest(path)
     record = {"stage": stage.name, "code_version": code_version(stage), "params": params_to_dict(params),
               "inputs": inputs}
-    return Expected(record, _hash(canonical_json(record)), tuple(missing))
+    return Expected(record, text_digest(canonical_json(record)), tuple(missing))
 
 
 def file_digest(path: Path) -> str | None:
@@ -79,7 +72,7 @@ def streamed_key(stage: Stage, capture: Capture, params: Any, output_root: Path,
     """
     record = expected_record(stage, capture, params, output_root).record
     inputs = {**record["inputs"], f"stage:{stage.inputs[-1]}": f"key:{upstream_key}"}
-    return _hash(canonical_json({**record, "inputs": inputs}))
+    return text_digest(canonical_json({**record, "inputs": inputs}))
 
 
 def read_manifest(folder: Path) -> dict | None:
@@ -116,7 +109,7 @@ def output_contents(folder: Path) -> dict[str, str]:
     files of a 112-frame, 6-camera capture (13 MB) take a small fraction of a second once they are in the
     page cache (tests/pipeline/test_runner.py checks 1000 files in under half a second).
     """
-    return {path.relative_to(folder).as_posix(): hashlib.sha256(path.read_bytes()).hexdigest()[:32]
+    return {path.relative_to(folder).as_posix(): hashlib.sha256(path.read_bytes()).hexdigest()[:DIGEST_HEX]
             for path in output_files(folder)}
 
 
@@ -124,7 +117,7 @@ def describe_outputs(folder: Path) -> dict:
     """Count, bytes, each file's content hash and their digest (for downstream keys) of the stage's files."""
     contents = output_contents(folder)
     return {"files": len(contents), "bytes": sum((folder / name).stat().st_size for name in contents),
-            "digest": _hash("".join(f"{name}\0{digest}\n" for name, digest in contents.items())),
+            "digest": text_digest("".join(f"{name}\0{digest}\n" for name, digest in contents.items())),
             "contents": contents}
 
 

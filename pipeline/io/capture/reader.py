@@ -23,12 +23,11 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import logging
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -51,6 +50,7 @@ from pipeline.io.capture.media import (
     _select_frames,
 )
 from pipeline.io.capture.volume import working_volume
+from pipeline.io.digest import canonical_json, text_digest
 
 if TYPE_CHECKING:
     from pipeline.io.auto_frame import AutoFrame
@@ -211,11 +211,11 @@ class Capture:
         file gets a new mtime).
         """
         if part == "config":
-            return _hash_text(_canonical_json(self.config))
+            return text_digest(canonical_json(self.config))
         if part == "frames":
-            return _hash_text(_canonical_json(list(self.frame_numbers)))
+            return text_digest(canonical_json(list(self.frame_numbers)))
         if part == "image_sizes":
-            return _hash_text(_canonical_json({camera.name: list(camera.size) for camera in self.rig}))
+            return text_digest(canonical_json({camera.name: list(camera.size) for camera in self.rig}))
         if part == "calibration":  # named within the calibration itself, which may lie anywhere
             path = self.root / self.config["calibration"]["path"]
             files = sorted(p for p in ([path] if path.is_file() else path.rglob("*")) if p.is_file())
@@ -243,14 +243,6 @@ class Capture:
             else:
                 files.append(source.path)
         return files
-
-
-def _hash_text(text: str) -> str:
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:32]
-
-
-def _canonical_json(value: Any) -> str:
-    return json.dumps(value, sort_keys=True, separators=(",", ":"), allow_nan=False)
 
 
 def _stat_digest(files: Iterable[Path], root: Path) -> str:
