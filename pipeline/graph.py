@@ -48,6 +48,7 @@ from pipeline.engine.context import StageContext
 from pipeline.engine.stage import Stage
 from pipeline.frame_tasks import reconstruction_task, silhouettes_task
 from pipeline.io import atomic, frames_io, run_layout
+from pipeline.io.backgrounds import spread_frames
 from pipeline.io.capture import Capture, capture_summary
 from pipeline.io.export_io import write_exports, write_joints_csv, write_quality_csv
 from pipeline.io.overlay_video import write_overlay_video
@@ -69,7 +70,7 @@ from stages.export.quality import FrameQuality
 from stages.joints import JOINT_NAMES
 from stages.reconstruction import Observations, ReconstructionParams
 from stages.reconstruction.views import VOLUME_FACES, faces_reached
-from stages.silhouettes import SilhouetteParams, median_background
+from stages.silhouettes import SilhouetteParams
 from stages.tracking.params import TrackerParams
 from stages.tracking.results import FrameResult, TrackerState, frame_record, read_frame_record
 from stages.tracking.tracker import Tracker
@@ -89,33 +90,10 @@ def run_calibration(ctx: StageContext) -> None:
     frames_io.write_json(ctx.out_dir / CAPTURE_FILE, capture_summary(ctx.capture))
 
 
-#: Frames sampled per camera for a temporal-median background when no clean plate is given.
-MEDIAN_BACKGROUND_FRAMES = 25
 #: Longest chunk of the silhouette stage on videos (frames). Each chunk seeks its videos, and a seek
 #: decodes from the last keyframe (per camera, as much work as segmenting a few frames), so chunks are as
 #: long as this allows; it bounds how unevenly the last chunks load the workers.
 MAX_VIDEO_CHUNK_FRAMES = 200
-
-
-def spread_frames(frames: Sequence[int], count: int) -> list[int]:
-    """At most ``count`` of ``frames``, evenly spread from the first to the last (sorted, no repeats)."""
-    picks = np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int)
-    return sorted({frames[int(i)] for i in picks})
-
-
-def background_image(capture: Capture, camera: str) -> np.ndarray:
-    """The camera's clean plate, else the temporal median of frames spread over the capture.
-
-    A quick background for a look at a few frames (``up: auto``'s floor search, benchmarks); the silhouette
-    stage estimates backgrounds without plates from every camera together (:func:`estimated_backgrounds`),
-    which leaves out a subject who stands still.
-    """
-    plate = capture.background(camera)
-    if plate is not None:
-        return plate
-    picks = spread_frames(capture.frame_numbers, MEDIAN_BACKGROUND_FRAMES)
-    log.info("silhouettes: no clean plate for camera %s; using the median of %d frames", camera, len(picks))
-    return median_background(image for _, image in capture.iter_images(camera, picks))
 
 
 #: An estimated background whose unresolved share (never seen without the subject) reaches this is a warning.
@@ -349,11 +327,12 @@ FILES_CODE = ("pipeline.io.frames_io", "pipeline.io.atomic", "pipeline.io.run_la
 STAGES: tuple[Stage, ...] = (
     Stage("calibration", run_calibration,  # up: auto finds the floor in the media (pipeline.io.auto_frame)
           capture_parts=("config", "calibration", "image_sizes", "frames", "images", "background", "silhouettes"),
-          code=("calib", "pipeline.io.capture", "pipeline.io.auto_frame", "stages.silhouettes", *FILES_CODE)),
+          code=("calib", "pipeline.io.capture", "pipeline.io.auto_frame", "pipeline.io.backgrounds", "stages.silhouettes",
+                *FILES_CODE)),
     Stage("silhouettes", run_silhouettes, inputs=("calibration",), params_type=SilhouetteParams,
           capture_parts=("frames", "images", "background", "silhouettes"),
           code=("stages.silhouettes", "stages.background", "stages.consistency", "stages.rays", "stages.checks",
-                "pipeline.frame_tasks", "pipeline.io.capture", "calib", *FILES_CODE)),
+                "pipeline.frame_tasks", "pipeline.io.backgrounds", "pipeline.io.capture", "calib", *FILES_CODE)),
     Stage("reconstruction", run_reconstruction, inputs=("calibration", "silhouettes"),
           params_type=ReconstructionParams, capture_parts=("config", "frames"),
           code=("stages.reconstruction", "stages.rays", "stages.checks", "pipeline.frame_tasks", "pipeline.io.capture",

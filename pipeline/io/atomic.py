@@ -36,6 +36,17 @@ _PROCESS_TAG = secrets.token_hex(4)
 _temp_numbers = itertools.count()
 
 
+def _draw_process_tag() -> None:
+    """A new tag and count for this process: a forked child (a batch worker) must not share its parent's."""
+    global _PROCESS_TAG, _temp_numbers
+    _PROCESS_TAG = secrets.token_hex(4)
+    _temp_numbers = itertools.count()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_draw_process_tag)
+
+
 def temp_path_for(path: Path) -> Path:
     """A fresh temporary name next to ``path``, ending with ``path``'s own name."""
     return path.with_name(f"{TEMP_PREFIX}{os.getpid()}-{_PROCESS_TAG}-{next(_temp_numbers)}-{path.name}")

@@ -32,6 +32,7 @@ import numpy as np
 from calib.camera import Rig
 from calib.errors import InputError
 from calib.world import WorldTransform, level_rotation, rig_vertical
+from pipeline.io.backgrounds import background_image, spread_frames
 from stages.silhouettes import SilhouetteParams, extract_silhouette
 
 if TYPE_CHECKING:
@@ -202,8 +203,6 @@ def frame_floor(rig: Rig, masks: Sequence[np.ndarray], coarse: np.ndarray, coars
 def _masks(capture: Capture, frames: list[int]) -> dict[int, list[np.ndarray]]:
     """Silhouettes of ``frames`` in every camera: the given ones, else against the camera's background as
     the silhouette stage makes it (its clean plate, or the median of frames spread over the capture)."""
-    from pipeline.graph import background_image  # here: the graph imports the capture, which imports this module
-
     masks: dict[int, list[np.ndarray]] = {frame: [] for frame in frames}
     for camera in capture.rig.names:
         if capture.silhouettes_given:
@@ -221,8 +220,6 @@ def find_world_frame(capture: Capture, scale: float) -> AutoFrame:
     """The transform into a frame with +z up and the floor at z = 0 for ``capture``, whose rig is in the
     calibration's axes scaled to metres (``scale`` metres per calibration unit): ``transform.apply`` takes
     the calibration's rig in its own units."""
-    from pipeline.graph import spread_frames  # here: see _masks
-
     rig = capture.rig
     vertical, method = rig_vertical(rig)
     A = level_rotation(vertical, rig[0].R[0])

@@ -50,6 +50,23 @@ def test_temporary_names_differ_and_keep_the_suffix(tmp_path):
     assert all(name.startswith(atomic.TEMP_PREFIX) and name.endswith("-000001.ply") for name in names)
 
 
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
+def test_a_forked_child_draws_its_own_temporary_names(tmp_path):
+    """A forked batch worker draws a tag of its own: where pids repeat (containers sharing a folder), the
+    tag is what keeps two writers' temporary names apart."""
+    read_end, write_end = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: report its tag and exit at once
+        os.write(write_end, atomic.temp_path_for(tmp_path / "a.png").name.encode())
+        os._exit(0)
+    os.close(write_end)
+    child_name = os.read(read_end, 1000).decode()
+    os.close(read_end)
+    os.waitpid(pid, 0)
+    parent_name = atomic.temp_path_for(tmp_path / "a.png").name
+    assert child_name.split("-")[2] != parent_name.split("-")[2]
+
+
 def test_remove_temp_files(tmp_path):
     (tmp_path / "a").mkdir()
     leftover = atomic.temp_path_for(tmp_path / "a" / "000001.png")

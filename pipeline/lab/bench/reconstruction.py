@@ -32,7 +32,7 @@ import open3d as o3d
 import yaml
 
 from calib.camera import Camera, Rig
-from pipeline.graph import background_image, spread_frames
+from pipeline.io.backgrounds import background_image, spread_frames
 from pipeline.io.capture import Capture
 from pipeline.lab.bench.tracker import CLIPS
 from pipeline.lab.mocap import load_clip
