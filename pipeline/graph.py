@@ -49,6 +49,7 @@ from pipeline.engine.stage import Stage
 from pipeline.frame_tasks import reconstruction_task, silhouettes_task
 from pipeline.io import atomic, frames_io, run_layout
 from pipeline.io.backgrounds import spread_frames
+from pipeline.io.body_io import tracking_body
 from pipeline.io.capture import Capture, capture_summary
 from pipeline.io.export_io import write_exports, write_joints_csv, write_quality_csv
 from pipeline.io.overlay_video import write_overlay_video
@@ -232,7 +233,7 @@ def run_tracking(ctx: StageContext) -> int:
     params: TrackerParams = ctx.params
     if params.height_m is None and ctx.capture.height_m is not None:
         params = dataclasses.replace(params, height_m=ctx.capture.height_m)
-    tracker = Tracker(params, ctx.capture.volume)
+    tracker = Tracker(params, ctx.capture.volume, tracking_body(params))
     frames = ctx.capture.frame_numbers
     pending = ctx.pending_frames(lambda frame: [run_layout.tracking_path(ctx.out_dir, frame)])
     done = frames.index(pending[0]) if pending else len(frames)  # frames after a missing one are redone
@@ -340,7 +341,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("tracking", run_tracking, inputs=("calibration", "reconstruction"), params_type=TrackerParams,
           capture_parts=("config", "frames"),
           code=("stages.tracking", "stages.checks", "stages.joints", "stages.reconstruction", "pipeline.frame_tasks",
-                *FILES_CODE),
+                "pipeline.io.body_io", *FILES_CODE),
           streams=True),
     Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),

@@ -22,6 +22,7 @@ from pipeline.engine import run_warnings
 from pipeline.engine.executors import Workers, make_executor
 from pipeline.engine.output_folder import output_lock, storage_error
 from pipeline.engine.params import apply_all, default_params, read_overrides
+from pipeline.io.body_io import tracking_body
 from pipeline.engine.runner import Runner, StageOutcome, format_summary
 from pipeline.engine.stage import select_stages
 from pipeline.io.capture import Capture
@@ -105,8 +106,10 @@ def read_params(config: Path | None, assignments: Sequence[str]) -> dict[str, An
 
 def stage_params(overrides: Iterable[tuple[str, Mapping[str, Any]]]) -> dict[str, Any]:
     """Every stage's parameters: the defaults with ``overrides`` (:func:`~pipeline.engine.params.read_overrides`)
-    applied in turn."""
-    return apply_all(default_params(graph.STAGES), overrides)
+    applied in turn, and checked before any work, a body file given to the tracker included."""
+    params = apply_all(default_params(graph.STAGES), overrides)
+    tracking_body(params["tracking"])
+    return params
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,6 @@ stem ("default", "paper"); any other body file is named by its path.
 from __future__ import annotations
 
 from importlib import resources
-from pathlib import Path
 
 import numpy as np
 import yaml
@@ -34,40 +33,40 @@ _AXIS_WORDS = {"x": (1, 0, 0), "y": (0, 1, 0), "z": (0, 0, 1),
 
 
 def load_body(name: str = "default", *, height_m: float | None = None) -> BodyModel:
-    """Load a body: a shipped one by name (`bodies/<name>.yaml`) or a body file by its path, scaled to
-    `height_m` if given.
+    """A body shipped with the tracker, by name (`bodies/<name>.yaml`), scaled to `height_m` if given.
 
-    A name with a path separator or a ".yaml"/".yml" suffix is a path; any other is a shipped body's name.
+    A body file of the user's, named by its path, is read by the pipeline (`pipeline.io.body_io`), which
+    owns the disk, and parsed by `body_from_text`.
 
     Raises
     ------
     InputError
-        If there is no such body or the file is not a body description (one line naming the file).
+        If no body of that name is shipped (one line listing those that are).
     """
-    if is_body_path(name):
-        path = Path(name)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as error:
-            reason = error.strerror if isinstance(error, OSError) else "not UTF-8 text"
-            raise InputError(f"{path}: cannot read the body file ({reason}), expected a body description "
-                             "in the layout of bodies/default.yaml") from None
-        source = str(path)
-    else:
-        files = resources.files("stages.tracking") / "bodies"
-        shipped = files / f"{name}.yaml"
-        if not shipped.is_file():
-            known = sorted(p.name[:-5] for p in files.iterdir() if p.name.endswith(".yaml"))
-            raise InputError(f"body {name!r}: no such body configuration, expected one of {known} "
-                             "or the path of a body file")
-        text, source = shipped.read_text(), f"bodies/{name}.yaml"
+    files = resources.files("stages.tracking") / "bodies"
+    shipped = files / f"{name}.yaml"
+    if is_body_path(name) or not shipped.is_file():
+        known = sorted(p.name[:-5] for p in files.iterdir() if p.name.endswith(".yaml"))
+        raise InputError(f"body {name!r}: no such body configuration, expected one of {known} "
+                         "(a body file given by its path is read by pipeline.io.body_io.read_body)")
+    body = body_from_text(shipped.read_text(), source=f"bodies/{name}.yaml")
+    return body if height_m is None else body.scaled(height_m)
+
+
+def body_from_text(text: str, *, source: str) -> BodyModel:
+    """The body described by the text of a body file (YAML, safe-loaded); `source` names it in errors.
+
+    Raises
+    ------
+    InputError
+        If the text is not YAML or not a body description (one line naming `source`).
+    """
     try:
         spec = yaml.load(text, Loader=_SAFE_LOADER)
     except yaml.YAMLError as error:
         first_line = str(error).splitlines()[0] if str(error) else type(error).__name__
         raise InputError(f"{source}: not valid YAML ({first_line}), expected a body description") from None
-    body = body_from_dict(spec, source=source)
-    return body if height_m is None else body.scaled(height_m)
+    return body_from_dict(spec, source=source)
 
 
 def is_body_path(name: str) -> bool:

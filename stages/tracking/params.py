@@ -144,7 +144,11 @@ class TrackerParams:
         for name, (minimum, maximum, above) in _NUMBER_RANGES.items():
             check_number(f"tracking.{name}", getattr(self, name), minimum, maximum, above=above,
                          infinite=name in _MAY_BE_INFINITE)
-        _check_length_groups(self.estimate_lengths, self.body_model)
+        if not isinstance(self.body, str) or not self.body:
+            raise InputError(f"tracking.body: expected the name of a shipped body or the path of a body file, "
+                             f"got {self.body!r}")
+        if not is_body_path(self.body):  # a body file is checked where the pipeline reads it (pipeline.io.body_io)
+            check_length_groups(self.estimate_lengths, shipped_body(self.body))
         if not self.failure_sigma_m < self.max_sigma_m:
             raise InputError(f"tracking.failure_sigma_m: expected a value below max_sigma_m ({self.max_sigma_m}), "
                              f"since Σ never grows past that ceiling, got {self.failure_sigma_m}")
@@ -154,11 +158,6 @@ class TrackerParams:
         file given by its path (a shipped body is part of the code). Their contents belong in the stage's
         cache key, so that editing the file in place tracks again."""
         return {"body": Path(self.body)} if is_body_path(self.body) else {}
-
-    @functools.cached_property
-    def body_model(self) -> BodyModel:
-        """The body that `body` names, read once: checked here, tracked with by the `Tracker`."""
-        return _checked_body(self.body)
 
     @functools.cached_property
     def em(self) -> EMParams:
@@ -196,18 +195,16 @@ _NUMBER_RANGES = {"tolerance": (0.0, np.inf, False), "displacement_m": (0.0, np.
 _MAY_BE_INFINITE = ("refit_drop", "restart_drop")
 
 
-def _checked_body(body) -> BodyModel:
-    """`body`: the body it names, loaded (`body_file.load_body`), or a one-line error naming the file."""
-    if not isinstance(body, str) or not body:
-        raise InputError(f"tracking.body: expected the name of a shipped body or the path of a body file, got {body!r}")
+def shipped_body(name: str) -> BodyModel:
+    """The shipped body `name` (`body_file.load_body`), or a one-line error under `tracking.body`."""
     try:
-        return load_body(body)
+        return load_body(name)
     except InputError as error:
         raise InputError(f"tracking.body: {error}") from None
 
 
-def _check_length_groups(names, body: BodyModel) -> None:
-    """`estimate_lengths`: a tuple of distinct names of the body's length groups."""
+def check_length_groups(names, body: BodyModel) -> None:
+    """`estimate_lengths`: a tuple of distinct names of `body`'s length groups, else a one-line error."""
     known = sorted(body.length_groups)
     if not (isinstance(names, tuple) and all(isinstance(name, str) and name in known for name in names)
             and len(set(names)) == len(names)):

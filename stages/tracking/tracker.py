@@ -43,7 +43,7 @@ from stages.tracking.init import initialise
 from stages.tracking.library import load_pose_library
 from stages.tracking.limbs import body_limbs, deserted_limbs, misplaced_limbs, reinitialise_limb, segment_shares
 from stages.tracking.mixture import Mixture, volume_size
-from stages.tracking.params import TrackerParams
+from stages.tracking.params import TrackerParams, check_length_groups, shipped_body
 from stages.tracking.results import FrameResult, TrackerState
 
 # Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
@@ -67,7 +67,7 @@ class Tracker:
     volume : (2, 3) float
         Working volume [min; max], metres (the outlier density's support).
     body : BodyModel
-        The body file's body with only the length groups `params.estimate_lengths` left free; its height
+        The body with only the length groups `params.estimate_lengths` left free; its height
         is replaced by `params.height_m` or by the estimate.
     library : (M, D) float
         The body's pose library (`library.load_pose_library`), for initialisations and limb recovery.
@@ -75,11 +75,15 @@ class Tracker:
         The body's limbs and their mirrors (`limbs.body_limbs`).
     """
 
-    def __init__(self, params: TrackerParams, volume: np.ndarray):
+    def __init__(self, params: TrackerParams, volume: np.ndarray, body: BodyModel | None = None):
+        """`body` is the body `params.body` names: a shipped body is loaded here when it is not given; a body
+        file's, which the pipeline reads (`pipeline.io.body_io.tracking_body`), must be."""
         self.params = params
         self.volume = np.asarray(volume, dtype=float)
         volume_size(self.volume)
-        self.body = params.body_model.with_length_groups(params.estimate_lengths)
+        body = shipped_body(params.body) if body is None else body
+        check_length_groups(params.estimate_lengths, body)
+        self.body = body.with_length_groups(params.estimate_lengths)
         self.library = load_pose_library(self.body)
         self.limbs = body_limbs(self.body)
         self._sized: tuple = (None, None)

@@ -24,11 +24,11 @@ from types import SimpleNamespace
 import numpy as np
 
 from calib.errors import InputError
+from pipeline.io.body_io import tracking_body
 from pipeline.lab.mocap import load_clip
 from pipeline.lab.poselib import clip_path
 from pipeline.lab.synth import build_body, pose_body, sample_body_surface
 from stages.joints import JOINT_NAMES
-from stages.tracking.body_file import load_body
 from stages.tracking.params import TrackerParams
 from stages.tracking.tracker import Tracker
 
@@ -97,15 +97,15 @@ def run_clip(name: str, args) -> dict:
     volume = np.array([[lo[0], lo[1], 0.0], [hi[0], hi[1], max(hi[2], 2.3)]])
     observations = synthetic_observations(motion, args.observations, args.outliers, volume, args.seed, args.surface,
                                          args.normal_noise)
-    body = load_body(args.body)
     truth_height = None
     params = TrackerParams(distance=args.distance, height_m=truth_height, body=args.body)
+    body = tracking_body(params)
     if args.known_height:
         from stages.tracking.library import retarget
 
         truth_height = retarget(body, motion.joints[0], estimate_scale=True)[1]
         params = TrackerParams(distance=args.distance, height_m=truth_height, body=args.body)
-    tracker = Tracker(params, volume)
+    tracker = Tracker(params, volume, body)
     state, estimates, statuses, seconds = None, [], [], []
     for obs in observations:
         start = time.process_time()  # CPU time: the machine is shared, wall time is noisy
