@@ -75,6 +75,20 @@ def _distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return np.stack([xd, yd], axis=1)
 
 
+def _distortion_derivative(xy: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The derivative of :func:`_distort` at ``xy (N, 2)``: the entries ``a, b, d`` (N,) each of the
+    symmetric [[a, b], [b, d]] (the tangential terms keep it symmetric)."""
+    k1, k2, p1, p2, k3 = dist
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    slope = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3))  # d radial / d(r2), twice
+    a = radial + slope * x * x + 2.0 * p1 * y + 6.0 * p2 * x
+    b = slope * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+    d = radial + slope * y * y + 6.0 * p1 * y + 2.0 * p2 * x
+    return a, b, d
+
+
 def _unskew(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(uv' (N, 2), K' (3, 3))``: pixels ``uv`` of a camera with skew as the same camera without it sees them.
 
@@ -206,6 +220,14 @@ class Camera:
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = x_cam[:, :2] / x_cam[:, 2:3]
         return _distort(xy, self.dist) @ self.K[:2, :2].T + self.K[:2, 2]
+
+    def pixel_derivative(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2, 2) derivative of the pixel with respect to the normalised image coordinates ``xy (N, 2)``
+        there (pixel = K D(xy), D the lens distortion as :meth:`project` applies it): how a small step in
+        the normalised image moves in the image, which undistorting a stepped pixel only approximates."""
+        a, b, d = _distortion_derivative(xy, self.dist)
+        (fx, skew), (_, fy) = self.K[0, :2], self.K[1, :2]
+        return np.stack([fx * a + skew * b, fx * b + skew * d, fy * b, fy * d], axis=1).reshape(-1, 2, 2)
 
     def undistort_pixels(self, uv) -> np.ndarray:
         """(N, 2) normalised image coordinates ``(x/z, y/z)`` of pixels ``uv (N, 2)``.

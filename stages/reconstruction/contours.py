@@ -175,20 +175,11 @@ def cone_normals(camera: Camera, normalised: np.ndarray, tangents: np.ndarray, o
 
 def normalised_steps(camera: Camera, normalised: np.ndarray, *steps: np.ndarray) -> list[np.ndarray]:
     """Each of the pixel ``steps`` (L, 2) at the points ``normalised`` (L, 2) as steps of normalised image
-    coordinates, (L, 2) each: solved from the derivative of the projection there, pixel = K D(x) (D the
-    lens distortion, as ``Camera.project`` applies it), which undistorting the stepped pixels only
+    coordinates, (L, 2) each: solved from the derivative of the projection there
+    (:meth:`~calib.camera.Camera.pixel_derivative`), which undistorting the stepped pixels only
     approximates to first order."""
-    k1, k2, p1, p2, k3 = camera.dist
-    x, y = normalised[:, 0], normalised[:, 1]
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    slope = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3))  # d radial / d(r2), twice
-    # dD/dx: [[a, b], [b, d]] (the tangential terms keep it symmetric), then pixels = K[:2, :2] of it.
-    a = radial + slope * x * x + 2.0 * p1 * y + 6.0 * p2 * x
-    b = slope * x * y + 2.0 * p1 * x + 2.0 * p2 * y
-    d = radial + slope * y * y + 6.0 * p1 * y + 2.0 * p2 * x
-    (fx, skew), (_, fy) = camera.K[0, :2], camera.K[1, :2]
-    m00, m01, m10, m11 = fx * a + skew * b, fx * b + skew * d, fy * b, fy * d
+    derivative = camera.pixel_derivative(normalised)
+    m00, m01, m10, m11 = derivative[:, 0, 0], derivative[:, 0, 1], derivative[:, 1, 0], derivative[:, 1, 1]
     determinant = m00 * m11 - m01 * m10
     inverse = np.stack([m11, -m01, -m10, m00], axis=1).reshape(-1, 2, 2) / determinant[:, None, None]
     return [np.einsum("nij,nj->ni", inverse, step) for step in steps]

@@ -55,6 +55,19 @@ def test_undistort_pixels_inverts_distortion_of_normalised_coordinates():
     np.testing.assert_allclose(camera.project(X), uv, rtol=0, atol=1e-6)
 
 
+def test_pixel_derivative_is_the_projections_derivative_with_every_distortion_term_and_skew():
+    camera = Camera("c", np.array([[900.0, 7.0, 300.0], [0.0, 950.0, 200.0], [0.0, 0.0, 1.0]]),
+                    (-0.3, 0.12, 2e-3, -1.5e-3, -0.04), np.eye(3), (0.0, 0.0, 0.0), (640, 480))
+    xy = np.random.default_rng(5).uniform(-0.4, 0.4, (50, 2))
+    step = 1e-6
+
+    def pixels(points):
+        return camera.project(np.column_stack([points, np.ones(len(points))]))
+
+    numeric = np.stack([(pixels(xy + step * e) - pixels(xy - step * e)) / (2 * step) for e in np.eye(2)], axis=2)
+    np.testing.assert_allclose(camera.pixel_derivative(xy), numeric, rtol=1e-6, atol=1e-4)
+
+
 def skewed_camera(skew: float = 9.0) -> Camera:
     """``front_camera`` with skew ``K[0, 1]`` pixels (real decomposed projection matrices: -0.5 to +1 px)."""
     camera = front_camera()
