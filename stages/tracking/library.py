@@ -15,6 +15,7 @@ import numpy as np
 
 from stages.joints import JOINT_NAMES
 from stages.tracking.body import BodyModel
+from stages.tracking.body_file import load_body
 from stages.tracking.gauss_newton import HEIGHT_RANGE_M
 
 _J = {name: k for k, name in enumerate(JOINT_NAMES)}
@@ -36,10 +37,21 @@ def load_pose_library(body: BodyModel) -> np.ndarray:
     path = resources.files("stages.tracking") / "data" / "poses.npz"
     with path.open("rb") as f, np.load(f, allow_pickle=False) as data:
         key = f"poses_{body.name}"
-        if key in data and data[key].shape[1] == body.pose_size:
+        if key in data and data[key].shape[1] == body.pose_size and _moves_as_shipped(body):
             return np.asarray(data[key], dtype=float)
         joints = np.asarray(data["joints"], dtype=float)
     return library_poses(body, joints)
+
+
+def _moves_as_shipped(body: BodyModel) -> bool:
+    """Whether `body` moves as the shipped body of its name does: the same segments, parents and DOFs (names,
+    axes, kinds), so that the library's angle vectors for that body mean the same for it. A body file
+    edited from a shipped one keeps its name; its ellipsoids and proportions may change, its joints not."""
+    shipped = load_body(body.name)
+    return (body.segment_names == shipped.segment_names and body.dof_names == shipped.dof_names
+            and np.array_equal(body.parent, shipped.parent) and np.array_equal(body.dof_segment, shipped.dof_segment)
+            and np.array_equal(body.dof_axis, shipped.dof_axis)
+            and np.array_equal(body.dof_revolute, shipped.dof_revolute))
 
 
 def heading(joints: np.ndarray) -> float:

@@ -25,6 +25,27 @@ def test_library_holds_pose_vectors_of_the_body(name):
     np.testing.assert_allclose(library[: len(generic)], generic, atol=1e-12)
 
 
+def test_a_body_edited_from_a_shipped_one_gets_its_library_only_while_it_moves_alike(monkeypatch):
+    from importlib import resources
+
+    from stages.tracking import library
+    from stages.tracking.body_file import body_from_text
+
+    text = (resources.files("stages.tracking") / "bodies" / "default.yaml").read_text()
+    retargeted = []
+    monkeypatch.setattr(library, "library_poses", lambda body, joints: retargeted.append(body) or joints[:, 0])
+    wider = body_from_text(text.replace("radii: [0.088, 0.060]", "radii: [0.100, 0.070]"), source="wider.yaml")
+    np.testing.assert_array_equal(load_pose_library(wider), load_pose_library(load_body("default")))
+    assert not retargeted  # other ellipsoids, the same joints: the stored angle vectors hold
+    old_knee = "    dofs:\n      - {name: flex, axis: -x, min: 0, max: 165}\n  - name: r_shank"
+    assert old_knee in text
+    bent_other_way = text.replace(old_knee, old_knee.replace("axis: -x", "axis: x"))
+    turned = body_from_text(bent_other_way, source="turned.yaml")
+    assert turned.name == "default" and turned.pose_size == wider.pose_size
+    load_pose_library(turned)
+    assert len(retargeted) == 1 and retargeted[0] is turned  # same name and size, another joint: retargeted
+
+
 def _pose(body, yaw, degrees):
     pose = body.zero_pose()
     pose[:2] = [0.3, -0.2]
