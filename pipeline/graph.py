@@ -328,8 +328,8 @@ FILES_CODE = ("pipeline.io.frames_io", "pipeline.io.atomic", "pipeline.io.run_la
 STAGES: tuple[Stage, ...] = (
     Stage("calibration", run_calibration,  # up: auto finds the floor in the media (pipeline.io.auto_frame)
           capture_parts=("config", "calibration", "image_sizes", "frames", "images", "background", "silhouettes"),
-          code=("calib", "pipeline.io.capture", "pipeline.io.auto_frame", "pipeline.io.backgrounds", "stages.silhouettes",
-                *FILES_CODE)),
+          code=("calib", "pipeline.io.capture", "pipeline.io.auto_frame", "pipeline.io.backgrounds",
+                "stages.silhouettes", *FILES_CODE)),
     Stage("silhouettes", run_silhouettes, inputs=("calibration",), params_type=SilhouetteParams,
           capture_parts=("frames", "images", "background", "silhouettes"),
           code=("stages.silhouettes", "stages.background", "stages.consistency", "stages.rays", "stages.checks",

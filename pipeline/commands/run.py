@@ -22,9 +22,9 @@ from pipeline.engine import run_warnings
 from pipeline.engine.executors import Workers, make_executor
 from pipeline.engine.output_folder import output_lock, storage_error
 from pipeline.engine.params import apply_all, default_params, read_overrides
-from pipeline.io.body_io import tracking_body
 from pipeline.engine.runner import Runner, StageOutcome, format_summary
 from pipeline.engine.stage import select_stages
+from pipeline.io.body_io import tracking_body
 from pipeline.io.capture import Capture
 from pipeline.io.export_io import check_cutoff, read_joints_csv
 from pipeline.io.run_layout import BVH_FILE, C3D_FILE, JOINTS_FILE, RunLayout

@@ -9,7 +9,6 @@ part it reads.
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -22,7 +21,8 @@ from pipeline.engine.versions import code_version
 from pipeline.io import atomic
 from pipeline.io.capture import Capture
 from pipeline.io.digest import DIGEST_HEX, canonical_json, text_digest
-from pipeline.io.run_layout import MANIFEST, MARKER
+from pipeline.io.frames_io import DamagedFileError
+from pipeline.io.run_layout import MANIFEST, MARKER, read_manifest_file
 
 log = logging.getLogger(__name__)
 
@@ -77,20 +77,19 @@ def streamed_key(stage: Stage, capture: Capture, params: Any, output_root: Path,
 
 def read_manifest(folder: Path) -> dict | None:
     """The stage's manifest, or ``None`` when missing or unreadable (a logged cache miss)."""
-    path = folder / MANIFEST
-    if not path.exists():
-        return None
     try:
-        manifest = json.loads(path.read_text(encoding="utf-8"))
-        if not isinstance(manifest, dict) or not all(
-                key in manifest for key in ("cache_key", "params", "inputs", "code_version", "outputs")):
+        manifest = read_manifest_file(folder)
+        if manifest is None:
+            return None
+        if not all(key in manifest for key in ("cache_key", "params", "inputs", "code_version", "outputs")):
             raise ValueError("missing keys")
         outputs = manifest["outputs"]
         if not isinstance(manifest["inputs"], dict) or not isinstance(outputs, dict) or not isinstance(
                 outputs.get("digest"), str) or not isinstance(outputs.get("contents"), dict):
             raise ValueError("malformed inputs or outputs")
     except (OSError, ValueError, KeyError, TypeError) as error:
-        log.warning("%s: unreadable manifest (%s); the stage will run again", path, error)
+        problem = error.problem if isinstance(error, DamagedFileError) else error
+        log.warning("%s: unreadable manifest (%s); the stage will run again", folder / MANIFEST, problem)
         return None
     return manifest
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.io.frames_io import frame_name
+from pipeline.io.frames_io import DamagedFileError, frame_name, read_json
 
 #: Files the runner keeps in the run folder and in each stage folder.
 RUN_RECORD, LOCK, WARNINGS_FILE = "run.json", ".lock", "warnings.json"
@@ -44,6 +44,26 @@ OVERLAY_SUFFIX = ".webm"
 EVAL_DIR, METRICS_FILE = "eval", "metrics.json"
 #: The stage folders' names, in run order (the names of :data:`pipeline.graph.STAGES`).
 STAGE_NAMES = ("calibration", "silhouettes", "reconstruction", "tracking", "export")
+
+
+def read_manifest_file(stage_dir: Path) -> dict | None:
+    """The JSON object of a stage folder's manifest, or None when it has none (the stage has not finished).
+
+    Every reader of manifests goes through here (the cache, the report, the benchmarks) and decides for
+    itself what an unreadable one means.
+
+    Raises
+    ------
+    DamagedFileError
+        If the manifest is not a JSON object (or not readable at all: ``OSError``).
+    """
+    path = stage_dir / MANIFEST
+    if not path.is_file():
+        return None
+    manifest = read_json(path)
+    if not isinstance(manifest, dict):
+        raise DamagedFileError(path, f"expected a JSON object, got {type(manifest).__name__}")
+    return manifest
 
 
 def silhouette_path(stage_dir: Path, camera: str, frame: int) -> Path:

@@ -3,7 +3,6 @@ statuses, angles, warnings, stage timings (:func:`load_run`)."""
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 from dataclasses import dataclass
@@ -16,7 +15,7 @@ from pipeline.engine.run_warnings import read_warnings
 from pipeline.evaluate import default_truth, score_joints
 from pipeline.io import frames_io
 from pipeline.io.export_io import read_joints_csv
-from pipeline.io.run_layout import ANGLES_FILE, MANIFEST, STAGE_NAMES, RunLayout
+from pipeline.io.run_layout import ANGLES_FILE, MANIFEST, STAGE_NAMES, RunLayout, read_manifest_file
 from pipeline.report.tracking_summary import (
     FrameStatus,
     read_frame_statuses,
@@ -63,9 +62,10 @@ def stage_timings(out_dir: Path) -> list[dict]:
     rows = []
     for folder in folders:
         try:
-            manifest = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-            log.warning("%s: unreadable manifest (%s); left out of the report", folder, error)
+            manifest = read_manifest_file(folder) or {}
+        except (OSError, frames_io.DamagedFileError) as error:
+            problem = error.problem if isinstance(error, frames_io.DamagedFileError) else error
+            log.warning("%s: unreadable manifest (%s); left out of the report", folder, problem)
             continue
         timing = manifest.get("timing") or {}
         timing = timing if isinstance(timing, dict) else {}

@@ -18,7 +18,6 @@ tracker's parameters (the tracking stage's manifest), by the rules of :mod:`stag
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -27,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.io import frames_io
-from pipeline.io.run_layout import MANIFEST, tracking_path
+from pipeline.io.run_layout import read_manifest_file, tracking_path
 from stages.tracking.params import TrackerParams
 
 #: The categories counted, in the order they are reported; a doubtful frame counts only as doubtful.
@@ -117,9 +116,10 @@ def tracker_params(tracking_dir: Path) -> dict:
     """The :data:`CAUSE_PARAMS` the tracking stage ran with (its manifest), defaults where unreadable."""
     params = {field.name: field.default for field in dataclasses.fields(TrackerParams) if field.name in CAUSE_PARAMS}
     try:
-        recorded = json.loads((tracking_dir / MANIFEST).read_text(encoding="utf-8")).get("params", {})
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+        recorded = (read_manifest_file(tracking_dir) or {}).get("params")
+    except (OSError, frames_io.DamagedFileError):
         return params
+    recorded = recorded if isinstance(recorded, dict) else {}
     params.update({key: recorded[key] for key in CAUSE_PARAMS if isinstance(recorded.get(key), (int, float))})
     return params
 

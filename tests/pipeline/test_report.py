@@ -254,6 +254,8 @@ def test_joint_angles_are_plotted_by_joint_and_a_broken_table_is_named(full_run)
 def test_stage_timings_tolerate_missing_keys_and_bad_manifests(full_run):
     (full_run / "reconstruction").mkdir()
     (full_run / "reconstruction" / "manifest.json").write_text("{not json")
+    (full_run / "export").mkdir(exist_ok=True)
+    (full_run / "export" / "manifest.json").write_text("[1, 2]")  # JSON, not a manifest
     rows = stage_timings(full_run)
     assert [row["stage"] for row in rows] == ["calibration", "silhouettes", "tracking"]
     assert rows[1]["seconds"] is None and rows[2]["frames"] == 11

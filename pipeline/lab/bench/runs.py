@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline import graph
-from pipeline.io.run_layout import RunLayout
+from pipeline.io.run_layout import RunLayout, read_manifest_file
 
 #: The repository root: the child runs there so that ``python -m pipeline`` imports this checkout.
 REPO = Path(__file__).resolve().parents[3]
@@ -80,10 +80,9 @@ def stage_timings(out: Path) -> dict[str, float]:
     """Seconds each stage took according to its manifest (0 when a stage has no readable manifest)."""
     seconds = {}
     for stage in graph.STAGES:
-        path = RunLayout(out).manifest(stage.name)
         try:
-            seconds[stage.name] = float(json.loads(path.read_text())["timing"]["seconds"])
-        except (OSError, ValueError, KeyError, TypeError):
+            seconds[stage.name] = float(read_manifest_file(RunLayout(out).stage_dir(stage.name))["timing"]["seconds"])
+        except (OSError, ValueError, KeyError, TypeError):  # DamagedFileError is a ValueError; None has no keys
             seconds[stage.name] = 0.0
     return seconds
 
