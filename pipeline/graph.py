@@ -64,6 +64,7 @@ from pipeline.io.run_layout import (
     overlay_video_name,
     silhouette_path,
 )
+from pipeline.io.tracking_io import read_tracking
 from pipeline.report.page import write_report
 from stages.background import BackgroundEstimate, estimate_backgrounds, sample_camera, sample_count, working_size
 from stages.export import ExportParams
@@ -73,7 +74,7 @@ from stages.reconstruction import Observations, ReconstructionParams
 from stages.reconstruction.views import VOLUME_FACES, faces_reached
 from stages.silhouettes import SilhouetteParams
 from stages.tracking.params import TrackerParams
-from stages.tracking.results import FrameResult, TrackerState, frame_record, read_frame_record
+from stages.tracking.results import FrameResult, frame_record
 from stages.tracking.tracker import Tracker
 
 log = logging.getLogger(__name__)
@@ -208,20 +209,6 @@ def run_reconstruction(ctx: StageContext) -> int:
 EXPORTED_STATUSES = ("tracked", "initialised")
 
 
-def read_tracking(folder: Path, frame: int) -> tuple[FrameResult, TrackerState]:
-    """One frame's tracking record: its estimate and the tracker's state after it.
-
-    Raises :class:`~pipeline.io.frames_io.DamagedFileError` when the record fails its content check or is
-    not a record of this frame with a (17, 3) array of joints and a known status.
-    """
-    path = run_layout.tracking_path(folder, frame)
-    record = frames_io.read_record(path)
-    try:
-        return read_frame_record(record, frame)
-    except ValueError as error:
-        raise frames_io.DamagedFileError(path, str(error)) from None
-
-
 def run_tracking(ctx: StageContext) -> int:
     """Fit the articulated body to each frame's observations, in order (frame t starts from t-1).
 
@@ -341,11 +328,12 @@ STAGES: tuple[Stage, ...] = (
     Stage("tracking", run_tracking, inputs=("calibration", "reconstruction"), params_type=TrackerParams,
           capture_parts=("config", "frames"),
           code=("stages.tracking", "stages.checks", "stages.joints", "stages.reconstruction", "pipeline.frame_tasks",
-                "pipeline.io.body_io", *FILES_CODE),
+                "pipeline.io.body_io", "pipeline.io.tracking_io", *FILES_CODE),
           streams=True),
     Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
           code=("stages.export", "stages.checks", "stages.joints", "stages.tracking.results", "pipeline.io.export_io",
+                "pipeline.io.tracking_io",
                 "pipeline.io.overlay_video", "pipeline.report", "pipeline.engine.run_warnings", "pipeline.evaluate",
                 "pipeline.terminal", "pipeline.io.capture", "calib", *FILES_CODE)),
 )

@@ -26,8 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.io import frames_io
-from pipeline.io.run_layout import read_manifest_file, tracking_path
+from pipeline.io.run_layout import read_manifest_file
+from pipeline.io.tracking_io import read_tracking
 from stages.tracking.params import TrackerParams
+from stages.tracking.results import FrameResult, TrackerState
 
 #: The categories counted, in the order they are reported; a doubtful frame counts only as doubtful.
 CATEGORIES = ("tracked", "initialised", "doubtful", "predicted", "lost")
@@ -61,39 +63,42 @@ class FrameStatus:
     causes: tuple[str, ...]
 
 
-def _sigma_spread(state: Mapping) -> float:
-    sigma = np.asarray(state.get("Sigma", [[0.0]]), dtype=float)
+def _sigma_spread(state: TrackerState) -> float:
+    sigma = state.Sigma
     return float(np.sqrt(max(np.linalg.eigvalsh(sigma).max(), 0.0))) if sigma.size else 0.0
 
 
-def _doubt_causes(result: Mapping, spread: float, params: Mapping) -> tuple[str, ...]:
+def _doubt_causes(result: FrameResult, spread: float, params: Mapping) -> tuple[str, ...]:
     causes = []
-    if result["outlier_fraction"] > params["max_outlier_fraction"]:
+    if result.outlier_fraction > params["max_outlier_fraction"]:
         causes.append(f"outlier share above {100 * params['max_outlier_fraction']:.0f} %")
     if spread > params["failure_sigma_m"]:
         causes.append(f"Sigma spread above {100 * params['failure_sigma_m']:.1f} cm")
     return tuple(causes) or ("failed the failure checks",)
 
 
-def _initialisation_cause(previous: Mapping | None, params: Mapping) -> str:
+def _initialisation_cause(previous: tuple[FrameResult, TrackerState] | None, params: Mapping) -> str:
     if previous is None:
         return "first frame"
-    before, state = previous["result"], previous["state"]
-    if before["status"] in ("predicted", "lost"):
+    before, state = previous
+    if before.status in ("predicted", "lost"):
         return "data back after frames without a fit"
-    if state.get("recheck"):
+    if state.recheck:
         return "re-check of a doubtful initialisation"
-    if 0 < params["reinit_every"] <= state.get("since_initialisation", 0) + 1:
+    if 0 < params["reinit_every"] <= state.since_initialisation + 1:
         return "periodic re-initialisation"
     return "the fit from the previous frame failed the checks"
 
 
-def frame_status(record: Mapping, previous: Mapping | None, params: Mapping, *, fitted_before: bool) -> FrameStatus:
-    """The :class:`FrameStatus` of one tracking record, given the record of the frame before (None at the
-    first frame), the tracker's parameters (:data:`CAUSE_PARAMS` keys) and whether an earlier frame was
-    fitted (tracked or initialised)."""
-    result, state = record["result"], record["state"]
-    status = result["status"]
+def frame_status(frame: int, record: tuple[FrameResult, TrackerState],
+                 previous: tuple[FrameResult, TrackerState] | None, params: Mapping, *,
+                 fitted_before: bool) -> FrameStatus:
+    """The :class:`FrameStatus` of one frame's tracking record (its estimate and the tracker's state after it,
+    :func:`~pipeline.io.tracking_io.read_tracking`), given the record of the frame before (None at the first
+    frame), the tracker's parameters (:data:`CAUSE_PARAMS` keys) and whether an earlier frame was fitted
+    (tracked or initialised)."""
+    result, state = record
+    status = result.status
     spread = _sigma_spread(state) if status in ("tracked", "initialised") else 0.0
     causes: tuple[str, ...] = ()
     if status == "initialised":
@@ -104,12 +109,12 @@ def frame_status(record: Mapping, previous: Mapping | None, params: Mapping, *, 
         causes = (f"fewer than {params['min_observations']} observations for more than "
                   f"{params['max_predicted_frames']} frames" if fitted_before
                   else f"fewer than {params['min_observations']} observations before any fit",)
-    doubtful = bool(result.get("doubtful")) and status in ("tracked", "initialised")
+    doubtful = result.doubtful and status in ("tracked", "initialised")
     if doubtful:
         causes = _doubt_causes(result, spread, params) + tuple(f"initialised: {cause}" for cause in causes)
-    return FrameStatus(frame=int(record["frame"]), category="doubtful" if doubtful else status, status=status,
-                       log_likelihood=float(result["log_likelihood"]),
-                       outlier_fraction=float(result["outlier_fraction"]), sigma_spread_m=spread, causes=causes)
+    return FrameStatus(frame=frame, category="doubtful" if doubtful else status, status=status,
+                       log_likelihood=float(result.log_likelihood), outlier_fraction=float(result.outlier_fraction),
+                       sigma_spread_m=spread, causes=causes)
 
 
 def tracker_params(tracking_dir: Path) -> dict:
@@ -134,12 +139,11 @@ def read_frame_statuses(tracking_dir: str | Path, frames: Sequence[int]) -> list
     params = tracker_params(tracking_dir)
     statuses, previous, fitted = [], None, False
     for frame in frames:
-        path = tracking_path(tracking_dir, frame)
         try:
-            record = frames_io.read_record(path)
-            statuses.append(frame_status(record, previous, params, fitted_before=fitted))
-        except (OSError, frames_io.DamagedFileError, KeyError, TypeError, ValueError):
+            record = read_tracking(tracking_dir, frame)
+        except (OSError, frames_io.DamagedFileError):
             return None
+        statuses.append(frame_status(frame, record, previous, params, fitted_before=fitted))
         previous, fitted = record, fitted or statuses[-1].status in ("tracked", "initialised")
     return statuses
 

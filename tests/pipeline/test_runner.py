@@ -325,7 +325,7 @@ def test_a_run_function_counts_with_the_helpers_and_constants_of_its_module_it_u
         "run_silhouettes", "_backgrounds", "estimated_backgrounds", "video_chunk_size"}
     assert ("UNRESOLVED_WARNING_SHARE", repr(graph.UNRESOLVED_WARNING_SHARE)) in silhouettes.constants
     assert "estimated_backgrounds" not in {function.__name__ for function in tracking.functions}
-    assert {"read_tracking", "_warn_volume_contact"} <= {function.__name__ for function in tracking.functions}
+    assert {"run_tracking", "_warn_volume_contact"} <= {function.__name__ for function in tracking.functions}
     assert any(name == "stages.tracking/data/poses.npz" for name, _ in tracking.files)
 
 

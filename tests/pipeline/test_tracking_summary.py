@@ -9,23 +9,31 @@ from pipeline.report.tracking_summary import (
     summary_line,
     tracker_params,
 )
+from stages.joints import JOINT_NAMES
+from stages.tracking.results import FrameResult, TrackerState, frame_record, read_frame_record
 
 PARAMS = {"max_outlier_fraction": 0.6, "failure_sigma_m": 0.05, "min_observations": 30, "max_predicted_frames": 10,
           "reinit_every": 0}
 
 
 def record(frame, status, *, doubtful=False, outliers=0.05, spread_m=0.02, recheck=False, since=0):
-    """A tracking record with the fields the summary reads (the tracker's record holds more)."""
+    """A tracking record as the tracker writes it (`frame_record`), with the fields the summary reads set."""
     fitted = status in ("tracked", "initialised")
-    return {"frame": frame,
-            "result": {"status": status, "doubtful": doubtful, "log_likelihood": 3000.0 + frame if fitted else 0.0,
-                       "outlier_fraction": outliers if fitted else 1.0},
-            "state": {"Sigma": (np.diag([spread_m**2, (spread_m / 2) ** 2, 1e-6])).tolist(), "recheck": recheck,
-                      "since_initialisation": since, "frames_without_fit": 0 if fitted else 1}}
+    result = FrameResult(pose=np.zeros(6), joints=np.zeros((len(JOINT_NAMES), 3)),
+                         log_likelihood=3000.0 + frame if fitted else 0.0, iterations=3,
+                         outlier_fraction=outliers if fitted else 1.0, status=status, height_m=1.7, doubtful=doubtful)
+    state = TrackerState(pose=np.zeros(6), velocity=np.zeros(6), height_m=1.7, length_factors=np.ones(0),
+                         height_weight=1, Sigma=np.diag([spread_m**2, (spread_m / 2) ** 2, 1e-6]), pi=np.ones(1),
+                         likelihood_level=np.nan, frames_without_fit=0 if fitted else 1, lost=False,
+                         since_initialisation=since, recheck=recheck)
+    return frame_record(frame, result, state)
 
 
 def causes(current, previous=None, params=PARAMS, fitted_before=True):
-    status = frame_status(current, previous, params, fitted_before=fitted_before)
+    def read(entry):
+        return None if entry is None else read_frame_record(entry, entry["frame"])
+
+    status = frame_status(current["frame"], read(current), read(previous), params, fitted_before=fitted_before)
     return status.category, status.causes
 
 
@@ -46,7 +54,8 @@ def test_a_doubtful_frame_names_the_checks_it_failed():
     assert category == "doubtful" and why == ("outlier share above 60 %", "Sigma spread above 5.0 cm")
     category, why = causes(record(0, "initialised", doubtful=True, spread_m=0.07), fitted_before=False)
     assert why == ("Sigma spread above 5.0 cm", "initialised: first frame")
-    status = frame_status(record(3, "tracked", spread_m=0.08), None, PARAMS, fitted_before=True)
+    current = record(3, "tracked", spread_m=0.08)
+    status = frame_status(3, read_frame_record(current, 3), None, PARAMS, fitted_before=True)
     assert status.category == "tracked" and status.causes == () and status.sigma_spread_m == pytest.approx(0.08)
 
 
