@@ -333,7 +333,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
           code=("stages.export", "stages.checks", "stages.joints", "stages.tracking.results", "pipeline.io.export_io",
-                "pipeline.io.tracking_io",
-                "pipeline.io.overlay_video", "pipeline.report", "pipeline.engine.run_warnings", "pipeline.evaluate",
-                "pipeline.terminal", "pipeline.io.capture", "calib", *FILES_CODE)),
+                "pipeline.io.tracking_io", "pipeline.io.overlay_video", "pipeline.report",
+                "pipeline.engine.run_warnings", "pipeline.evaluate", "pipeline.terminal", "pipeline.io.capture",
+                "calib", *FILES_CODE)),
 )

@@ -20,8 +20,8 @@ from pipeline.engine.stage import Stage
 from pipeline.engine.versions import code_version
 from pipeline.io import atomic
 from pipeline.io.capture import Capture
-from pipeline.io.digest import DIGEST_HEX, canonical_json, text_digest
-from pipeline.io.frames_io import DamagedFileError
+from pipeline.io.digest import bytes_digest, canonical_json, text_digest
+from pipeline.io.frames_io import DamagedFileError, problem_of
 from pipeline.io.run_layout import MANIFEST, MARKER, read_manifest_file
 
 log = logging.getLogger(__name__)
@@ -77,19 +77,19 @@ def streamed_key(stage: Stage, capture: Capture, params: Any, output_root: Path,
 
 def read_manifest(folder: Path) -> dict | None:
     """The stage's manifest, or ``None`` when missing or unreadable (a logged cache miss)."""
+    path = folder / MANIFEST
     try:
         manifest = read_manifest_file(folder)
         if manifest is None:
             return None
         if not all(key in manifest for key in ("cache_key", "params", "inputs", "code_version", "outputs")):
-            raise ValueError("missing keys")
+            raise DamagedFileError(path, "missing keys")
         outputs = manifest["outputs"]
         if not isinstance(manifest["inputs"], dict) or not isinstance(outputs, dict) or not isinstance(
                 outputs.get("digest"), str) or not isinstance(outputs.get("contents"), dict):
-            raise ValueError("malformed inputs or outputs")
-    except (OSError, ValueError, KeyError, TypeError) as error:
-        problem = error.problem if isinstance(error, DamagedFileError) else error
-        log.warning("%s: unreadable manifest (%s); the stage will run again", folder / MANIFEST, problem)
+            raise DamagedFileError(path, "malformed inputs or outputs")
+    except (OSError, DamagedFileError) as error:
+        log.warning("%s: unreadable manifest (%s); the stage will run again", path, problem_of(error))
         return None
     return manifest
 
@@ -108,8 +108,7 @@ def output_contents(folder: Path) -> dict[str, str]:
     files of a 112-frame, 6-camera capture (13 MB) take a small fraction of a second once they are in the
     page cache (tests/pipeline/test_runner.py checks 1000 files in under half a second).
     """
-    return {path.relative_to(folder).as_posix(): hashlib.sha256(path.read_bytes()).hexdigest()[:DIGEST_HEX]
-            for path in output_files(folder)}
+    return {path.relative_to(folder).as_posix(): bytes_digest(path.read_bytes()) for path in output_files(folder)}
 
 
 def describe_outputs(folder: Path) -> dict:

@@ -15,6 +15,11 @@ def canonical_json(value: Any) -> str:
     return json.dumps(value, sort_keys=True, separators=(",", ":"), allow_nan=False)
 
 
+def bytes_digest(data: bytes) -> str:
+    """The first ``DIGEST_HEX`` hex digits of the SHA-256 of ``data``."""
+    return hashlib.sha256(data).hexdigest()[:DIGEST_HEX]
+
+
 def text_digest(text: str) -> str:
-    """The first ``DIGEST_HEX`` hex digits of the SHA-256 of ``text`` (UTF-8)."""
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:DIGEST_HEX]
+    """:func:`bytes_digest` of ``text`` (UTF-8)."""
+    return bytes_digest(text.encode("utf-8"))

@@ -60,6 +60,12 @@ class DamagedFileError(InputError):
     def __reduce__(self) -> tuple:  # rebuilt from its two arguments when it comes back from a worker process
         return type(self), (self.path, self.problem)
 
+
+def problem_of(error: OSError | DamagedFileError) -> str:
+    """What is wrong with the file of ``error``, without its path: for a message that names the file itself."""
+    return error.problem if isinstance(error, DamagedFileError) else (error.strerror or str(error))
+
+
 _PLY_PROPERTIES = ("x", "y", "z", "nx", "ny", "nz")
 _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
 

@@ -64,8 +64,7 @@ def stage_timings(out_dir: Path) -> list[dict]:
         try:
             manifest = read_manifest_file(folder) or {}
         except (OSError, frames_io.DamagedFileError) as error:
-            problem = error.problem if isinstance(error, frames_io.DamagedFileError) else error
-            log.warning("%s: unreadable manifest (%s); left out of the report", folder, problem)
+            log.warning("%s: unreadable manifest (%s); left out of the report", folder, frames_io.problem_of(error))
             continue
         timing = manifest.get("timing") or {}
         timing = timing if isinstance(timing, dict) else {}

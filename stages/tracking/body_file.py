@@ -48,7 +48,7 @@ def load_body(name: str = "default", *, height_m: float | None = None) -> BodyMo
     if is_body_path(name) or not shipped.is_file():
         known = sorted(p.name[:-5] for p in files.iterdir() if p.name.endswith(".yaml"))
         raise InputError(f"body {name!r}: no such body configuration, expected one of {known} "
-                         "(a body file given by its path is read by pipeline.io.body_io.read_body)")
+                         "(a body file given by its path is read by pipeline.io.body_io.tracking_body)")
     body = body_from_text(shipped.read_text(), source=f"bodies/{name}.yaml")
     return body if height_m is None else body.scaled(height_m)
 

@@ -43,7 +43,7 @@ from stages.tracking.init import initialise
 from stages.tracking.library import load_pose_library
 from stages.tracking.limbs import body_limbs, deserted_limbs, misplaced_limbs, reinitialise_limb, segment_shares
 from stages.tracking.mixture import Mixture, volume_size
-from stages.tracking.params import TrackerParams, check_length_groups, shipped_body
+from stages.tracking.params import TrackerParams, shipped_body
 from stages.tracking.results import FrameResult, TrackerState
 
 # Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
@@ -76,14 +76,13 @@ class Tracker:
     """
 
     def __init__(self, params: TrackerParams, volume: np.ndarray, body: BodyModel | None = None):
-        """`body` is the body `params.body` names: a shipped body is loaded here when it is not given; a body
-        file's, which the pipeline reads (`pipeline.io.body_io.tracking_body`), must be."""
+        """`body` is the body `params.body` names, its length groups checked against the parameters: a shipped
+        body is loaded here when it is not given (`TrackerParams` checked it); a body file's, which the pipeline
+        reads and checks (`pipeline.io.body_io.tracking_body`), must be given."""
         self.params = params
         self.volume = np.asarray(volume, dtype=float)
         volume_size(self.volume)
-        body = shipped_body(params.body) if body is None else body
-        check_length_groups(params.estimate_lengths, body)
-        self.body = body.with_length_groups(params.estimate_lengths)
+        self.body = (shipped_body(params.body) if body is None else body).with_length_groups(params.estimate_lengths)
         self.library = load_pose_library(self.body)
         self.limbs = body_limbs(self.body)
         self._sized: tuple = (None, None)

@@ -50,7 +50,7 @@ from pipeline.io.capture.media import (
     _select_frames,
 )
 from pipeline.io.capture.volume import working_volume
-from pipeline.io.digest import canonical_json, text_digest
+from pipeline.io.digest import DIGEST_HEX, canonical_json, text_digest
 
 if TYPE_CHECKING:
     from pipeline.io.auto_frame import AutoFrame
@@ -223,7 +223,7 @@ class Capture:
             for file in files:
                 name = file.name if file == path else file.relative_to(path).as_posix()
                 digest.update(name.encode() + b"\0" + file.read_bytes() + b"\0")
-            return digest.hexdigest()[:32]
+            return digest.hexdigest()[:DIGEST_HEX]
         if part == "images":
             files = (self._media_files(self.camera_media) if self.has_images else [])
         elif part == "background":
@@ -250,7 +250,7 @@ def _stat_digest(files: Iterable[Path], root: Path) -> str:
     for file in files:
         stat = file.stat()
         digest.update(f"{file.relative_to(root)}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode())
-    return digest.hexdigest()[:32]
+    return digest.hexdigest()[:DIGEST_HEX]
 
 
 def _calibration_path(root: Path, relative: str, allow_outside_paths: bool) -> Path:
