@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pipeline.io.export_io import write_joints_csv
-from pipeline.lab.bench.segment_lengths import median_lengths
+from pipeline.lab.bench.segment_lengths import main, median_lengths
 from stages.joints import JOINT_NAMES
 
 
@@ -23,3 +23,12 @@ def test_a_longer_forearm_shows_in_its_group_and_nowhere_else(tmp_path):
     ratios = {group: estimated[group] / true_lengths[group] for group in true_lengths}
     assert ratios.pop("elbow-wrist") == pytest.approx(1.2)
     assert ratios == pytest.approx(dict.fromkeys(ratios, 1.0)) and "shoulder-elbow" in ratios
+
+
+def test_a_folder_that_is_no_run_is_one_line_and_exit_status_2(tmp_path, capsys):
+    (tmp_path / "notes.log").write_text("not a run")
+    with pytest.raises(SystemExit) as stopped:
+        main([str(tmp_path / "notes.log")])
+    assert stopped.value.code == 2
+    error = capsys.readouterr().err
+    assert error.startswith("error: ") and "notes.log" in error and error.count("\n") == 1

@@ -17,9 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from calib.errors import InputError
 from pipeline.evaluate import default_truth
 from pipeline.io.export_io import read_joints_csv
 from pipeline.io.run_layout import RunLayout
+from pipeline.terminal import printable
 from stages.export.skeleton import BONES
 
 
@@ -54,7 +56,16 @@ def median_lengths(path: Path, frames: np.ndarray | None = None) -> tuple[np.nda
 
 
 def length_ratios(run_dir: Path) -> dict[str, float]:
-    """Each bone group's estimated over true median length, over the frames both have."""
+    """Each bone group's estimated over true median length, over the frames both have.
+
+    Raises
+    ------
+    InputError
+        When `run_dir` is not a finished run (no export/joints.csv) or its capture has no ground truth.
+    """
+    if not RunLayout(run_dir).joints.is_file():
+        raise InputError(f"{run_dir}: no {RunLayout(run_dir).joints.relative_to(run_dir)} "
+                         "(expected the folder of a finished run)")
     estimated_frames, _ = median_lengths(RunLayout(run_dir).joints)
     truth_frames, truth = median_lengths(default_truth(run_dir), estimated_frames)
     _, estimate = median_lengths(RunLayout(run_dir).joints, truth_frames)
@@ -66,10 +77,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("runs", type=Path, nargs="+", help="run folders (each holds export/joints.csv)")
     args = parser.parse_args(argv)
     groups = list(bone_groups())
+    try:
+        table = [(run, length_ratios(run)) for run in args.runs]
+    except InputError as error:
+        parser.exit(2, f"error: {printable(str(error))}\n")
     print("| run | " + " | ".join(groups) + " |")
     print("|---|" + "---:|" * len(groups))
-    for run in args.runs:
-        ratios = length_ratios(run)
+    for run, ratios in table:
         cells = [f"{ratios[group]:.2f}" if group in ratios else "" for group in groups]
         print(f"| {run.parent.name}/{run.name} | " + " | ".join(cells) + " |")
 

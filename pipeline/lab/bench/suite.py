@@ -127,6 +127,20 @@ def git_commit() -> str:
     return head + ("+dirty" if dirty else "")
 
 
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The processor's model name ("AMD EPYC"), from `cpuinfo` where Linux has it, else what `platform` knows.
+
+    Figures measured in different sessions may come from different machines behind the same core count:
+    the model says whether two speeds can be compared.
+    """
+    try:
+        lines = cpuinfo.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        lines = []
+    names = [line.split(":", 1)[1].strip() for line in lines if line.startswith("model name") and ":" in line]
+    return next((name for name in names if name), None) or platform.processor() or platform.machine() or "unknown"
+
+
 def load_results(path: Path) -> dict:
     """A previous results.json, or an empty dict when there is none or it is unreadable."""
     try:
@@ -217,7 +231,7 @@ def run_bench(suites: Sequence[str], options: BenchOptions, *, log: Callable[[st
                     "made": {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "commit": commit,
                              "seconds": time.perf_counter() - started, "load_before": load_before,
                              "load_after": os.getloadavg()[0], "cpus": os.cpu_count(),
-                             "machine": platform.processor() or platform.machine(),
+                             "machine": cpu_model(),
                              "bench_memory": peak_memory_mb()}}
         results[suite] = json_safe(section)
         write_outputs(results, options)

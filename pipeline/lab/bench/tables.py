@@ -42,9 +42,10 @@ def _percent(fraction) -> str:
 def provenance(section: dict) -> str:
     made = section["made"]
     size = "quick (smoke-test size)" if section["quick"] else "full"
+    machine = f"{made['cpus']} CPUs" + (f", {made['machine']}" if made.get("machine") else "")
     return (f"{size}; {made['date']}, commit {made['commit']}, {made['seconds']:.0f} s, "
             f"load average {made['load_before']:.1f} before / {made['load_after']:.1f} after "
-            f"({made['cpus']} CPUs)\n\n```\n{section['command']}\n```")
+            f"({machine})\n\n```\n{section['command']}\n```")
 
 
 def format_targets(results: dict) -> str:
