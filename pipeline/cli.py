@@ -74,10 +74,36 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def start_workers_early(argv: Sequence[str]) -> None:
+    """Start the fork server of a ``run`` with local workers (``--workers N``, N > 1, no ``--scheduler``) now,
+    before the run command's own imports.
+
+    The server imports the per-frame tasks' modules once (:data:`pipeline.frame_tasks.WORKER_MODULES`) and
+    every worker is a fork of it (:func:`pipeline.engine.executors.start_worker_server`). Started here, its
+    imports overlap this process's (the run command imports the tracker: most of a second), and the workers
+    are ready when the first frames are. This look at the command line only decides when the server starts:
+    the parser proper reads it, and a server started for nothing costs its imports' CPU.
+    """
+    look = argparse.ArgumentParser(add_help=False, exit_on_error=False)
+    look.add_argument("--workers", type=int, default=1)
+    look.add_argument("--scheduler")
+    try:
+        known, _ = look.parse_known_args(argv)
+    except argparse.ArgumentError:  # the parser proper says what is wrong
+        return
+    if known.workers > 1 and not known.scheduler:
+        from pipeline.engine.executors import start_worker_server
+        from pipeline.frame_tasks import WORKER_MODULES
+
+        start_worker_server(WORKER_MODULES)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse ``argv`` (default: ``sys.argv[1:]``), run the subcommand and return its exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
     chosen = next((word for word in argv if not word.startswith("-")), None)
+    if chosen == "run":
+        start_workers_early(argv)
     parser = build_parser(chosen if chosen in SUBCOMMANDS else None)
     args = parser.parse_args(argv)
     handler = logging.StreamHandler(sys.stderr)

@@ -1,10 +1,10 @@
 """The per-frame work of the silhouette and reconstruction stages, as it runs in a worker.
 
-A worker of ``--workers N`` is a spawned process that imports the module of the task it unpickles
-before its first chunk, and a stage's wall time includes the imports its chunks need. These tasks live
-apart from :mod:`pipeline.graph`, which imports the tracker (numba and scipy), and the
-reconstruction (scipy, slow to import) is imported by its own task: a worker of the silhouette stage
-imports neither.
+A worker of ``--workers N`` is a fork of a server process that imported :data:`WORKER_MODULES` once
+(:func:`pipeline.engine.executors.start_worker_server`), started before the run's own imports: the
+workers have this module and the reconstruction in memory before the first frame, and none imports
+the tracker (numba), which lives in :mod:`pipeline.graph`. The reconstruction (scipy, slow to import)
+is still imported by its own task, for a worker that was spawned rather than forked.
 
 Within a worker, frames are the unit of parallelism: OpenCV's own threads are switched off while a
 chunk runs (on small images they mostly synchronise, a fifth more CPU for the same wall time), and
@@ -46,6 +46,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+#: Modules the tasks of this module run, which the process serving the workers imports before their first task.
+WORKER_MODULES = (__name__, "stages.reconstruction")
 #: Below this many observations a frame is reported: the tracker will only predict its pose.
 FEW_OBSERVATIONS = 30
 #: Background models a worker keeps (a few MB each): enough for every camera of a large rig.

@@ -306,9 +306,6 @@ def run_export(ctx: StageContext) -> None:
         write_report(ctx.output_root, rig=capture.rig, images=images)
 
 
-#: Modules the per-frame tasks come from: a local worker pool imports them as its processes start.
-WORKER_MODULES = ("pipeline.frame_tasks",)
-
 #: Modules every stage runs to write (and read) its files.
 FILES_CODE = ("pipeline.io.frames_io", "pipeline.io.atomic", "pipeline.io.run_layout")
 

@@ -24,6 +24,7 @@ from pipeline.engine.output_folder import output_lock, storage_error
 from pipeline.engine.params import apply_all, default_params, read_overrides
 from pipeline.engine.runner import Runner, StageOutcome, format_summary
 from pipeline.engine.stage import select_stages
+from pipeline.frame_tasks import WORKER_MODULES
 from pipeline.io.body_io import tracking_body
 from pipeline.io.capture import Capture
 from pipeline.io.export_io import check_cutoff, read_joints_csv
@@ -167,7 +168,7 @@ def main(args: argparse.Namespace) -> int:
     params = read_params(args.config, args.assignments)
     selected = select_stages(graph.STAGES, only=args.only, start=args.start, end=args.end)
     # The workers start first: their start-up overlaps the checks of the capture.
-    with make_executor(args.workers, args.scheduler, preload=graph.WORKER_MODULES) as workers:
+    with make_executor(args.workers, args.scheduler, preload=WORKER_MODULES) as workers:
         result = run_capture(args.capture, args.out, params, workers, selected=selected, force=args.force,
                              show_progress=not args.quiet and sys.stderr.isatty(),
                              allow_outside_paths=args.allow_outside_paths)

@@ -7,9 +7,11 @@ are shown and collected (:mod:`pipeline.engine.run_warnings`) like this process'
 
 - ``workers=1`` (default): :class:`InProcessExecutor`, calls run immediately in this process. No
   pickling, easiest to debug, and exceptions carry their full traceback.
-- ``workers=N > 1``: ``ProcessPoolExecutor`` with the ``spawn`` start method (safe with the threads
-  that progress bars and OpenCV start; fork is not), its processes at a lower scheduling priority than
-  this one, which runs the sequential tracker.
+- ``workers=N > 1``: ``ProcessPoolExecutor`` whose processes are forks of multiprocessing's fork server
+  (:func:`start_worker_server`), at a lower scheduling priority than this one, which runs the sequential
+  tracker. The server is a clean process that imports the tasks' modules once, so every worker starts
+  with them in memory; forking this process instead is not safe with the threads that progress bars and
+  OpenCV start. Where there is no fork server (Windows), ``spawn``: each worker imports them itself.
 - ``scheduler="local:N"``: a Dask ``LocalCluster(n_workers=N, threads_per_worker=1, processes=True)``
   started for this run; ``scheduler="tcp://host:port"``: an existing Dask scheduler. Both go through
   ``Client.get_executor(pure=False)`` (``pure=False``: a chunk re-submitted after a failure must run
@@ -24,6 +26,7 @@ import contextlib
 import importlib
 import logging
 import multiprocessing
+import multiprocessing.forkserver
 import os
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -108,8 +111,9 @@ def make_executor(workers: int = 1, scheduler: str | None = None, *,
         ``--scheduler``: ``"local:N"`` for a Dask LocalCluster of N single-threaded worker processes,
         or the address of a running Dask scheduler (``"tcp://10.0.0.5:8786"``).
     preload : sequence of str
-        Modules a local pool's processes import as soon as they start (those of the per-frame tasks):
-        their start-up then overlaps what this process does before it submits the first task.
+        Modules a local pool's processes need (those of the per-frame tasks), imported by the fork server
+        before the first process starts (unless :func:`start_worker_server` started it already), or by
+        each spawned process as soon as it starts.
     """
     if scheduler:
         with _dask_executor(scheduler) as dask_workers:
@@ -120,14 +124,29 @@ def make_executor(workers: int = 1, scheduler: str | None = None, *,
     if workers == 1:
         yield Workers(InProcessExecutor(), 1, "in-process")
         return
-    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                  initializer=_yield_to_parent)
+    context = multiprocessing.get_context("forkserver" if start_worker_server(preload) else "spawn")
+    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_yield_to_parent)
     for _ in range(workers):  # starts the processes now; a failed import shows again in the first real task
         pool.submit(_import, tuple(preload))
     try:
         yield Workers(pool, workers, f"{workers} local processes")
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def start_worker_server(preload: Sequence[str]) -> bool:
+    """Start the fork server that a local pool's processes are forked from, importing ``preload``; whether
+    this platform has one.
+
+    A server started already (by an earlier call) keeps its modules, and a pool's processes import any
+    other themselves. The server's imports take about half a second; started before this process's own
+    imports, they overlap them (see :func:`pipeline.cli.start_workers_early`).
+    """
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return False
+    multiprocessing.get_context("forkserver").set_forkserver_preload(list(preload))
+    multiprocessing.forkserver.ensure_running()
+    return True
 
 
 #: Niceness a local pool's processes add to their own (see :func:`_yield_to_parent`).

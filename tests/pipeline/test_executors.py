@@ -111,3 +111,21 @@ def test_pool_processes_yield_to_the_parent():
     with make_executor(2) as workers:
         niceness = {workers.executor.submit(os.nice, 0).result() for _ in range(4)}
     assert niceness == {min(os.nice(0) + WORKER_NICENESS, 19)}
+
+
+@pytest.mark.parametrize(("argv", "started"), [
+    (["run", "capture", "--out", "o", "--workers", "2"], True),
+    (["run", "capture", "--out", "o", "--workers=3", "-q"], True),
+    (["run", "capture", "--out", "o"], False),  # one worker: in this process
+    (["run", "capture", "--out", "o", "--workers", "2", "--scheduler", "local:2"], False),  # Dask's workers
+    (["run", "capture", "--out", "o", "--workers", "two"], False),  # the parser proper reports it
+])
+def test_a_run_with_local_workers_starts_their_server_before_its_imports(monkeypatch, argv, started):
+    import pipeline.engine.executors as executors
+    from pipeline.cli import start_workers_early
+    from pipeline.frame_tasks import WORKER_MODULES
+
+    calls = []
+    monkeypatch.setattr(executors, "start_worker_server", calls.append)
+    start_workers_early(argv)
+    assert calls == ([WORKER_MODULES] if started else [])
