@@ -54,13 +54,13 @@ class BenchRun:
 
 
 def bench_runs(bench: Path) -> list[BenchRun]:
-    """The runs under ``bench`` (its :data:`SUITE_FOLDERS`) whose reconstruction finished and whose capture has
-    a ground truth."""
+    """The runs under ``bench`` (its :data:`SUITE_FOLDERS`) that exported joints and whose capture has a ground
+    truth."""
     runs = []
     for suite in SUITE_FOLDERS:
         folder = bench / suite
         for path in sorted(folder.iterdir()) if folder.is_dir() else []:
-            if (path / "reconstruction" / MANIFEST).is_file() and _has_truth(path):
+            if (path / "reconstruction" / MANIFEST).is_file() and RunLayout(path).joints.is_file() and _has_truth(path):
                 runs.append(BenchRun(suite, path.name, path))
     return runs
 
