@@ -90,3 +90,25 @@ def test_tracker_time_is_a_multiple_of_the_references():
     assert foreign.with_reference({"tracker_ms_per_frame": 30.0}, 20.0)["tracker_vs_reference"] == 1.5
     assert foreign.with_reference({"capture": "broken"}, 20.0)["tracker_vs_reference"] is None
     assert foreign.with_reference({"tracker_ms_per_frame": 30.0}, None)["tracker_vs_reference"] is None
+
+
+def test_tracker_passes_take_the_runs_in_turn_and_keep_each_ones_fastest(monkeypatch, tmp_path):
+    calls = []
+    speeds = {"a": iter([50.0, 100.0, 80.0]), "b": iter([20.0, 25.0, 10.0])}  # frames/s of CPU, pass by pass
+
+    def fake_speed(run_dir, capture, frames):
+        calls.append(run_dir.name)
+        return {"fps_all_cpu": next(speeds[run_dir.name])}
+
+    monkeypatch.setattr(foreign, "tracker_speed", fake_speed)
+    timings = [foreign.TrackerTiming(tmp_path / name, None, (0, 1)) for name in ("a", "b")]
+    assert foreign.tracker_ms(timings) == [pytest.approx(10.0), pytest.approx(40.0)]
+    assert calls == ["a", "b"] * foreign.TRACKER_PASSES
+
+
+def test_rows_without_a_timing_keep_their_error_and_get_no_tracker_time(monkeypatch, tmp_path):
+    monkeypatch.setattr(foreign, "tracker_ms", lambda timings: [12.0] * len(timings))
+    monkeypatch.setattr(foreign, "tracking_row", lambda run_dir, frames, ms: {"tracker_ms_per_frame": ms})
+    rows = foreign.with_tracking([{"capture": "ok"}, {"capture": "broken", "error": "boom"}],
+                                 [foreign.TrackerTiming(tmp_path, None, (0,)), None])
+    assert rows == [{"capture": "ok", "tracker_ms_per_frame": 12.0}, {"capture": "broken", "error": "boom"}]

@@ -13,17 +13,18 @@ track went, not only how far off it ended: the count of each frame status and th
 re-initialised after the first (a track that keeps restarting can still score a fair MPJPE). Every run is
 fresh, so its wall time gives the end-to-end frame rate, video decoding included.
 
-The tracker's own time is measured apart (:func:`~pipeline.lab.bench.speed.tracker_speed` over the run's
-observations, in this process): the tracking stage streams alongside the reconstruction, so its manifest time
-is mostly waiting. It is judged relative to ``data_samples/taekwondo`` (same motion, window and rig as foreign
-taekwondo, rendered by :mod:`pipeline.lab.synth`) run through the same path into
-``<out>/foreign-reference/taekwondo/``.
+The tracker's own time is measured apart, after every run (:func:`~pipeline.lab.bench.speed.tracker_speed` over
+each run's observations, in this process, in passes that take the runs in turn: :func:`tracker_ms`): the tracking
+stage streams alongside the reconstruction, so its manifest time is mostly waiting. It is judged relative to
+``data_samples/taekwondo`` (same motion, window and rig as foreign taekwondo, rendered by :mod:`pipeline.lab.synth`)
+run through the same path into ``<out>/foreign-reference/taekwondo/``.
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from calib.errors import InputError
@@ -101,19 +102,32 @@ def tracking_row(run_dir: Path, frames: Sequence[int], tracker_ms: float) -> dic
             "reinitialised_fraction": reinitialised_after_first(results)}
 
 
-#: Times the tracker runs over a capture's observations for its figure; the fastest pass counts.
+#: Times the tracker runs over each capture's observations for its figure; the fastest pass counts.
 TRACKER_PASSES = 3
 
 
-def tracker_ms(run_dir: Path, capture: Capture, frames: Sequence[int]) -> float:
-    """The tracker's own milliseconds of CPU per frame over a run's observations, every frame (initialisations too).
+@dataclass(frozen=True)
+class TrackerTiming:
+    """What timing the tracker on one run's observations needs: the run, its capture and the frames."""
 
-    CPU rather than wall time, and the fastest of `TRACKER_PASSES` passes: the figure is compared with the
-    reference capture's, timed minutes apart; the tracker computes the same frames on every pass, so what
-    differs between passes is the machine (its other work and its own speed, which moved a single pass's CPU
-    time by up to a tenth between two runs of the suite), and that only ever adds time.
+    run_dir: Path
+    capture: Capture
+    frames: tuple[int, ...]
+
+
+def tracker_ms(timings: Sequence[TrackerTiming]) -> list[float]:
+    """The tracker's own milliseconds of CPU per frame over each run's observations, every frame (initialisations
+    too), in the order of ``timings``.
+
+    CPU rather than wall time, and the fastest of `TRACKER_PASSES` passes, each pass timing every run once in
+    turn: the figures are compared with the reference capture's, and the tracker computes the same frames on every
+    pass, so what differs between passes is the machine (its other work and its own speed, which drifts by a
+    third within an hour here), and that only ever adds time. Taking the runs in turn within each pass puts a
+    slow spell on all of them rather than on one.
     """
-    return min(1000.0 / tracker_speed(run_dir, capture, list(frames))["fps_all_cpu"] for _ in range(TRACKER_PASSES))
+    passes = [[1000.0 / tracker_speed(t.run_dir, t.capture, list(t.frames))["fps_all_cpu"] for t in timings]
+              for _ in range(TRACKER_PASSES)]
+    return [min(column) for column in zip(*passes, strict=True)] if passes else []
 
 
 def image_sizes(capture: Capture) -> str:
@@ -121,23 +135,40 @@ def image_sizes(capture: Capture) -> str:
     return " ".join(sorted({f"{camera.size[0]}x{camera.size[1]}" for camera in capture.rig}))
 
 
-def run_capture(name: str, capture: Path, run_dir: Path, *, workers: int) -> dict:
-    """One capture's row: what it is, the run's measure, its scores (or why it has none, in ``error``)."""
+def run_capture(name: str, capture: Path, run_dir: Path, *, workers: int) -> tuple[dict, TrackerTiming | None]:
+    """One capture's row: what it is, the run's measure, its scores (or why it has none, in ``error``); and what
+    timing its tracker needs, for a run that was scored (`tracker_ms` times them all together)."""
     try:
         opened = Capture.open(capture)
     except InputError as error:
-        return {"capture": name, "error": str(error)}
+        return {"capture": name, "error": str(error)}, None
     frames = opened.frame_numbers
     measure = run_pipeline(capture, run_dir, workers=workers, frames=len(frames), fresh=True)
     row = {"capture": name, "cameras": len(opened.rig), "size": image_sizes(opened), "frames": len(frames),
            "run": measure.to_dict(), "fps_end_to_end": len(frames) / measure.seconds if measure.ok else None}
-    if measure.ok:
-        try:
-            row |= foreign_scores(evaluate_run(run_dir, truth=capture / "groundtruth" / "joints.csv"))
-            row |= tracking_row(run_dir, frames, tracker_ms(run_dir, opened, frames))
-        except (InputError, OSError) as error:
-            row["error"] = str(error)
-    return row
+    if not measure.ok:
+        return row, None
+    try:
+        row |= foreign_scores(evaluate_run(run_dir, truth=capture / "groundtruth" / "joints.csv"))
+    except (InputError, OSError) as error:
+        return row | {"error": str(error)}, None
+    return row, TrackerTiming(run_dir, opened, tuple(frames))
+
+
+def with_tracking(rows: Sequence[dict], timings: Sequence[TrackerTiming | None]) -> list[dict]:
+    """The rows with their tracks' statuses and tracker times (`tracking_row`), those with a timing timed together."""
+    timed = [timing for timing in timings if timing is not None]
+    milliseconds = iter(tracker_ms(timed))
+    done = []
+    for row, timing in zip(rows, timings, strict=True):
+        if timing is not None:
+            ms = next(milliseconds)
+            try:
+                row = row | tracking_row(timing.run_dir, timing.frames, ms)
+            except (InputError, OSError) as error:
+                row = row | {"error": str(error)}
+        done.append(row)
+    return done
 
 
 def selected(capture: Path, folder: Path, *, quick: bool) -> tuple[str, Path]:
@@ -163,12 +194,12 @@ def run_foreign(out: Path, captures: Path, *, quick: bool, workers: int) -> dict
     """
     found = find_captures(FOREIGN_ROOT)
     reference_name, reference = selected(REFERENCE, out / "foreign-reference", quick=quick)
-    reference_row = run_capture(f"data_samples/{reference_name}", reference,
-                                out / "foreign-reference" / reference_name, workers=workers)
-    reference_ms = reference_row.get("tracker_ms_per_frame")
-    rows = []
+    made = [run_capture(f"data_samples/{reference_name}", reference, out / "foreign-reference" / reference_name,
+                        workers=workers)]
     for capture in found:
         name, path = selected(capture, out / "foreign", quick=quick)
-        rows.append(with_reference(run_capture(name, path, out / "foreign" / name, workers=workers), reference_ms))
-    return {"root": os.path.relpath(FOREIGN_ROOT, REPO), "rows": rows,
+        made.append(run_capture(name, path, out / "foreign" / name, workers=workers))
+    reference_row, *rows = with_tracking([row for row, _ in made], [timing for _, timing in made])
+    reference_ms = reference_row.get("tracker_ms_per_frame")
+    return {"root": os.path.relpath(FOREIGN_ROOT, REPO), "rows": [with_reference(row, reference_ms) for row in rows],
             "reference": with_reference(reference_row, reference_ms)}
