@@ -4,7 +4,8 @@ A worker of ``--workers N`` is a fork of a server process that imported :data:`W
 (:func:`pipeline.engine.executors.start_worker_server`), started before the run's own imports: the
 workers have this module and the reconstruction in memory before the first frame, and none imports
 the tracker (numba), which lives in :mod:`pipeline.graph`. The reconstruction (scipy, slow to import)
-is still imported by its own task, for a worker that was spawned rather than forked.
+is imported by its own task, not at the top of this module: the command line imports this module (for
+:data:`WORKER_MODULES`) before it starts that server, and that must stay quick.
 
 Within a worker, frames are the unit of parallelism: OpenCV's own threads are switched off while a
 chunk runs (on small images they mostly synchronise, a fifth more CPU for the same wall time), and
