@@ -30,6 +30,13 @@ def test_the_run_command_never_imports_the_lab():
     assert imported.strip() == "[]"  # benchmarks and synthetic captures are not part of a run
 
 
+def test_the_worker_tasks_module_imports_neither_scipy_nor_the_tracker():
+    heavy = ("scipy", "numba", "stages.tracking", "stages.reconstruction")
+    code = f"import sys, pipeline.frame_tasks; print(sorted(m for m in {heavy!r} if m in sys.modules))"
+    imported = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert imported.strip() == "[]"  # the command line imports it before it starts the worker server
+
+
 def test_the_run_layout_names_the_graph_stages():
     assert STAGE_NAMES == tuple(stage.name for stage in STAGES)  # a copy: the report cannot import the graph
 
