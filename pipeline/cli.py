@@ -11,9 +11,11 @@ path. Modules are imported only when their subcommand runs (and for ``--help``),
 is the subcommand's one-line help.
 
 Errors: a user mistake anywhere is raised as :class:`calib.errors.InputError`; :func:`main` prints it
-as one line ``error: <message>`` on stderr and returns 2, without a traceback. Anything else is a bug
-and keeps its traceback. Error messages and log messages pass through :func:`pipeline.terminal.printable`:
-they quote names read from files, which must not drive the terminal.
+as one line ``error: <message>`` on stderr and returns 2, without a traceback. Ctrl-C is one line too,
+``interrupted``, and status 130: every file is written atomically, so what was finished is kept (and a
+run resumes from it). Anything else is a bug and keeps its traceback. Error messages and log messages pass
+through :func:`pipeline.terminal.printable`: they quote names read from files, which must not drive the
+terminal.
 """
 
 from __future__ import annotations
@@ -43,6 +45,11 @@ SUBCOMMANDS: dict[str, str] = {
 
 #: Exit status for a user error (as argparse uses for a bad command line).
 USAGE_ERROR = 2
+#: Exit status after Ctrl-C (128 + SIGINT, as shells report a command the signal ended).
+INTERRUPTED = 130
+#: What Ctrl-C leaves, for the subcommands that keep their finished work (the stage cache resumes it).
+INTERRUPTED_HINTS = {"run": "; the same command resumes from the frames already written",
+                     "batch": "; the same command resumes each capture from the frames already written"}
 
 
 def _first_line(text: str | None) -> str:
@@ -114,6 +121,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InputError as error:
         print(f"error: {printable(str(error))}", file=sys.stderr)  # it may quote names read from files
         return USAGE_ERROR
+    except KeyboardInterrupt:  # Ctrl-C: the user stopped it, and every file written so far is whole
+        print(f"interrupted{INTERRUPTED_HINTS.get(args.subcommand, '')}", file=sys.stderr)
+        return INTERRUPTED
     except BrokenPipeError:  # the reader went away (`... | head`): not an error of ours, no traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's own flush at exit must not fail
         return 0

@@ -26,7 +26,7 @@ from conftest import make_capture, tiny_rig, write_config, write_video
 
 from calib.errors import InputError
 from calib.formats import load_rig
-from pipeline.cli import SUBCOMMANDS, main
+from pipeline.cli import INTERRUPTED, SUBCOMMANDS, main
 from pipeline.engine.output_folder import output_lock
 from pipeline.graph import STAGES
 from pipeline.io import atomic, frames_io
@@ -101,6 +101,19 @@ def test_a_closed_pipe_ends_quietly(monkeypatch, tmp_path):
     with open(tmp_path / "stdout", "w") as stdout:
         monkeypatch.setattr(sys, "stdout", stdout)
         assert main(["eval"]) == 0
+
+
+@pytest.mark.parametrize(("subcommand", "hint"), [("run", "resumes"), ("eval", None)])
+def test_ctrl_c_ends_with_one_line_and_status_130(monkeypatch, capsys, subcommand, hint):
+    def interrupted(args):
+        raise KeyboardInterrupt
+    module = types.ModuleType("interrupted_by_the_user")
+    module.add_arguments, module.main = (lambda parser: None), interrupted
+    monkeypatch.setitem(sys.modules, module.__name__, module)
+    monkeypatch.setitem(SUBCOMMANDS, subcommand, module.__name__)
+    assert main([subcommand]) == INTERRUPTED == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("interrupted") and (hint is None or hint in err[0])
 
 
 # ---------------------------------------------------------------------------------------------
