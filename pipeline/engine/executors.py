@@ -34,6 +34,8 @@ from typing import Any
 
 from calib.errors import InputError
 
+log = logging.getLogger(__name__)
+
 #: Seconds to wait for a Dask scheduler to answer before giving up with a clear error.
 DASK_CONNECT_TIMEOUT_S = 10
 
@@ -145,7 +147,11 @@ def start_worker_server(preload: Sequence[str]) -> bool:
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return False
     multiprocessing.get_context("forkserver").set_forkserver_preload(list(preload))
-    multiprocessing.forkserver.ensure_running()
+    try:
+        multiprocessing.forkserver.ensure_running()
+    except OSError as error:  # its socket lives in the temporary folder, which may be full or read-only
+        log.warning("no fork server for the worker processes (%s); they are spawned instead", error)
+        return False
     return True
 
 

@@ -129,3 +129,15 @@ def test_a_run_with_local_workers_starts_their_server_before_its_imports(monkeyp
     monkeypatch.setattr(executors, "start_worker_server", calls.append)
     start_workers_early(argv)
     assert calls == ([WORKER_MODULES] if started else [])
+
+
+def test_without_a_fork_server_the_workers_are_spawned(monkeypatch, caplog):
+    import multiprocessing.forkserver
+
+    def no_room():
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(multiprocessing.forkserver, "ensure_running", no_room)
+    with make_executor(2) as workers:
+        assert workers.executor.submit(sum, [1, 2]).result() == 3
+    assert "spawned instead" in caplog.text and "No space left" in caplog.text
