@@ -11,7 +11,8 @@ are shown and collected (:mod:`pipeline.engine.run_warnings`) like this process'
   (:func:`start_worker_server`), at a lower scheduling priority than this one, which runs the sequential
   tracker. The server is a clean process that imports the tasks' modules once, so every worker starts
   with them in memory; forking this process instead is not safe with the threads that progress bars and
-  OpenCV start. Where there is no fork server (Windows), ``spawn``: each worker imports them itself.
+  OpenCV start. Where there is no fork server (Windows), or it cannot start, ``spawn``: each worker
+  imports them itself.
 - ``scheduler="local:N"``: a Dask ``LocalCluster(n_workers=N, threads_per_worker=1, processes=True)``
   started for this run; ``scheduler="tcp://host:port"``: an existing Dask scheduler. Both go through
   ``Client.get_executor(pure=False)`` (``pure=False``: a chunk re-submitted after a failure must run
