@@ -5,6 +5,7 @@ Each subcommand is a module with two functions::
     def add_arguments(parser: argparse.ArgumentParser) -> None: ...
     def main(args: argparse.Namespace) -> int: ...
 
+(and, for a subcommand whose work a rerun resumes, ``INTERRUPTED_HINT``: what the Ctrl-C line adds)
 and one line in :data:`SUBCOMMANDS` below, mapping the subcommand's name to that module's import
 path. Modules are imported only when their subcommand runs (and for ``--help``), so a heavy import
 (open3d, Dask) in one subcommand does not slow down the others. The module's docstring's first line
@@ -47,9 +48,6 @@ SUBCOMMANDS: dict[str, str] = {
 USAGE_ERROR = 2
 #: Exit status after Ctrl-C (128 + SIGINT, as shells report a command the signal ended).
 INTERRUPTED = 130
-#: What Ctrl-C leaves, for the subcommands that keep their finished work (the stage cache resumes it).
-INTERRUPTED_HINTS = {"run": "; the same command resumes from the frames already written",
-                     "batch": "; the same command resumes each capture from the frames already written"}
 
 
 def _first_line(text: str | None) -> str:
@@ -122,7 +120,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {printable(str(error))}", file=sys.stderr)  # it may quote names read from files
         return USAGE_ERROR
     except KeyboardInterrupt:  # Ctrl-C: the user stopped it, and every file written so far is whole
-        print(f"interrupted{INTERRUPTED_HINTS.get(args.subcommand, '')}", file=sys.stderr)
+        print(f"interrupted{getattr(args._module, 'INTERRUPTED_HINT', '')}", file=sys.stderr)
         return INTERRUPTED
     except BrokenPipeError:  # the reader went away (`... | head`): not an error of ours, no traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's own flush at exit must not fail

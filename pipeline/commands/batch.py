@@ -55,6 +55,8 @@ CAPTURE_YAML = "capture.yaml"
 BATCH_CSV = "batch.csv"
 #: Exit status when some capture failed: the batch finished, not every result is usable (as `run`'s 3).
 SOME_FAILED = 3
+#: What the line after Ctrl-C adds (:mod:`pipeline.cli`): each capture resumes as a `run` does.
+INTERRUPTED_HINT = "; the same command resumes each capture from the frames already written"
 #: A capture's folders of media (see docs/capture_format.md), whose size says how long it takes.
 MEDIA_FOLDERS = ("images", "videos", "silhouettes")
 

@@ -13,7 +13,6 @@ import contextlib
 import importlib
 import logging
 import multiprocessing
-import multiprocessing.forkserver
 import sys
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -23,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from calib.errors import InputError
-from pipeline.engine.executors import InProcessExecutor, Workers, local_count, make_executor
+from pipeline.engine.executors import InProcessExecutor, Workers, local_count, make_executor, start_worker_server
 from pipeline.terminal import PrintableFormatter
 
 log = logging.getLogger(__name__)
@@ -175,7 +174,8 @@ class RenewedProcessPool(cf.Executor):
     rest of the study. Unlike :func:`~pipeline.engine.executors.make_executor`'s pool, its processes keep the
     parent's priority: the parent only waits.
 
-    The processes come from multiprocessing's ``forkserver``, which imports :data:`TASK_MODULES` once as it
+    The processes come from multiprocessing's ``forkserver`` (spawned where it cannot start:
+    :func:`~pipeline.engine.executors.start_worker_server`), which imports :data:`TASK_MODULES` once as it
     starts (1.3-1.6 s of CPU: numpy, OpenCV, scipy, numba and the stages); each process is a fork of it, with
     those modules in memory already, the pages shared. With ``spawn`` every process imported them itself, all at
     once on a machine of few cores, and so did each process of a renewed pool. The server is a clean process
@@ -194,9 +194,7 @@ class RenewedProcessPool(cf.Executor):
         Its processes are forked on demand, a call starting one while none is idle, up to ``count``: the first
         call waits until the server has its modules, and this process's own work before it overlaps theirs.
         """
-        context = multiprocessing.get_context("forkserver")
-        context.set_forkserver_preload(list(TASK_MODULES))  # for a server not running yet
-        multiprocessing.forkserver.ensure_running()
+        context = multiprocessing.get_context("forkserver" if start_worker_server(TASK_MODULES) else "spawn")
         return cf.ProcessPoolExecutor(max_workers=self.count, mp_context=context, initializer=_start_worker,
                                       initargs=(TASK_MODULES,))
 

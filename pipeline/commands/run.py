@@ -58,6 +58,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 #: Exit status of a run that finished but whose result is not usable (:func:`unusable_result`); a user
 #: mistake is 2.
 UNUSABLE_RESULT = 3
+#: What the line after Ctrl-C adds (:mod:`pipeline.cli`): every finished frame is kept, and the cache resumes it.
+INTERRUPTED_HINT = "; the same command resumes from the frames already written"
 #: A run estimating fewer than this share of the capture's frames has no usable result.
 MIN_ESTIMATED_FRACTION = 0.5
 #: What the export stage must have written for the run to count as usable.

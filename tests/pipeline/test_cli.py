@@ -7,6 +7,7 @@ status 2, no traceback, and no result written.
 from __future__ import annotations
 
 import errno
+import importlib
 import os
 import re
 import resource
@@ -103,17 +104,23 @@ def test_a_closed_pipe_ends_quietly(monkeypatch, tmp_path):
         assert main(["eval"]) == 0
 
 
-@pytest.mark.parametrize(("subcommand", "hint"), [("run", "resumes"), ("eval", None)])
-def test_ctrl_c_ends_with_one_line_and_status_130(monkeypatch, capsys, subcommand, hint):
+@pytest.mark.parametrize("hint", ["; the same command resumes", None])
+def test_ctrl_c_ends_with_one_line_and_status_130(monkeypatch, capsys, hint):
     def interrupted(args):
         raise KeyboardInterrupt
     module = types.ModuleType("interrupted_by_the_user")
     module.add_arguments, module.main = (lambda parser: None), interrupted
+    if hint is not None:
+        module.INTERRUPTED_HINT = hint
     monkeypatch.setitem(sys.modules, module.__name__, module)
-    monkeypatch.setitem(SUBCOMMANDS, subcommand, module.__name__)
-    assert main([subcommand]) == INTERRUPTED == 130
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("interrupted") and (hint is None or hint in err[0])
+    monkeypatch.setitem(SUBCOMMANDS, "eval", module.__name__)
+    assert main(["eval"]) == INTERRUPTED == 130
+    assert capsys.readouterr().err.splitlines() == [f"interrupted{hint or ''}"]
+
+
+def test_the_commands_a_rerun_resumes_say_so_after_ctrl_c():
+    for name in ("run", "batch"):
+        assert "resumes" in importlib.import_module(SUBCOMMANDS[name]).INTERRUPTED_HINT
 
 
 # ---------------------------------------------------------------------------------------------

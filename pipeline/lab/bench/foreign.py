@@ -127,7 +127,7 @@ def tracker_ms(timings: Sequence[TrackerTiming]) -> list[float]:
     """
     passes = [[1000.0 / tracker_speed(t.run_dir, t.capture, list(t.frames))["fps_all_cpu"] for t in timings]
               for _ in range(TRACKER_PASSES)]
-    return [min(column) for column in zip(*passes, strict=True)] if passes else []
+    return [min(column) for column in zip(*passes, strict=True)]
 
 
 def image_sizes(capture: Capture) -> str:

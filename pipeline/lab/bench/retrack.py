@@ -6,8 +6,9 @@
 An ablation of the tracker alone. Every scored run of the foreign and unseen suites under ``--bench`` (and the
 foreign suite's reference run) keeps the silhouettes and observations the bench made; only tracking and export
 run again, ``python -m pipeline run <capture> --from tracking`` with the ``--set`` and ``--config`` given, a few
-runs at a time. The table puts each capture's MPJPE, worst frame and count of restarts (frames initialised
-after the first, and frames flagged doubtful) in the bench's run beside the new ones, and the figures the
+runs at a time. The table puts each capture's MPJPE, worst frame, share of frames re-initialised after the
+first and count of frames flagged doubtful (as the foreign suite reports them) in the bench's run beside the
+new ones, and the figures the
 targets judge beside them: the unseen suite's mean and the foreign suite's worst capture.
 A change that helps one capture and hurts the others shows at once, in about half a minute for fifteen
 captures, where the suites take minutes to make again silhouettes and points the change leaves alone.
@@ -33,9 +34,9 @@ from calib.errors import InputError
 from pipeline.evaluate import default_truth, score_joints
 from pipeline.io import frames_io
 from pipeline.io.run_layout import MANIFEST, RunLayout
-from pipeline.lab.bench.foreign import status_counts, tracking_results
+from pipeline.lab.bench.foreign import reinitialised_after_first, status_counts, tracking_results
 from pipeline.lab.bench.runs import REPO
-from pipeline.lab.bench.tables import format_table
+from pipeline.lab.bench.tables import format_table, percent
 from pipeline.terminal import printable
 
 #: The bench's folders of runs scored against a ground truth, in the order of the table.
@@ -94,29 +95,29 @@ def linked_copy(run: Path, dest: Path) -> None:
 def retrack(run: BenchRun, out: Path, options: list[str]) -> dict:
     """Track ``run`` again in ``out/<suite>/<name>`` with the ``options`` of ``pipeline run``; its scores then and
     now (``problem`` says why a run has no new score)."""
-    before = score_joints(run.path, default_truth(run.path)).summary()
-    frames = frames_io.read_json(RunLayout(run.path).capture_summary)["frames"]
+    truth = default_truth(run.path)
+    summary = frames_io.read_json(RunLayout(run.path).capture_summary)
     dest = out / run.suite / run.name
     linked_copy(run.path, dest)
-    capture = frames_io.read_json(RunLayout(run.path).capture_summary)["capture_dir"]
-    command = [sys.executable, "-m", "pipeline", "run", capture, "--out", str(dest), "--from", "tracking",
-               "--workers", "1", "-q", *options]
+    command = [sys.executable, "-m", "pipeline", "run", summary["capture_dir"], "--out", str(dest),
+               "--from", "tracking", "--workers", "1", "-q", *options]
     finished = subprocess.run(command, cwd=REPO, capture_output=True, text=True)
-    row = {"suite": run.suite, "capture": run.name, "mpjpe_before": before["mpjpe_mm"],
-           "worst_before": before["worst_frame"]["mpjpe_mm"], "restarts_before": restarts(run.path, frames)}
+    row = {"suite": run.suite, "capture": run.name} | scores(run.path, truth, summary["frames"], "before")
     if finished.returncode != 0:
         lines = (finished.stderr or finished.stdout).strip().splitlines()
         return row | {"problem": lines[-1] if lines else f"exit status {finished.returncode}"}
-    after = score_joints(dest, default_truth(run.path)).summary()
-    return row | {"mpjpe_after": after["mpjpe_mm"], "worst_after": after["worst_frame"]["mpjpe_mm"],
-                  "restarts_after": restarts(dest, frames)}
+    return row | scores(dest, truth, summary["frames"], "after")
 
 
-def restarts(run_dir: Path, frames: list[int]) -> int:
-    """Frames the tracker initialised after the first, and frames it flagged doubtful, of a run: a change that
-    keeps the error but restarts more often costs time (each restart is a fresh search)."""
-    counts = status_counts(tracking_results(run_dir, frames))
-    return counts["initialised"] - 1 + counts["doubtful"]
+def scores(run_dir: Path, truth: Path, frames: list[int], when: str) -> dict:
+    """A run's MPJPE, worst frame, share of frames re-initialised after the first and count of doubtful frames
+    (as the foreign suite counts them), keyed ``<figure>_<when>``: a change that keeps the error but restarts
+    more often costs time, each restart being a fresh search."""
+    joints = score_joints(run_dir, truth).summary()
+    results = tracking_results(run_dir, frames)
+    return {f"mpjpe_{when}": joints["mpjpe_mm"], f"worst_{when}": joints["worst_frame"]["mpjpe_mm"],
+            f"reinitialised_{when}": reinitialised_after_first(results),
+            f"doubtful_{when}": status_counts(results)["doubtful"]}
 
 
 def summary_rows(rows: list[dict]) -> list[tuple]:
@@ -166,10 +167,11 @@ def main(argv: list[str] | None = None) -> int:
     with cf.ThreadPoolExecutor(max(1, args.workers)) as pool:
         rows = list(pool.map(lambda run: retrack(run, args.out, options), runs))
     print(format_table(("suite", "capture", "MPJPE mm before", "after", "worst mm before", "after",
-                        "restarts and doubtful before", "after", "problem"),
+                        "re-init. after 1st before", "after", "doubtful before", "after", "problem"),
                        [(row["suite"], row["capture"], row["mpjpe_before"], row.get("mpjpe_after"),
-                         row["worst_before"], row.get("worst_after"), row["restarts_before"],
-                         row.get("restarts_after"), printable(row.get("problem", "")))
+                         row["worst_before"], row.get("worst_after"), percent(row["reinitialised_before"]),
+                         percent(row.get("reinitialised_after")), row["doubtful_before"],
+                         row.get("doubtful_after"), printable(row.get("problem", "")))
                         for row in rows]))
     print()
     print(format_table(("figure", "before", "after"), summary_rows(rows)))

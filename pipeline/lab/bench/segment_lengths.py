@@ -63,12 +63,12 @@ def length_ratios(run_dir: Path) -> dict[str, float]:
     InputError
         When `run_dir` is not a finished run (no export/joints.csv) or its capture has no ground truth.
     """
-    if not RunLayout(run_dir).joints.is_file():
-        raise InputError(f"{run_dir}: no {RunLayout(run_dir).joints.relative_to(run_dir)} "
-                         "(expected the folder of a finished run)")
-    estimated_frames, _ = median_lengths(RunLayout(run_dir).joints)
+    joints = RunLayout(run_dir).joints
+    if not joints.is_file():
+        raise InputError(f"{run_dir}: no {joints.relative_to(run_dir)} (expected the folder of a finished run)")
+    estimated_frames, _ = median_lengths(joints)
     truth_frames, truth = median_lengths(default_truth(run_dir), estimated_frames)
-    _, estimate = median_lengths(RunLayout(run_dir).joints, truth_frames)
+    _, estimate = median_lengths(joints, truth_frames)
     return {group: estimate[group] / truth[group] for group in estimate if group in truth}
 
 

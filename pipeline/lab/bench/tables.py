@@ -35,7 +35,7 @@ def format_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
     return "\n".join(lines)
 
 
-def _percent(fraction) -> str:
+def percent(fraction) -> str:
     return "–" if fraction is None else f"{100 * fraction:.0f} %"
 
 
@@ -97,7 +97,7 @@ UNSEEN_COLUMNS = (("capture", "capture"), ("clip", "clip"), ("body", "body"), ("
 
 def format_unseen(unseen: dict) -> str:
     def cells(row: dict) -> tuple:
-        return tuple(_percent(row.get(key)) if key == "fraction_estimated"
+        return tuple(percent(row.get(key)) if key == "fraction_estimated"
                      else fmt(row.get(key), 3) if key == "silhouette_iou" else row.get(key)
                      for _, key in UNSEEN_COLUMNS)
 
@@ -124,7 +124,7 @@ def format_foreign(foreign: dict) -> str:
     """One row per foreign capture, then the reference capture the tracker's time is compared with."""
     def cells(row: dict) -> tuple:
         values = row | row.get("statuses", {})
-        return tuple(_percent(values.get(key)) if key in ("fraction_estimated", "reinitialised_fraction")
+        return tuple(percent(values.get(key)) if key in ("fraction_estimated", "reinitialised_fraction")
                      else fmt(values.get(key), 3) if key == "silhouette_iou_median"
                      else fmt(values.get(key), 2) if key == "tracker_vs_reference"
                      else fmt(values.get(key), 1) if key == "fps_end_to_end" else values.get(key)
@@ -150,9 +150,9 @@ def format_exports(exports: dict) -> str:
     first = format_table(
         ["capture", *(f"{file} mm" for file in files), "unsupported pairs", "MPJPE unsupported mm",
          "MPJPE others mm", "errors > 50 mm flagged"],
-        [(row["capture"], *(mm(row, file) for file in files), _percent(row["confidence"]["unsupported_share"]),
+        [(row["capture"], *(mm(row, file) for file in files), percent(row["confidence"]["unsupported_share"]),
           fmt(row["confidence"]["unsupported_mpjpe_mm"]), fmt(row["confidence"]["supported_mpjpe_mm"]),
-          _percent(row["confidence"]["large_errors_flagged"])) for row in scored])
+          percent(row["confidence"]["large_errors_flagged"])) for row in scored])
     cutoffs = exports["cutoffs_hz"]
     second = format_table(
         ["capture", "unsmoothed MPJPE mm", "wrist accel. m/s²",
@@ -174,7 +174,7 @@ def format_sweep(rows: list[dict], x_name: str) -> str:
     table = [(f"{row['x']:g}", row["distance"],
               f"{row['mask_iou']:.3f}" if x_name == "noise" else round(row["observations"]), row["frames"],
               row["angle_error_deg"], row.get("angle_error_median_deg"), row.get("angle_error_offset_free_deg"),
-              row["mpjpe_mm"], _percent(row.get("off_track")), _percent(row["fraction_estimated"]))
+              row["mpjpe_mm"], percent(row.get("off_track")), percent(row["fraction_estimated"]))
              for row in sorted(rows, key=lambda r: (r["x"], order.get(r["distance"], 3)))]
     return format_table((x_name, "distance", extra, "frames", "angle mean °", "angle median °",
                          "angle offset-free °", "MPJPE mm", "off track", "estimated"), table)
@@ -200,7 +200,7 @@ def format_paper(paper: dict, figure: str | None) -> str:
                            [(r["distance"], r["frames"], r["angle_error_deg"], r.get("angle_error_median_deg"),
                              r.get("angle_error_offset_free_deg"), r.get("hip_angle_error_deg"),
                              r.get("hips_forward_mm"), r.get("knees_forward_mm"), r["mpjpe_mm"],
-                             _percent(r.get("off_track")), _percent(r["fraction_estimated"]), r["seconds"])
+                             percent(r.get("off_track")), percent(r["fraction_estimated"]), r["seconds"])
                             for r in base])]
     for key, title in (("noise", "(b) silhouette noise strength (boundary ± up to 4 px, up to 6 holes)"),
                        ("fps", "(c) frame rate (same 3.6 s of motion)"),
