@@ -57,6 +57,20 @@ def test_absent_folder_skips_the_suite_with_one_line_and_keeps_the_results(tmp_p
     assert not (tmp_path / "bench" / suite.RESULTS_JSON).exists()
 
 
+@pytest.mark.parametrize("quick", [False, True])
+def test_a_full_bench_warms_the_tracker_up_before_measuring(tmp_path, monkeypatch, quick):
+    # A never set-up checkout compiled the tracker in its first timed run: that capture's fps was the compiler's.
+    calls = []
+    monkeypatch.setattr(suite, "ensure_compiled", lambda: calls.append("warm-up") or 1)
+    monkeypatch.setattr(foreign, "FOREIGN_ROOT", tmp_path / "absent")
+    options = suite.BenchOptions(out=tmp_path / "bench", captures=tmp_path / "captures", quick=quick, workers=1)
+    lines = []
+    suite.run_bench(["foreign"], options, log=lines.append)
+    assert calls == ([] if quick else ["warm-up"])
+    no_cache = "bench: the tracker's compiled code has no disk cache here: every run's figures include compiling it"
+    assert (no_cache in lines) is not quick
+
+
 SQUARE = np.zeros((20, 30), np.uint8)
 SQUARE[5:15, 10:20] = 255
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
+from pipeline.commands.warmup import ensure_compiled
 from pipeline.io import atomic
 from pipeline.lab.bench import figures
 from pipeline.lab.bench.tables import (
@@ -215,8 +216,12 @@ def run_bench(suites: Sequence[str], options: BenchOptions, *, log: Callable[[st
 
     A suite that raises :class:`SuiteSkipped` is reported in one line and leaves results.json as it was: its
     data is missing here, which says nothing about the code, so its last measurement stays the latest one.
+    Before the first suite of a full run, the tracker's compiled code is put in numba's disk cache when it is
+    not there yet (:func:`pipeline.commands.warmup.ensure_compiled`), so that no timed run compiles it.
     """
     runners = suite_runners()
+    if not options.quick and ensure_compiled() != 0:
+        log("bench: the tracker's compiled code has no disk cache here: every run's figures include compiling it")
     options.out.mkdir(parents=True, exist_ok=True)
     results = load_results(options.out / RESULTS_JSON)
     for suite in suites:
