@@ -160,3 +160,64 @@ def test_limbs_that_lost_their_data_are_found_by_their_usual_share_when_the_mirr
     error = np.linalg.norm(recovered.body.joint_positions(recovered.pose) - body.joint_positions(truth), axis=1)
     assert error.max() < 0.03  # metres, every joint
     assert deserted_limbs(body_limbs(body), recovered, usual, len(y)) == []
+
+
+def test_screened_limb_scores_are_the_full_scores_of_the_hypotheses_that_survive():
+    """The screening scores every limb hypothesis on the first rows only; the survivors' scores are then their
+    scores on all the rows, the others −inf, and the best of the full ranking survive it."""
+    from dataclasses import replace
+
+    from stages.tracking.em import hypothesis_scores, log_evidence
+    from stages.tracking.init import SCORE_SIGMA_M
+    from stages.tracking.limbs import _LIMB_REFINE, _LIMB_SCREEN_KEEP, _limb_grid, _screened_scores
+    from stages.tracking.mixture import Mixture, volume_size
+
+    body = load_body("default", height_m=1.75)
+    rng = np.random.default_rng(41)
+    truth = _pose(body, 0.5, {"l_upperarm.flex": 70, "l_forearm.flex": 50})
+    y, n = sample_ellipsoids(body, truth, 400, rng, outlier_fraction=0.1)
+    arm = next(limb for limb in body_limbs(body) if limb.name == "l_upperarm")
+    hypotheses = np.repeat(truth[None], 125, axis=0)
+    hypotheses[:, arm.dofs] = _limb_grid(body, truth, arm)
+    mine = np.isin(body.ellipsoid_segment, arm.segments)
+    mixture = replace(Mixture.initial(body.n_ellipsoids, SCORE_SIGMA_M, 3), Sigma=np.eye(3) * SCORE_SIGMA_M**2)
+    V = volume_size(VOLUME)
+    em = EMParams(normal_noise_rad=np.radians(10))
+    rest = log_evidence(y, n, body.ellipsoids(truth), mixture, V, which=np.flatnonzero(~mine),
+                        normal_noise_rad=em.normal_noise_rad)
+    posed = body.posed_ellipsoids(hypotheses)
+    full = hypothesis_scores(y, n, posed, mixture, V, which=np.flatnonzero(mine), base=rest,
+                             normal_noise_rad=em.normal_noise_rad)[:, 0]
+    screened = _screened_scores(y, n, posed, mixture, V, np.flatnonzero(mine), rest, em)
+    survived = np.isfinite(screened)
+    assert survived.sum() == _LIMB_SCREEN_KEEP
+    np.testing.assert_allclose(screened[survived], full[survived], rtol=1e-12)
+    assert np.all(screened[~survived] == -np.inf)
+    assert survived[np.argsort(full)[::-1][:_LIMB_REFINE]].all()
+
+
+def test_screened_initialisation_scores_are_the_full_scores_of_the_poses_that_survive():
+    """Every library pose is scored at every heading on a few rows; the best `keep` poses are then scored on all
+    the rows (the same scores as without screening), the others are −inf, and the poses the refinement takes
+    from the full ranking survive."""
+    from stages.tracking import init
+    from stages.tracking.init import SCORE_SIGMA_M
+    from stages.tracking.mixture import Mixture, volume_size
+
+    body = load_body("default", height_m=1.75)
+    rng = np.random.default_rng(42)
+    truth = _pose(body, 1.0, {"l_thigh.flex": 80, "l_shank.flex": 40, "r_upperarm.abduct": 50})
+    y, n = sample_ellipsoids(body, truth, 120, rng, outlier_fraction=0.2)
+    library = load_pose_library(body)
+    poses = [pose * np.r_[1.0, 1.0, body.height_m, np.ones(body.pose_size - 3)] for pose in library]
+    bodies = [body] * len(poses)
+    yaws = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
+    mixture = Mixture.initial(body.n_ellipsoids, SCORE_SIGMA_M, 3)
+    centre = np.median(y[:, :2], axis=0)
+    arguments = (y, n, centre, bodies, poses, yaws, mixture, volume_size(VOLUME), "normals")
+    full = init._score(*arguments)
+    screened = init._screened_scores(*arguments, keep=40)
+    survived = np.isfinite(screened).all(axis=1)
+    assert survived.sum() == 40 and np.all(np.isinf(screened[~survived]))
+    np.testing.assert_allclose(screened[survived], full[survived], rtol=1e-12)
+    assert survived[np.argsort(-full.max(axis=1))[:12]].all()
