@@ -174,7 +174,7 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     own values and its mirror's, mirrored), from a grid over its first two joints (`_limb_grid`),
     from the mirror limb's current angles (people often hold both arms alike) and from the current
     angles. Each is scored by the likelihood (eq. 12) with the rest of the body fixed, on a
-    subsample, with the limb's priors π set to its mirror's (a limb that explained nothing would
+    subsample (screened on a quarter of it first, `_screened_scores`), with the limb's priors π set to its mirror's (a limb that explained nothing would
     otherwise be handicapped by its small prior) and under the initialisation's coarse Σ
     (`SCORE_SIGMA_M`), not the fit's: grid and library angles are tens of millimetres off at best,
     and under a Σ of 2-3 cm they lost to the misplaced limb itself (the test with arms off the grid
