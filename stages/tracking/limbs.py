@@ -173,12 +173,12 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     Joint-angle hypotheses for the limb's DOFs come from the pose library (`candidates`, the limb's
     own values and its mirror's, mirrored), from a grid over its first two joints (`_limb_grid`),
     from the mirror limb's current angles (people often hold both arms alike) and from the current
-    angles. Each is scored by the likelihood (eq. 12) with the rest of the body fixed, on a
-    subsample (screened on a quarter of it first, `_screened_scores`), with the limb's priors π set to its mirror's (a limb that explained nothing would
-    otherwise be handicapped by its small prior) and under the initialisation's coarse Σ
-    (`SCORE_SIGMA_M`), not the fit's: grid and library angles are tens of millimetres off at best,
-    and under a Σ of 2-3 cm they lost to the misplaced limb itself (the test with arms off the grid
-    shows it). The best `_LIMB_REFINE` are refined by EM on all the data (the whole body free); the
+    angles. Each is scored by the likelihood (eq. 12) with the rest of the body fixed, on a subsample
+    (screened on a quarter of it first, `_screened_scores`), with the limb's priors π set to its mirror's (a
+    limb that explained nothing would otherwise be handicapped by its small prior) and under the
+    initialisation's coarse Σ (`SCORE_SIGMA_M`), not the fit's: grid and library angles are tens of
+    millimetres off at best, and under a Σ of 2-3 cm they lost to the misplaced limb itself (the test with
+    arms off the grid shows it). The best `_LIMB_REFINE` are refined by EM on all the data (the whole body free); the
     best of them replaces the fit when it is better by `LIMB_MARGIN` nats per observation.
     """
     rng = np.random.default_rng(0) if rng is None else rng

@@ -96,6 +96,11 @@ class TrackerParams:
         what its mirror segment explains, or than its running level over the tracked frames (when
         that reference is at least `limb_min_observations`), is re-initialised locally
         (`limbs.misplaced_limbs`, `limbs.deserted_limbs`, `limbs.reinitialise_limb`); 0 disables it.
+    seed : int
+        Seed of the random subsamples on which the initialisation and the limb recovery score their
+        hypotheses (each call draws afresh from it). Another seed is another equally good draw: tracking a
+        capture with a few seeds shows how much of a difference between two settings the draw alone makes
+        (`pipeline.lab.bench.retrack --seeds`).
     body : str
         The body model: the name of a body shipped with the tracker ("default", "paper"), or the path of
         a body file in their YAML layout (segments, DOFs and limits, ellipsoids, joints, length groups).
@@ -126,6 +131,7 @@ class TrackerParams:
     max_sigma_m: float = 0.06
     limb_share_ratio: float = LIMB_SHARE_RATIO
     limb_min_observations: int = LIMB_MIN_OBSERVATIONS
+    seed: int = 0
     body: str = "default"
 
     def __post_init__(self) -> None:
@@ -180,7 +186,7 @@ class TrackerParams:
 # Smallest valid value of each integer field of TrackerParams.
 _INTEGER_MINIMA = {"max_iterations": 1, "min_observations": 1, "reinit_every": 0, "refit_iterations": 1,
                    "max_predicted_frames": 0, "scale_frames": 0, "init_headings": 1, "init_refine": 1,
-                   "limb_min_observations": 0}
+                   "limb_min_observations": 0, "seed": 0}
 # (minimum, maximum, strictly above the minimum) of each float field of TrackerParams. Σ starts from
 # sigma_m² I, so a zero sigma_m is a singular covariance; a fraction or a prior are at most 1 (the
 # outlier prior at most one half: the outlier class may not own most of the data).

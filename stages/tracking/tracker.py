@@ -212,7 +212,8 @@ class Tracker:
             limbs += [limb for limb in deserted_limbs(self.limbs, result, usual_shares, len(y), self.params.limbs)
                       if limb.name not in names]
         for limb in limbs:
-            result = reinitialise_limb(y, n, result, limb, self.volume, em, self.library)
+            result = reinitialise_limb(y, n, result, limb, self.volume, em, self.library,
+                                       rng=np.random.default_rng(self.params.seed))
         return result
 
     def _initialise(self, state: TrackerState, y, n, body: BodyModel) -> tuple[FrameResult, TrackerState]:
@@ -229,7 +230,7 @@ class Tracker:
         params = self.params
         estimate = params.height_m is None and state.height_weight < params.scale_frames
         init = initialise(y, n, body, self.volume, self.library, estimate_height=estimate, em=params.em,
-                          params=params.init)
+                          params=params.init, rng=np.random.default_rng(params.seed))
         fitted = init.fit
         for _ in range(2):  # a limb moved by the first pass can leave its mirror (or itself) still misplaced
             recovered = self._recover_limbs(y, n, fitted, replace(params.em, estimate_scale=estimate))

@@ -54,3 +54,21 @@ def test_an_out_folder_it_did_not_make_is_refused_and_left_alone(bench, tmp_path
         retrack.main(["--bench", str(bench), "--out", str(out)])
     assert stopped.value.code == 2 and capsys.readouterr().err.startswith("error: --out ")
     assert (out / "notes.txt").read_text() == "the user's" if where == "foreign folder" else not out.exists()
+
+
+def test_seeds_track_every_run_once_per_seed_and_give_the_mean_and_the_range(bench, tmp_path, capsys):
+    out = tmp_path / "seeded"
+    assert retrack.main(["--bench", str(bench), "--out", str(out), "--workers", "2", "--seeds", "2"]) == 0
+    table = capsys.readouterr().out
+    truth = TINY / "groundtruth" / "joints.csv"
+    errors = [score_joints(out / "unseen" / f"tiny.seed{seed}", truth).summary()["mpjpe_mm"] for seed in (0, 1)]
+    assert f"| {sum(errors) / 2:.1f} | {min(errors):.1f}-{max(errors):.1f} |" in table
+    assert "seed: 1" in (out / "unseen" / "tiny.seed1" / "tracking" / "manifest.json").read_text().replace('"', "")
+    assert "the mean over tracking.seed 0-1" in table
+
+
+def test_seeds_beside_a_seed_of_ones_own_are_refused(bench, tmp_path, capsys):
+    with pytest.raises(SystemExit) as stopped:
+        retrack.main(["--bench", str(bench), "--out", str(tmp_path / "x"), "--seeds", "2", "--set", "tracking.seed=3"])
+    assert stopped.value.code == 2 and "--seeds" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()

@@ -48,6 +48,7 @@ BAD = {
         "max_sigma_m": [0.0, -0.06, NAN, INF],
         "limb_share_ratio": [-0.1, 1.5, NAN],
         "limb_min_observations": [-1, 2.5, True],
+        "seed": [-1, 0.5, True],
         "body": ["centaur", "", 3, None],  # a missing body file: tests/pipeline/test_body_io.py
     },
     SilhouetteParams: {

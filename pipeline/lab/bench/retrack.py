@@ -13,8 +13,17 @@ targets judge beside them: the unseen suite's mean and the foreign suite's worst
 A change that helps one capture and hurts the others shows at once, in about half a minute for fifteen
 captures, where the suites take minutes to make again silhouettes and points the change leaves alone.
 
-The new runs are made in ``--out``, one folder per run: the bench's stage folders up to the reconstruction
-hard-linked (copied where the file system cannot link), so that nothing of the bench's runs is written to.
+Some captures are chaotic: a setting that changes nothing of substance can still move one of them by several
+millimetres, through one limb re-initialisation or fresh initialisation that goes another way (foreign leaning
+moved 43.2 → 38.7 mm with only the pose library's angle vectors changed). ``--seeds N`` tracks every run N times,
+with ``tracking.seed`` 0 to N − 1 (the random subsamples the initialisation and the limb recovery score their
+hypotheses on), and gives each capture's mean over the seeds and its range: a difference between two settings
+that the seeds' own range covers is the draw, not the setting. Compare two settings each with the same seeds
+(the bench's own run is one draw, seed 0).
+
+The new runs are made in ``--out``, one folder per run (``<name>.seed<k>`` with ``--seeds``): the bench's stage
+folders up to the reconstruction hard-linked (copied where the file system cannot link), so that nothing of the
+bench's runs is written to.
 """
 
 from __future__ import annotations
@@ -92,15 +101,17 @@ def linked_copy(run: Path, dest: Path) -> None:
             shutil.copytree(run / stage, dest / stage)
 
 
-def retrack(run: BenchRun, out: Path, options: list[str]) -> dict:
-    """Track ``run`` again in ``out/<suite>/<name>`` with the ``options`` of ``pipeline run``; its scores then and
-    now (``problem`` says why a run has no new score)."""
+def retrack(run: BenchRun, out: Path, options: list[str], seed: int | None = None) -> dict:
+    """Track ``run`` again in ``out/<suite>/<name>`` (``<name>.seed<seed>`` with a ``seed``, given as
+    ``tracking.seed``) with the ``options`` of ``pipeline run``; its scores then and now (``problem`` says why a
+    run has no new score)."""
     truth = default_truth(run.path)
     summary = frames_io.read_json(RunLayout(run.path).capture_summary)
-    dest = out / run.suite / run.name
+    dest = out / run.suite / (run.name if seed is None else f"{run.name}.seed{seed}")
     linked_copy(run.path, dest)
+    seeded = [] if seed is None else ["--set", f"tracking.seed={seed}"]
     command = [sys.executable, "-m", "pipeline", "run", summary["capture_dir"], "--out", str(dest),
-               "--from", "tracking", "--workers", "1", "-q", *options]
+               "--from", "tracking", "--workers", "1", "-q", *options, *seeded]
     finished = subprocess.run(command, cwd=REPO, capture_output=True, text=True)
     row = {"suite": run.suite, "capture": run.name} | scores(run.path, truth, summary["frames"], "before")
     if finished.returncode != 0:
@@ -118,6 +129,19 @@ def scores(run_dir: Path, truth: Path, frames: list[int], when: str) -> dict:
     return {f"mpjpe_{when}": joints["mpjpe_mm"], f"worst_{when}": joints["worst_frame"]["mpjpe_mm"],
             f"reinitialised_{when}": reinitialised_after_first(results),
             f"doubtful_{when}": status_counts(results)["doubtful"]}
+
+
+def over_seeds(rows: list[dict]) -> dict:
+    """One capture's rows of several seeds as one row: the new figures' means over the seeds, the MPJPE's range
+    (``mpjpe_range``), and the first problem met (a row with a problem has no new figures)."""
+    scored = [row for row in rows if "problem" not in row]
+    merged = {key: value for key, value in rows[0].items() if not key.endswith("_after") and key != "problem"}
+    if len(scored) < len(rows):
+        return merged | {"problem": next(row["problem"] for row in rows if "problem" in row)}
+    merged |= {key: float(np.mean([row[key] for row in scored]))
+               for key in ("mpjpe_after", "worst_after", "reinitialised_after", "doubtful_after")}
+    return merged | {"mpjpe_range": (min(row["mpjpe_after"] for row in scored),
+                                     max(row["mpjpe_after"] for row in scored))}
 
 
 def summary_rows(rows: list[dict]) -> list[tuple]:
@@ -150,8 +174,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="as for python -m pipeline run (repeatable)")
     parser.add_argument("--config", type=Path, help="as for python -m pipeline run")
     parser.add_argument("--workers", type=int, default=2, help="runs tracked at a time")
+    parser.add_argument("--seeds", type=int, default=0, metavar="N",
+                        help="track every run with tracking.seed 0 to N-1 and give the means and ranges (default: "
+                             "once, with the settings as given)")
     args = parser.parse_args(argv)
     options = [word for assignment in args.assignments for word in ("--set", assignment)]
+    seeded = any(assignment.replace(" ", "").startswith("tracking.seed=") for assignment in args.assignments)
+    if args.seeds < 0 or (args.seeds and seeded):
+        parser.exit(2, "error: --seeds: expected a count >= 0, and no --set tracking.seed beside it\n")
     if args.config is not None:
         options += ["--config", str(args.config.resolve())]
     try:
@@ -163,19 +193,32 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as error:
         parser.exit(2, f"error: {printable(str(error))}\n")
     args.out.mkdir(parents=True, exist_ok=True)
-    frames_io.write_json(args.out / SETTINGS_FILE, {"bench": str(args.bench.resolve()), "options": options})
+    frames_io.write_json(args.out / SETTINGS_FILE, {"bench": str(args.bench.resolve()), "options": options,
+                                                    "seeds": args.seeds})
+    seeds = list(range(args.seeds)) or [None]
     with cf.ThreadPoolExecutor(max(1, args.workers)) as pool:
-        rows = list(pool.map(lambda run: retrack(run, args.out, options), runs))
-    print(format_table(("suite", "capture", "MPJPE mm before", "after", "worst mm before", "after",
-                        "re-init. after 1st before", "after", "doubtful before", "after", "problem"),
+        tracked = list(pool.map(lambda job: retrack(job[0], args.out, options, job[1]),
+                                [(run, seed) for run in runs for seed in seeds]))
+    rows = [over_seeds(tracked[k * len(seeds):(k + 1) * len(seeds)]) for k in range(len(runs))]
+    ranges = "MPJPE range over the seeds" if args.seeds else None
+    print(format_table(("suite", "capture", "MPJPE mm before", "after", *([ranges] if ranges else []),
+                        "worst mm before", "after", "re-init. after 1st before", "after", "doubtful before", "after",
+                        "problem"),
                        [(row["suite"], row["capture"], row["mpjpe_before"], row.get("mpjpe_after"),
+                         *([_span(row.get("mpjpe_range"))] if ranges else []),
                          row["worst_before"], row.get("worst_after"), percent(row["reinitialised_before"]),
                          percent(row.get("reinitialised_after")), row["doubtful_before"],
                          row.get("doubtful_after"), printable(row.get("problem", "")))
                         for row in rows]))
+    if args.seeds:
+        print(f"\nafter: the mean over tracking.seed 0-{args.seeds - 1}; before: the bench's run (seed 0)")
     print()
     print(format_table(("figure", "before", "after"), summary_rows(rows)))
     return 1 if any("problem" in row for row in rows) else 0
+
+
+def _span(bounds: tuple[float, float] | None) -> str:
+    return "" if bounds is None else f"{bounds[0]:.1f}-{bounds[1]:.1f}"
 
 
 if __name__ == "__main__":
