@@ -26,11 +26,10 @@ LIMB_SHARE_RATIO = 0.3
 # The comparison only means something when the mirror segment itself explains this many observations
 # (a foot or a forearm seen by few cameras is too noisy a reference).
 LIMB_MIN_OBSERVATIONS = 20
-# Observations used to score the joint-angle hypotheses of a limb (the rest of the body fixed).
-_LIMB_SCORE_POINTS = 400
 # Hypotheses closer than this (radians, every DOF of the chain) are one: the library repeats itself.
 _LIMB_HYPOTHESIS_STEP = 0.1
-# Hypotheses scored on all of those observations: the best on the first of them (`_screened_scores`).
+# Limb hypotheses are scored on this many random observations first, and the best this many on all of them
+# (`_screened_scores`).
 _LIMB_SCREEN_POINTS = 100
 _LIMB_SCREEN_KEEP = 48
 # Best-scoring limb hypotheses refined by EM on all the data.
@@ -173,8 +172,9 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     Joint-angle hypotheses for the limb's DOFs come from the pose library (`candidates`, the limb's
     own values and its mirror's, mirrored), from a grid over its first two joints (`_limb_grid`),
     from the mirror limb's current angles (people often hold both arms alike) and from the current
-    angles. Each is scored by the likelihood (eq. 12) with the rest of the body fixed, on a subsample
-    (screened on a quarter of it first, `_screened_scores`), with the limb's priors π set to its mirror's (a
+    angles. Each is scored by the likelihood (eq. 12) with the rest of the body fixed, on all the data
+    (screened on a random few first, `_screened_scores`: scored on a random subsample, the limb's fate
+    depended on the draw), with the limb's priors π set to its mirror's (a
     limb that explained nothing would otherwise be handicapped by its small prior) and under the
     initialisation's coarse Σ (`SCORE_SIGMA_M`), not the fit's: grid and library angles are tens of
     millimetres off at best, and under a Σ of 2-3 cm they lost to the misplaced limb itself (the test with
@@ -196,8 +196,8 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     mixture = replace(result.mixture, pi=pi / pi.sum())
     coarse = replace(mixture, Sigma=np.eye(len(mixture.Sigma)) * SCORE_SIGMA_M**2)
     V = volume_size(volume)
-    subset = rng.permutation(len(y))[:_LIMB_SCORE_POINTS]
-    ys, ns = y[subset], n[subset]
+    order = rng.permutation(len(y))  # the screening's rows a random sample
+    ys, ns = y[order], n[order]
     # The rest of the body does not move: its evidence is computed once, the limb's added per hypothesis.
     rest = log_evidence(ys, ns, body.ellipsoids(pose), coarse, V, which=np.flatnonzero(~mine),
                         distance=em.distance, normal_noise_rad=em.normal_noise_rad)

@@ -125,7 +125,7 @@ class TrackerParams:
     max_predicted_frames: int = 10
     scale_frames: int = 10
     init_headings: int = 12
-    init_refine: int = 24
+    init_refine: int = 12
     normal_noise_deg: float = 10.0
     min_outlier_prior: float = 0.05
     max_sigma_m: float = 0.06
