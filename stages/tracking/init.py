@@ -28,7 +28,11 @@ _TOP_NEIGHBOURS = 2
 # Σ while scoring and at the start of the refinement: hypotheses are off by several centimetres (also
 # the limbs' re-initialisation's, `limbs.reinitialise_limb`).
 SCORE_SIGMA_M = 0.06
-# Each round of the refinement keeps the best quarter of its hypotheses (24 → 6 → 1 by default).
+# The candidate poses are screened on this many of the scoring observations, and this many times as many as
+# the refinement takes are scored on all of them (`_screened_scores`).
+_SCREEN_POINTS = 30
+_SCREEN_KEEP_FACTOR = 6
+# Each round of the refinement keeps the best quarter of its hypotheses (12 → 3 → 2 by default).
 _KEEP_DIVISOR = 4
 
 
@@ -118,7 +122,8 @@ def initialise(y: np.ndarray, n: np.ndarray, body: BodyModel, volume: np.ndarray
     yaws = np.linspace(0.0, 2 * np.pi, params.headings, endpoint=False)
     mixture = Mixture.initial(body.n_ellipsoids, SCORE_SIGMA_M, distance_named(em.distance).size)
     scored = sample[: params.score_points]
-    scores = _score(y[scored], n[scored], centre, bodies, poses, yaws, mixture, V, em.distance)  # (M, H)
+    scores = _screened_scores(y[scored], n[scored], centre, bodies, poses, yaws, mixture, V, em.distance,
+                              keep=_SCREEN_KEEP_FACTOR * params.refine)  # (M, H)
     short = replace(em, max_iterations=params.refine_iterations, displacement_m=0.0,
                     estimate_scale=estimate_height, estimate_lengths=False)
     order = np.argsort(-scores.max(axis=1))[: params.refine]  # distinct poses, each at its best heading
@@ -166,6 +171,25 @@ def _score(y, n, centre, bodies, poses, yaws, mixture, V, distance) -> np.ndarra
                             semi_axes=np.stack([e.semi_axes for e in posed]))
     return hypothesis_scores(y_turned, n_turned, hypotheses, mixture, V, blocks=np.arange(len(yaws) + 1) * len(y),
                              distance=distance)
+
+
+def _screened_scores(y, n, centre, bodies, poses, yaws, mixture, V, distance, *, keep: int) -> np.ndarray:
+    """`_score` (M, H) for the `keep` candidate poses best at their best heading on the first `_SCREEN_POINTS`
+    rows, −inf for the others.
+
+    The refinement takes the best few poses; a pose far down the ranking on a quarter of the rows stays far
+    down on all of them. Every pose is scored on those rows, the survivors on the rest as well, and the two
+    sums add up to the score on all the rows.
+    """
+    screen = min(_SCREEN_POINTS, len(y))
+    if screen == len(y) or keep >= len(bodies):
+        return _score(y, n, centre, bodies, poses, yaws, mixture, V, distance)
+    first = _score(y[:screen], n[:screen], centre, bodies, poses, yaws, mixture, V, distance)
+    survivors = np.sort(np.argsort(-first.max(axis=1))[:keep])
+    scores = np.full_like(first, -np.inf)
+    scores[survivors] = first[survivors] + _score(y[screen:], n[screen:], centre, [bodies[m] for m in survivors],
+                                                  [poses[m] for m in survivors], yaws, mixture, V, distance)
+    return scores
 
 
 def _cloud_top(y: np.ndarray) -> float:

@@ -195,3 +195,31 @@ def test_screened_limb_scores_are_the_full_scores_of_the_hypotheses_that_survive
     assert np.all(screened[~survived] == -np.inf)
     assert survived[np.argsort(full)[::-1][:_LIMB_REFINE]].all()
 
+
+
+def test_screened_initialisation_scores_are_the_full_scores_of_the_poses_that_survive():
+    """Every library pose is scored at every heading on a few rows; the best `keep` poses are then scored on all
+    the rows (the same scores as without screening), the others are −inf, and the poses the refinement takes
+    from the full ranking survive."""
+    from stages.tracking import init
+    from stages.tracking.init import SCORE_SIGMA_M
+    from stages.tracking.mixture import Mixture, volume_size
+
+    body = load_body("default", height_m=1.75)
+    rng = np.random.default_rng(42)
+    truth = _pose(body, 1.0, {"l_thigh.flex": 80, "l_shank.flex": 40, "r_upperarm.abduct": 50})
+    y, n = sample_ellipsoids(body, truth, 120, rng, outlier_fraction=0.2)
+    library = load_pose_library(body)
+    poses = [pose * np.r_[1.0, 1.0, body.height_m, np.ones(body.pose_size - 3)] for pose in library]
+    bodies = [body] * len(poses)
+    yaws = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
+    mixture = Mixture.initial(body.n_ellipsoids, SCORE_SIGMA_M, 3)
+    centre = np.median(y[:, :2], axis=0)
+    arguments = (y, n, centre, bodies, poses, yaws, mixture, volume_size(VOLUME), "normals")
+    full = init._score(*arguments)
+    keep = init._SCREEN_KEEP_FACTOR * InitParams().refine
+    screened = init._screened_scores(*arguments, keep=keep)
+    survived = np.isfinite(screened).all(axis=1)
+    assert survived.sum() == keep and np.all(np.isinf(screened[~survived]))
+    np.testing.assert_allclose(screened[survived], full[survived], rtol=1e-12)
+    assert survived[np.argsort(-full.max(axis=1))[:InitParams().refine]].all()
