@@ -184,6 +184,27 @@ def hypothesis_scores(y: np.ndarray, n: np.ndarray, hypotheses: Ellipsoids, mixt
                                                       normal_noise_rad)
 
 
+def screened_scores(score, count: int, rows: int, screen: int, keep: int) -> np.ndarray:
+    """The scores of `count` hypotheses on `rows` data rows, computed in full only for the `keep` best on the
+    first `screen` rows; −inf for the others.
+
+    `score(chosen, rows)` gives the chosen hypotheses' summed log-evidence (`hypothesis_scores`) on a slice of
+    the data rows, (len(chosen), ...) with any further axes (the headings of the initialisation); a hypothesis is
+    ranked by its best entry. Initialisation and limb recovery refine only a few of hundreds of hypotheses, and
+    one far down the ranking on a few random rows stays far down on all of them: scoring every one on those
+    rows and only the survivors on the others costs a fraction of the work, and the two block sums add up to
+    the survivors' full scores.
+    """
+    everyone = np.arange(count)
+    if screen >= rows or keep >= count:
+        return score(everyone, slice(0, rows))
+    first = score(everyone, slice(0, screen))
+    survivors = np.sort(np.argsort(-first.reshape(count, -1).max(axis=1), kind="stable")[:keep])
+    scores = np.full_like(first, -np.inf)
+    scores[survivors] = first[survivors] + score(survivors, slice(screen, rows))
+    return scores
+
+
 def m_step(y: np.ndarray, n: np.ndarray, body: BodyModel, kin: Kinematics, pose: np.ndarray, mixture: Mixture,
            estep: EStep, params: EMParams = EMParams(), prior_pose: np.ndarray | None = None) -> MStep:
     """M-step of Horaud et al. 2009 (Sec. 3, step 3): pose by damped Gauss-Newton, then Σ and π.

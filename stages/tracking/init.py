@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from stages.tracking.body import BodyModel, Ellipsoids
 from stages.tracking.distances import distance_named
-from stages.tracking.em import EMParams, FitResult, fit, hypothesis_scores
+from stages.tracking.em import EMParams, FitResult, fit, hypothesis_scores, screened_scores
 from stages.tracking.gauss_newton import HEIGHT_RANGE_M
 from stages.tracking.mixture import Mixture, volume_size
 
@@ -174,22 +174,14 @@ def _score(y, n, centre, bodies, poses, yaws, mixture, V, distance) -> np.ndarra
 
 
 def _screened_scores(y, n, centre, bodies, poses, yaws, mixture, V, distance, *, keep: int) -> np.ndarray:
-    """`_score` (M, H) for the `keep` candidate poses best at their best heading on the first `_SCREEN_POINTS`
-    rows, −inf for the others.
+    """`_score` (M, H) of the `keep` candidate poses best at their best heading on the first `_SCREEN_POINTS`
+    rows, −inf for the others (`em.screened_scores`)."""
 
-    The refinement takes the best few poses; a pose far down the ranking on a quarter of the rows stays far
-    down on all of them. Every pose is scored on those rows, the survivors on the rest as well, and the two
-    sums add up to the score on all the rows.
-    """
-    screen = min(_SCREEN_POINTS, len(y))
-    if screen == len(y) or keep >= len(bodies):
-        return _score(y, n, centre, bodies, poses, yaws, mixture, V, distance)
-    first = _score(y[:screen], n[:screen], centre, bodies, poses, yaws, mixture, V, distance)
-    survivors = np.sort(np.argsort(-first.max(axis=1))[:keep])
-    scores = np.full_like(first, -np.inf)
-    scores[survivors] = first[survivors] + _score(y[screen:], n[screen:], centre, [bodies[m] for m in survivors],
-                                                  [poses[m] for m in survivors], yaws, mixture, V, distance)
-    return scores
+    def score(chosen: np.ndarray, rows: slice) -> np.ndarray:
+        return _score(y[rows], n[rows], centre, [bodies[m] for m in chosen], [poses[m] for m in chosen], yaws,
+                      mixture, V, distance)
+
+    return screened_scores(score, len(bodies), len(y), _SCREEN_POINTS, keep)
 
 
 def _cloud_top(y: np.ndarray) -> float:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from stages.tracking.body import BodyModel, Ellipsoids
-from stages.tracking.em import EMParams, FitResult, fit, hypothesis_scores, log_evidence
+from stages.tracking.em import EMParams, FitResult, fit, hypothesis_scores, log_evidence, screened_scores
 from stages.tracking.init import SCORE_SIGMA_M
 from stages.tracking.mixture import Mixture, volume_size
 
@@ -174,12 +174,12 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     from the mirror limb's current angles (people often hold both arms alike) and from the current
     angles. Each is scored by the likelihood (eq. 12) with the rest of the body fixed, on all the data
     (screened on a random few first, `_screened_scores`: scored on a random subsample, the limb's fate
-    depended on the draw), with the limb's priors π set to its mirror's (a
-    limb that explained nothing would otherwise be handicapped by its small prior) and under the
-    initialisation's coarse Σ (`SCORE_SIGMA_M`), not the fit's: grid and library angles are tens of
-    millimetres off at best, and under a Σ of 2-3 cm they lost to the misplaced limb itself (the test with
-    arms off the grid shows it). The best `_LIMB_REFINE` are refined by EM on all the data (the whole body free); the
-    best of them replaces the fit when it is better by `LIMB_MARGIN` nats per observation.
+    depended on the draw), with the limb's priors π set to its mirror's (a limb that explained nothing
+    would otherwise be handicapped by its small prior) and under the initialisation's coarse Σ
+    (`SCORE_SIGMA_M`), not the fit's: grid and library angles are tens of millimetres off at best, and
+    under a Σ of 2-3 cm they lost to the misplaced limb itself (the test with arms off the grid shows it).
+    The best `_LIMB_REFINE` are refined by EM on all the data (the whole body free); the best of them
+    replaces the fit when it is better by `LIMB_MARGIN` nats per observation.
     """
     rng = np.random.default_rng(0) if rng is None else rng
     body, pose = result.body, result.pose
@@ -216,28 +216,14 @@ def _screened_scores(y: np.ndarray, n: np.ndarray, hypotheses: Ellipsoids, mixtu
                      which: np.ndarray, base: np.ndarray, em: EMParams) -> np.ndarray:
     """(H,) the limb hypotheses' scores (`hypothesis_scores` of the limb's ellipsoids `which` over the rest's
     evidence `base`) on all of y for the `_LIMB_SCREEN_KEEP` best on its first `_LIMB_SCREEN_POINTS` rows, −inf
-    for the others.
+    for the others (`em.screened_scores`)."""
 
-    Only the best few are refined, and a hypothesis far down the ranking on a quarter of the points stays far
-    down on all of them: screening scores every hypothesis on those rows once and only the survivors on the
-    rest, a third of the work, with the same refined hypotheses (the block sums add up to the full score).
-    """
-    screen = min(_LIMB_SCREEN_POINTS, len(y))
-    blocks = np.array([0, screen, len(y)])
-
-    def block_sums(chosen: np.ndarray, rows: slice) -> np.ndarray:
+    def score(chosen: np.ndarray, rows: slice) -> np.ndarray:
         posed = Ellipsoids(R=hypotheses.R[chosen], t=hypotheses.t[chosen], semi_axes=hypotheses.semi_axes[chosen])
         return hypothesis_scores(y[rows], n[rows], posed, mixture, V, which=which, base=base[rows],
                                  distance=em.distance, normal_noise_rad=em.normal_noise_rad)[:, 0]
 
-    everyone = np.arange(len(hypotheses.t))
-    first = block_sums(everyone, slice(0, blocks[1]))
-    survivors = np.sort(np.argsort(first)[::-1][:_LIMB_SCREEN_KEEP])
-    scores = np.full(len(everyone), -np.inf)
-    scores[survivors] = first[survivors]
-    if screen < len(y):
-        scores[survivors] += block_sums(survivors, slice(blocks[1], blocks[2]))
-    return scores
+    return screened_scores(score, len(hypotheses.t), len(y), _LIMB_SCREEN_POINTS, _LIMB_SCREEN_KEEP)
 
 
 def _limb_grid(body: BodyModel, pose: np.ndarray, limb: Limb) -> np.ndarray:

@@ -242,3 +242,25 @@ def test_a_fit_with_no_datum_near_the_body_keeps_going_while_estimating_lengths(
                                                    estimate_scale=True, estimate_lengths=True, max_iterations=3))
     assert np.all(np.isfinite(result.pose)) and np.all(np.isfinite(result.mixture.Sigma))
     assert result.outlier_fraction > 0.9
+
+
+def test_screened_scores_score_in_full_only_the_hypotheses_best_on_the_first_rows():
+    """Survivors get their sums over every row, the others −inf; with nothing to screen out, every score is full."""
+    from stages.tracking.em import screened_scores
+
+    rng = np.random.default_rng(5)
+    terms = rng.normal(size=(20, 3, 50))  # hypotheses x headings x rows
+    calls = []
+
+    def score(chosen, rows):
+        calls.append((len(chosen), rows.stop - rows.start))
+        return terms[chosen][:, :, rows].sum(axis=2)
+
+    screened = screened_scores(score, 20, 50, 10, 4)
+    survivors = np.argsort(-terms[:, :, :10].sum(axis=2).max(axis=1))[:4]
+    assert calls == [(20, 10), (4, 40)]
+    np.testing.assert_allclose(screened[np.sort(survivors)], terms[np.sort(survivors)].sum(axis=2))
+    assert np.isinf(np.delete(screened, survivors, axis=0)).all()
+    calls.clear()
+    np.testing.assert_allclose(screened_scores(score, 20, 50, 10, 20), terms.sum(axis=2))
+    assert calls == [(20, 50)]

@@ -196,7 +196,6 @@ def test_screened_limb_scores_are_the_full_scores_of_the_hypotheses_that_survive
     assert survived[np.argsort(full)[::-1][:_LIMB_REFINE]].all()
 
 
-
 def test_screened_initialisation_scores_are_the_full_scores_of_the_poses_that_survive():
     """Every library pose is scored at every heading on a few rows; the best `keep` poses are then scored on all
     the rows (the same scores as without screening), the others are −inf, and the poses the refinement takes
