@@ -49,7 +49,8 @@ class ReconstructionParams:
         Samples along each viewing ray's bounded stretch before the in/out transitions are bisected;
         edges shorter than the sample spacing (about 2 cm on a typical 40 cm stretch) can be missed.
     contour_smoothing_px : float
-        Gaussian smoothing of outlines along the contour (in contour points), against pixel staircase.
+        Gaussian smoothing of outlines along the contour (in contour points), against pixel staircase;
+        applied twice (twicing), so that it does not shrink thin limbs (`contours.outline`).
     voxel_size_m, coarse_voxel_size_m : float
         Visual hull: final voxel size and the size carving starts at (metres).
     """
@@ -59,7 +60,7 @@ class ReconstructionParams:
     tolerated_views: int = 0
     rim_placement: str = "osculating"
     samples_per_ray: int = 24
-    contour_smoothing_px: float = 1.5
+    contour_smoothing_px: float = 2.0
     voxel_size_m: float = 0.01
     coarse_voxel_size_m: float = 0.08
 
