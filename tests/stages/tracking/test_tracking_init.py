@@ -9,7 +9,7 @@ from stages.tracking.body_file import load_body
 from stages.tracking.em import EMParams, fit
 from stages.tracking.init import InitParams, initialise
 from stages.tracking.library import generic_poses, load_pose_library
-from stages.tracking.limbs import body_limbs, deserted_limbs, misplaced_limbs, reinitialise_limb, segment_shares
+from stages.tracking.limbs import body_limbs, deserted_limbs, folded, misplaced_limbs, reinitialise_limb, segment_shares
 
 
 @pytest.mark.parametrize("name", ["default", "paper"])
@@ -82,6 +82,18 @@ def test_limbs_and_their_mirrors():
     assert [body.segment_names[s] for s in arm.mirror_segments] == ["r_upperarm", "r_forearm"]
     twist = [body.dof_names[d] for d in arm.dofs].index("l_upperarm.twist")
     assert arm.mirror_sign[twist] == -1 and np.sum(arm.mirror_sign == 1) == len(arm.dofs) - 1
+
+
+@pytest.mark.parametrize(("limb", "dof", "bent", "degrees"), [
+    ("l_upperarm", "l_forearm.flex", False, [0, 60, 120]), ("l_upperarm", "l_forearm.flex", True, [150, 155]),
+    ("r_thigh", "r_shank.flex", False, [0, 90, 140]), ("r_thigh", "r_shank.flex", True, [160, 165])])
+def test_a_limb_is_folded_when_its_lower_segment_lies_inside_the_upper_one(limb, dof, bent, degrees):
+    body = load_body("default", height_m=1.75)
+    chain = {item.name: item for item in body_limbs(body)}[limb]
+    for angle in degrees:
+        pose = body.zero_pose()
+        pose[list(body.dof_names).index(dof)] = np.radians(angle)
+        assert folded(body, pose, chain) is bent
 
 
 def test_a_limb_placed_wrong_is_found_and_recovered_locally():
