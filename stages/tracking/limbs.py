@@ -218,10 +218,9 @@ def folded(body: BodyModel, pose: np.ndarray, limb: Limb) -> bool:
     of the parent segment's ellipsoids (with the default body, an elbow bent past about 135°, a knee past 150°).
 
     Such a pose is a degenerate optimum of the mixture: the folded segment explains its parent's data a
-    second time, which can outweigh the few data of a thin forearm, so a limb re-initialisation lands
-    there from a pose that was right (foreign leaning, frame 96: the forearm laid along the upper arm,
-    wrist 59 → 379 mm off, for 0.05 nats per observation). Tracking still follows a limb that bends that
-    far from frame to frame; only a jump there is refused.
+    second time, which can outweigh the few data of a thin forearm, so a limb re-initialisation could jump
+    there from a pose that was right, the wrist then put back at the shoulder. Tracking still follows a
+    limb that bends that far from frame to frame; only a jump there is refused.
     """
     ellipsoids = body.ellipsoids(pose)
     for segment in limb.segments[1:]:
