@@ -19,9 +19,9 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
   initialisation the next frame tracks from it and weighs a fresh initialisation against that fit;
 - a limb that explains far fewer data than its mirror limb (an arm put on the wrong side of the
   body), or than it did over the recent tracked frames (a forearm folded onto its upper arm or
-  turned away from its data, which may still explain as many data as its mirror), or that lies folded
-  onto itself (`limbs.folded`), is re-initialised locally after every fit (`limbs.reinitialise_limb`,
-  which never lands in a fold), and kept only on a clear likelihood gain;
+  turned away from its data, which may still explain as many data as its mirror), or that has folded
+  onto itself since the last frame (`limbs.folded`), is re-initialised locally after every fit
+  (`limbs.reinitialise_limb`, which never lands in a fold), and kept only on a clear likelihood gain;
 - frames with no or too few observations: the pose is predicted (velocity decaying) and flagged
   "predicted", then "lost" when the gap lasts; tracking re-initialises when data return.
 Nothing here produces NaN: unusable rows of the input are dropped and every output is finite.
@@ -109,7 +109,7 @@ class Tracker:
         prediction = sized.clip(state.pose + state.velocity)
         mixture = Mixture(Sigma=state.Sigma + params.sigma_m**2 * np.eye(len(state.Sigma)), pi=state.pi)
         tracked = self._fit_from(prediction, state, y, n, sized, mixture, em)
-        tracked = self._recover_limbs(y, n, tracked, em, state.segment_shares)
+        tracked = self._recover_limbs(y, n, tracked, em, state.segment_shares, state.pose)
         doubtful = _failed(tracked, params)
         tried = doubtful or 0 < params.reinit_every <= state.since_initialisation + 1 or state.recheck
         if tried:
@@ -199,22 +199,27 @@ class Tracker:
                              joint_support=joint_support(tracked.body, tracked.mixture, observations))
         return result, new_state
 
-    def _recover_limbs(self, y, n, result: FitResult, em: EMParams, usual_shares=None) -> FitResult:
+    def _recover_limbs(self, y, n, result: FitResult, em: EMParams, usual_shares=None,
+                       previous: np.ndarray | None = None) -> FitResult:
         """The fit with each limb that explains far fewer data than its mirror, or than it usually does
-        (`usual_shares`, the running level of `limbs.segment_shares`; None: no history), or that lies folded
-        onto itself (`limbs.folded`), re-initialised locally.
+        (`usual_shares`, the running level of `limbs.segment_shares`; None: no history), or that has just
+        folded onto itself (`limbs.folded` now, not in the `previous` pose; None: no previous pose),
+        re-initialised locally.
 
         A limb EM put on the wrong side of the body or folded away from its data gets almost no
         observations, and the local minimum holds it there for many frames; trying the library's angles
         for that limb alone (`limbs.reinitialise_limb`) finds it again, and the likelihood decides. A forearm
         EM folded onto its upper arm can keep a fair share of the data (its upper arm's, a second time),
-        so the fold itself makes it a suspect; where the data show the fold, no hypothesis beats it.
+        so the fold itself makes it a suspect, once, when it appears: where the data show the fold (a
+        chambered kick's knee), no hypothesis beats it, and trying again at every frame it lasts would
+        cost a limb re-initialisation each.
         """
         limbs = misplaced_limbs(self.limbs, result, len(y), self.params.limbs)
         if usual_shares is not None:
             limbs += deserted_limbs(self.limbs, result, usual_shares, len(y), self.params.limbs)
         if self.params.limbs.share_ratio > 0:
-            limbs += [limb for limb in self.limbs if folded(result.body, result.pose, limb)]
+            limbs += [limb for limb in self.limbs if folded(result.body, result.pose, limb)
+                      and (previous is None or not folded(result.body, previous, limb))]
         limbs = list({limb.name: limb for limb in limbs}.values())  # each once, in the order found
         for limb in limbs:
             result = reinitialise_limb(y, n, result, limb, self.volume, em, self.library,
