@@ -52,9 +52,8 @@ class InitParams:
         Observations used to score the hypotheses (the cloud's shape, not every point).
     refine_points : int or None
         Observations used to refine the best hypotheses (a superset of the scoring ones); None: all. On a
-        random subsample the halving's ranking depended on the draw: tracked again with other seeds
-        (`TrackerParams.seed`), captures moved by up to 8 mm (unseen run_hires 31.5-39.5), and on all the
-        observations by at most 1 mm; twice as few hypotheses on all of them cost no more time.
+        random subsample the halving's ranking, and with it the pose chosen, depends on the draw
+        (`TrackerParams.seed`; measured in docs/results_by_hand.md).
     refine_iterations : int
         EM iterations per round of the refinement.
     iterations : int

@@ -159,6 +159,19 @@ def deserted_limbs(limbs: list[Limb], result: FitResult, usual_shares: np.ndarra
     return [limb for limb in limbs if _starved(per_segment[limb.segments], usual[limb.segments], params)]
 
 
+def folded_limbs(limbs: list[Limb], result: FitResult, previous: np.ndarray | None = None) -> list[Limb]:
+    """The `limbs` (`body_limbs` of the fitted body) that lie `folded` onto themselves in the fit and did not in
+    the `previous` pose (None: no previous pose, every folded limb).
+
+    A forearm EM folded onto its upper arm keeps a fair share of the data (its upper arm's, a second time), so
+    neither share test finds it; the fold itself makes it a suspect, once, when it appears: where the data
+    show the fold (a chambered kick's knee), no hypothesis beats it, and trying again at every frame it lasts
+    would cost a limb re-initialisation each.
+    """
+    return [limb for limb in limbs if folded(result.body, result.pose, limb)
+            and (previous is None or not folded(result.body, previous, limb))]
+
+
 def _starved(own: np.ndarray, reference: np.ndarray, params: LimbParams) -> bool:
     """Whether a segment explains fewer data than `share_ratio` times a reference of at least `min_observations`."""
     return bool(np.any((reference >= params.min_observations) & (own < params.share_ratio * reference)))

@@ -94,8 +94,9 @@ class TrackerParams:
     limb_share_ratio, limb_min_observations : float, int
         After every fit, a limb with a segment explaining fewer data than `limb_share_ratio` times
         what its mirror segment explains, or than its running level over the tracked frames (when
-        that reference is at least `limb_min_observations`), is re-initialised locally
-        (`limbs.misplaced_limbs`, `limbs.deserted_limbs`, `limbs.reinitialise_limb`); 0 disables it.
+        that reference is at least `limb_min_observations`), or that has just folded onto itself, is
+        re-initialised locally (`limbs.misplaced_limbs`, `limbs.deserted_limbs`, `limbs.folded_limbs`,
+        `limbs.reinitialise_limb`); 0 disables the whole limb recovery.
     seed : int
         Seed of the random subsamples on which the initialisation and the limb recovery score their
         hypotheses (each call draws afresh from it). Another seed is another equally good draw: tracking a

@@ -20,7 +20,7 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
 - a limb that explains far fewer data than its mirror limb (an arm put on the wrong side of the
   body), or than it did over the recent tracked frames (a forearm folded onto its upper arm or
   turned away from its data, which may still explain as many data as its mirror), or that has folded
-  onto itself since the last frame (`limbs.folded`), is re-initialised locally after every fit
+  onto itself since the last frame (`limbs.folded_limbs`), is re-initialised locally after every fit
   (`limbs.reinitialise_limb`, which never lands in a fold), and kept only on a clear likelihood gain;
 - frames with no or too few observations: the pose is predicted (velocity decaying) and flagged
   "predicted", then "lost" when the gap lasts; tracking re-initialises when data return.
@@ -42,7 +42,14 @@ from stages.tracking.distances import distance_named
 from stages.tracking.em import EMParams, FitResult, fit
 from stages.tracking.init import initialise
 from stages.tracking.library import load_pose_library
-from stages.tracking.limbs import body_limbs, deserted_limbs, folded, misplaced_limbs, reinitialise_limb, segment_shares
+from stages.tracking.limbs import (
+    body_limbs,
+    deserted_limbs,
+    folded_limbs,
+    misplaced_limbs,
+    reinitialise_limb,
+    segment_shares,
+)
 from stages.tracking.mixture import Mixture, volume_size
 from stages.tracking.params import TrackerParams, shipped_body
 from stages.tracking.results import FrameResult, TrackerState
@@ -202,24 +209,19 @@ class Tracker:
     def _recover_limbs(self, y, n, result: FitResult, em: EMParams, usual_shares=None,
                        previous: np.ndarray | None = None) -> FitResult:
         """The fit with each limb that explains far fewer data than its mirror, or than it usually does
-        (`usual_shares`, the running level of `limbs.segment_shares`; None: no history), or that has just
-        folded onto itself (`limbs.folded` now, not in the `previous` pose; None: no previous pose),
-        re-initialised locally.
+        (`usual_shares`, the running level of `limbs.segment_shares`; None: no history), or that has folded
+        onto itself since the `previous` pose (`limbs.folded_limbs`; None: no previous pose), re-initialised
+        locally.
 
         A limb EM put on the wrong side of the body or folded away from its data gets almost no
         observations, and the local minimum holds it there for many frames; trying the library's angles
-        for that limb alone (`limbs.reinitialise_limb`) finds it again, and the likelihood decides. A forearm
-        EM folded onto its upper arm can keep a fair share of the data (its upper arm's, a second time),
-        so the fold itself makes it a suspect, once, when it appears: where the data show the fold (a
-        chambered kick's knee), no hypothesis beats it, and trying again at every frame it lasts would
-        cost a limb re-initialisation each.
+        for that limb alone (`limbs.reinitialise_limb`) finds it again, and the likelihood decides.
         """
         limbs = misplaced_limbs(self.limbs, result, len(y), self.params.limbs)
         if usual_shares is not None:
             limbs += deserted_limbs(self.limbs, result, usual_shares, len(y), self.params.limbs)
         if self.params.limbs.share_ratio > 0:
-            limbs += [limb for limb in self.limbs if folded(result.body, result.pose, limb)
-                      and (previous is None or not folded(result.body, previous, limb))]
+            limbs += folded_limbs(self.limbs, result, previous)
         limbs = list({limb.name: limb for limb in limbs}.values())  # each once, in the order found
         for limb in limbs:
             result = reinitialise_limb(y, n, result, limb, self.volume, em, self.library,
