@@ -237,6 +237,10 @@ def run_tracking(ctx: StageContext) -> int:
             frames_io.write_record(run_layout.tracking_path(ctx.out_dir, frame), frame_record(frame, result, state))
             bar.update(1)
     _warn_volume_contact(faces[done:], frames[done:], ctx.capture.volume)
+    if params.height_m is not None and state is not None and state.measured_height_m is not None:
+        log.info("tracking: subject height %.3f m as stated, %.3f m as the data measure it (%+.1f %%); tracked at "
+                 "%.3f m (tracking.stated_height_weight = %g)", params.height_m, state.measured_height_m,
+                 100 * (state.measured_height_m / params.height_m - 1), state.height_m, params.stated_height_weight)
     return len(frames) - done
 
 

@@ -32,7 +32,14 @@ class TrackerParams:
     Attributes
     ----------
     height_m : float or None
-        Subject's standing height in metres; None = estimate it from the data.
+        Subject's stated standing height in metres; None = the data's estimate alone.
+    stated_height_weight : float
+        Weight, from 0 to 1, of a stated height against the height the first frames' data give (the
+        body is sized at stated^w × measured^(1 − w)); 1 takes the stated height as it is and measures
+        nothing. Why not 1: a stature fixes the joints only through the body file's proportions, and two
+        renderers of one CMU skeleton disagree on its stature by 3-4 %, about as far as the data's own
+        estimate errs on bodies of unusual proportions; two estimates with errors of the same size are best averaged.
+        Measured in docs/results_by_hand.md ("A stated height weighed against the data's").
     distance : {"normals", "points", "algebraic"}
         Datum-to-ellipsoid distance (the paper's is "normals").
     max_iterations : int
@@ -108,6 +115,7 @@ class TrackerParams:
     """
 
     height_m: float | None = None
+    stated_height_weight: float = 0.5
     distance: str = "normals"
     max_iterations: int = 10
     tolerance: float = 0.01
@@ -197,7 +205,7 @@ _NUMBER_RANGES = {"tolerance": (0.0, np.inf, False), "displacement_m": (0.0, np.
                   "refit_drop": (0.0, np.inf, False), "restart_drop": (0.0, np.inf, False),
                   "velocity_decay": (0.0, 1.0, False), "normal_noise_deg": (0.0, 90.0, False),
                   "min_outlier_prior": (0.0, 0.5, False), "max_sigma_m": (0.0, np.inf, True),
-                  "limb_share_ratio": (0.0, 1.0, False)}
+                  "limb_share_ratio": (0.0, 1.0, False), "stated_height_weight": (0.0, 1.0, False)}
 # Thresholds that inf turns off (never refit, never restart).
 _MAY_BE_INFINITE = ("refit_drop", "restart_drop")
 

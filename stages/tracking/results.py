@@ -86,6 +86,9 @@ class TrackerState:
         Current segment-length factors of the groups named by `TrackerParams.estimate_lengths`.
     height_weight : int
         Frames that contributed to the height and length estimates (frozen at `scale_frames`).
+    measured_height_m : float or None
+        The data's estimate of the height (the running mean of the initialisations' over those frames), which
+        `height_m` is or weighs against a stated height; None until an initialisation measured it.
     Sigma : (k, k) float
         Covariance Σ of the last fit, m² (the next frame's EM starts from it).
     pi : (P + 1,) float
@@ -120,6 +123,7 @@ class TrackerState:
     since_initialisation: int = 0
     segment_shares: np.ndarray | None = None
     recheck: bool = False
+    measured_height_m: float | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
@@ -143,7 +147,9 @@ class TrackerState:
                             since_initialisation=int(data.get("since_initialisation", 0)),
                             segment_shares=None if data.get("segment_shares") is None
                             else np.asarray(data["segment_shares"], dtype=float),
-                            recheck=bool(data.get("recheck", False)))
+                            recheck=bool(data.get("recheck", False)),
+                            measured_height_m=None if data.get("measured_height_m") is None
+                            else float(data["measured_height_m"]))
 
 
 def frame_record(frame: int, result: FrameResult, state: TrackerState) -> dict:

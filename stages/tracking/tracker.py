@@ -5,8 +5,9 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
 "robust tracking"). What the paper leaves open is handled here:
 
 - first frame and after a loss: automatic initialisation from the data (`init.initialise`);
-- unknown height: estimated by the initialisation (the cloud's top, then EM; averaged over the
-  initialisations of the first `scale_frames` frames); the segment-length and girth factors named by
+- the height: estimated by the initialisation (the cloud's top, then EM; averaged over the
+  initialisations of the first `scale_frames` frames) and, when the capture states one, weighed against
+  it (`stated_height_weight`, `subject_height`); the segment-length and girth factors named by
   `estimate_lengths` (groups of the body file's `lengths`) are estimated with the pose over those frames
   (prior towards the body file's proportions), then frozen. The tracked frames do not refine the
   height: their EM, with the girth and lengths free as well, drifted it upward on stout bodies;
@@ -76,7 +77,7 @@ class Tracker:
         Working volume [min; max], metres (the outlier density's support).
     body : BodyModel
         The body with only the length groups `params.estimate_lengths` left free; its height
-        is replaced by `params.height_m` or by the estimate.
+        is replaced by `params.height_m`, the data's estimate or the two weighed (`subject_height`).
     library : (M, D) float
         The body's pose library (`library.load_pose_library`), for initialisations and limb recovery.
     limbs : list of Limb
@@ -195,7 +196,8 @@ class Tracker:
         moving = state.frames_without_fit == 0 and not doubtful
         velocity = tracked.pose - state.pose if moving else np.zeros_like(state.velocity)
         new_state = TrackerState(pose=tracked.pose, velocity=velocity, height_m=height, length_factors=lengths,
-                                 height_weight=weight, Sigma=tracked.mixture.Sigma, pi=tracked.mixture.pi,
+                                 measured_height_m=state.measured_height_m, height_weight=weight,
+                                 Sigma=tracked.mixture.Sigma, pi=tracked.mixture.pi,
                                  likelihood_level=level, frames_without_fit=0, lost=False,
                                  since_initialisation=0 if tried else state.since_initialisation + 1,
                                  segment_shares=shares)
@@ -240,7 +242,8 @@ class Tracker:
         unnoticed.
         """
         params = self.params
-        estimate = params.height_m is None and state.height_weight < params.scale_frames
+        measuring = params.height_m is None or params.stated_height_weight < 1
+        estimate = measuring and state.height_weight < params.scale_frames
         init = initialise(y, n, body, self.volume, self.library, estimate_height=estimate, em=params.em,
                           params=params.init, rng=np.random.default_rng(params.seed))
         fitted = init.fit
@@ -250,12 +253,14 @@ class Tracker:
                 break
             fitted = recovered
         doubtful = _failed(fitted, params)
-        height, weight = state.height_m, state.height_weight
+        height, measured, weight = state.height_m, state.measured_height_m, state.height_weight
         if estimate:
             weight += 1
-            height = init.height_m if weight == 1 else height + (init.height_m - height) / weight
+            measured = init.height_m if measured is None else measured + (init.height_m - measured) / weight
+            height = subject_height(params.height_m, measured, params.stated_height_weight)
         new_state = replace(state, pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
-                            height_weight=weight, Sigma=fitted.mixture.Sigma, pi=fitted.mixture.pi,
+                            measured_height_m=measured, height_weight=weight, Sigma=fitted.mixture.Sigma,
+                            pi=fitted.mixture.pi,
                             likelihood_level=state.likelihood_level if doubtful else np.nan,
                             frames_without_fit=0, lost=False, since_initialisation=0, segment_shares=None,
                             recheck=doubtful)
@@ -265,6 +270,19 @@ class Tracker:
                              doubtful=doubtful, observations=len(y),
                              joint_support=joint_support(fitted.body, fitted.mixture, len(y)))
         return result, new_state
+
+
+def subject_height(stated: float | None, measured: float, stated_weight: float) -> float:
+    """The height to size the body at: the `measured` one (metres) weighed with a `stated` one (None: none) in log,
+    stated^w × measured^(1 − w) with w = `stated_weight`.
+
+    In log because heights err by a factor: a stature fixes the joints through the body's proportions, off by
+    a few per cent from one body to the next, and the data's estimate errs by a few per cent on bodies of
+    unusual proportions.
+    """
+    if stated is None:
+        return float(measured)
+    return float(np.exp(stated_weight * np.log(stated) + (1.0 - stated_weight) * np.log(measured)))
 
 
 def joint_support(body: BodyModel, mixture: Mixture, n_observations: int) -> np.ndarray:
@@ -311,7 +329,8 @@ def _predict(state: TrackerState, body: BodyModel, params: TrackerParams,
     velocity = state.velocity * params.velocity_decay if not lost else np.zeros_like(state.velocity)
     pose = body.clip(state.pose + velocity)
     new_state = TrackerState(pose=pose, velocity=velocity, height_m=state.height_m,
-                             length_factors=state.length_factors, height_weight=state.height_weight,
+                             length_factors=state.length_factors, measured_height_m=state.measured_height_m,
+                             height_weight=state.height_weight,
                              Sigma=state.Sigma, pi=state.pi, likelihood_level=state.likelihood_level,
                              frames_without_fit=gap, lost=lost, segment_shares=state.segment_shares)
     result = FrameResult(pose=pose, joints=body.joint_positions(pose), log_likelihood=0.0, iterations=0,

@@ -170,6 +170,33 @@ def test_unknown_height_comes_from_the_initialisation_and_tracked_frames_keep_it
     assert heights[1:] == [heights[0]] * 3
 
 
+@pytest.mark.parametrize("weight", [0.5, 1.0])
+def test_a_stated_height_is_weighed_against_the_measured_one(body, weight):
+    """The capture states 1.65 m for a body of 1.75 m: by default the body is sized half-way (in log) between
+    the stated and the measured height; with the stated height's weight at 1 it is the stated one, unmeasured."""
+    rng = np.random.default_rng(25)
+    truth = _walk(body.scaled(1.75), 3)
+    params = TrackerParams(height_m=1.65, stated_height_weight=weight, init_headings=6, init_refine=2)
+    tracker, state, heights = Tracker(params, VOLUME), None, []
+    for pose in truth:
+        _, state = tracker.track(state, _obs(body.scaled(1.75), pose, rng))
+        heights.append(state.height_m)
+    if weight == 1.0:
+        assert state.measured_height_m is None and heights == [1.65] * 3
+    else:
+        assert abs(state.measured_height_m - 1.75) < 0.04
+        assert heights == [pytest.approx(np.sqrt(1.65 * state.measured_height_m))] * 3
+    again = TrackerState.from_dict(json.loads(json.dumps(state.to_dict())))
+    assert again.measured_height_m == state.measured_height_m
+
+
+def test_subject_height_weighs_in_log():
+    assert tracker.subject_height(None, 1.7, 0.5) == 1.7
+    assert tracker.subject_height(1.6, 1.8, 1.0) == pytest.approx(1.6)
+    assert tracker.subject_height(1.6, 1.8, 0.0) == pytest.approx(1.8)
+    assert tracker.subject_height(1.6, 1.8, 0.5) == pytest.approx(np.sqrt(1.6 * 1.8))
+
+
 @pytest.mark.parametrize("restart_drop", [0.3, np.inf])
 def test_a_stop_after_fast_motion_is_tracked_from_the_last_pose(body, restart_drop):
     """The subject stops dead: the constant-velocity prediction lands far off (here 0.8 m away, turned by
