@@ -242,21 +242,24 @@ class Tracker:
         unnoticed.
         """
         params = self.params
-        measuring = params.height_m is None or params.stated_height_weight < 1
-        estimate = measuring and state.height_weight < params.scale_frames
-        init = initialise(y, n, body, self.volume, self.library, estimate_height=estimate, em=params.em,
+        stated = params.height_m is not None
+        measure = (not stated or params.stated_height_weight < 1) and state.height_weight < params.scale_frames
+        # A stated height sizes the search; the size is measured from its result (`measured_height`).
+        search_size = measure and not stated
+        init = initialise(y, n, body, self.volume, self.library, estimate_height=search_size, em=params.em,
                           params=params.init, rng=np.random.default_rng(params.seed))
         fitted = init.fit
         for _ in range(2):  # a limb moved by the first pass can leave its mirror (or itself) still misplaced
-            recovered = self._recover_limbs(y, n, fitted, replace(params.em, estimate_scale=estimate))
+            recovered = self._recover_limbs(y, n, fitted, replace(params.em, estimate_scale=search_size))
             if recovered is fitted:
                 break
             fitted = recovered
         doubtful = _failed(fitted, params)
         height, measured, weight = state.height_m, state.measured_height_m, state.height_weight
-        if estimate:
+        if measure:
             weight += 1
-            measured = init.height_m if measured is None else measured + (init.height_m - measured) / weight
+            now = measured_height(y, n, fitted, self.volume, params.em) if stated else init.height_m
+            measured = now if measured is None else measured + (now - measured) / weight
             height = subject_height(params.height_m, measured, params.stated_height_weight)
         new_state = replace(state, pose=fitted.pose, velocity=np.zeros_like(fitted.pose), height_m=float(height),
                             measured_height_m=measured, height_weight=weight, Sigma=fitted.mixture.Sigma,
@@ -270,6 +273,17 @@ class Tracker:
                              doubtful=doubtful, observations=len(y),
                              joint_support=joint_support(fitted.body, fitted.mixture, len(y)))
         return result, new_state
+
+
+def measured_height(y: np.ndarray, n: np.ndarray, result: FitResult, volume: np.ndarray, em: EMParams) -> float:
+    """The height (metres) EM gives when it goes on from a fit of these data with the body's overall size free.
+
+    With a stated height the initialisation searches at that size and the size is measured from its pose:
+    searching for the size as well fails on a subject crouching in the first frames (the second half of
+    `data_samples/leaning` started 127 mm off), where a search at a size a few per cent off does not.
+    """
+    free_size = replace(em, estimate_scale=True)
+    return fit(y, n, result.body, result.pose, volume, free_size, mixture=result.mixture).height_m
 
 
 def subject_height(stated: float | None, measured: float, stated_weight: float) -> float:

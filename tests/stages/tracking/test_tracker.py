@@ -171,16 +171,22 @@ def test_unknown_height_comes_from_the_initialisation_and_tracked_frames_keep_it
 
 
 @pytest.mark.parametrize("weight", [0.5, 1.0])
-def test_a_stated_height_is_weighed_against_the_measured_one(body, weight):
+def test_a_stated_height_is_weighed_against_the_measured_one(body, weight, monkeypatch):
     """The capture states 1.65 m for a body of 1.75 m: by default the body is sized half-way (in log) between
-    the stated and the measured height; with the stated height's weight at 1 it is the stated one, unmeasured."""
+    the stated and the measured height; with the stated height's weight at 1 it is the stated one, unmeasured.
+    Either way the initialisation searches at the stated size, not for a size."""
     rng = np.random.default_rng(25)
     truth = _walk(body.scaled(1.75), 3)
+    searched = []
+    original = tracker.initialise
+    monkeypatch.setattr(tracker, "initialise",
+                        lambda *a, **k: searched.append(k["estimate_height"]) or original(*a, **k))
     params = TrackerParams(height_m=1.65, stated_height_weight=weight, init_headings=6, init_refine=2)
-    tracker, state, heights = Tracker(params, VOLUME), None, []
+    the_tracker, state, heights = Tracker(params, VOLUME), None, []
     for pose in truth:
-        _, state = tracker.track(state, _obs(body.scaled(1.75), pose, rng))
+        _, state = the_tracker.track(state, _obs(body.scaled(1.75), pose, rng))
         heights.append(state.height_m)
+    assert searched == [False]
     if weight == 1.0:
         assert state.measured_height_m is None and heights == [1.65] * 3
     else:
@@ -230,14 +236,16 @@ def test_a_doubtful_initialisation_is_tracked_from_and_weighed_against_a_fresh_o
     first, state = the_tracker.track(None, _obs(body, poses[0], rng))
     assert first.status == "initialised" and first.doubtful and state.recheck and not state.lost
     failing[0] = False
-    fits, initialisations = [], []
+    fits, initialisations, fits_before = [], [], []
     for owner, name, calls in ((tracker, "fit", fits), (the_tracker, "_initialise", initialisations)):
         original = getattr(owner, name)
-        monkeypatch.setattr(owner, name, lambda *a, original=original, calls=calls, **k: calls.append(
+        monkeypatch.setattr(owner, name, lambda *a, original=original, calls=calls, **k: (
+            fits_before.append(len(fits)) if calls is initialisations else None) or calls.append(
             original(*a, **k)) or calls[-1])
     result, after = the_tracker.track(state, _obs(body, poses[1], rng))
-    assert fits and len(initialisations) == 1  # tracked from the estimate, and a fresh look as well
-    tracked_ll, fresh_ll = fits[-1].log_likelihood[-1], initialisations[0][0].log_likelihood
+    assert fits_before[0] and len(initialisations) == 1  # tracked from the estimate, and a fresh look as well
+    # the tracked fit is the last before the initialisation (which fits again to measure the height)
+    tracked_ll, fresh_ll = fits[fits_before[0] - 1].log_likelihood[-1], initialisations[0][0].log_likelihood
     assert result.log_likelihood == max(tracked_ll, fresh_ll) and not after.recheck
     assert np.linalg.norm(result.joints - body.joint_positions(poses[1]), axis=1).mean() < 0.02
 
