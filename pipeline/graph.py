@@ -74,7 +74,7 @@ from stages.reconstruction import Observations, ReconstructionParams
 from stages.reconstruction.views import VOLUME_FACES, faces_reached
 from stages.silhouettes import SilhouetteParams
 from stages.tracking.params import TrackerParams
-from stages.tracking.results import FrameResult, frame_record
+from stages.tracking.results import FrameResult, TrackerState, frame_record
 from stages.tracking.tracker import Tracker
 
 log = logging.getLogger(__name__)
@@ -238,10 +238,25 @@ def run_tracking(ctx: StageContext) -> int:
             bar.update(1)
     _warn_volume_contact(faces[done:], frames[done:], ctx.capture.volume)
     if params.height_m is not None and state is not None and state.measured_height_m is not None:
-        log.info("tracking: subject height %.3f m as stated, %.3f m as the data measure it (%+.1f %%); tracked at "
-                 "%.3f m (tracking.stated_height_weight = %g)", params.height_m, state.measured_height_m,
-                 100 * (state.measured_height_m / params.height_m - 1), state.height_m, params.stated_height_weight)
+        _report_heights(params, state)
     return len(frames) - done
+
+
+#: A stated and a measured height further apart than this fraction: one of them is wrong, not a few per cent off
+#: as each can be (a typo, another subject's height, silhouettes that miss part of the body).
+HEIGHT_DISAGREEMENT = 0.1
+
+
+def _report_heights(params: TrackerParams, state: TrackerState) -> None:
+    """The stated and the measured height, and the one tracked at; a warning when they disagree by far."""
+    change = state.measured_height_m / params.height_m - 1
+    line = (f"tracking: subject height {params.height_m:.3f} m as stated, {state.measured_height_m:.3f} m as the data "
+            f"measure it ({100 * change:+.1f} %); tracked at {state.height_m:.3f} m "
+            f"(tracking.stated_height_weight = {params.stated_height_weight:g})")
+    if abs(change) > HEIGHT_DISAGREEMENT:
+        log.warning("%s: check subject.height_m in capture.yaml", line)
+    else:
+        log.info("%s", line)
 
 
 #: Observations this close to a face of the working volume (metres) mean the subject was cut there: a
