@@ -141,7 +141,10 @@ def frame_observations(capture: Capture, frame: int, condition: Condition) -> tu
 
 def track_sequence(frames: Sequence[Observations], distance: str, capture: Capture) -> tuple[np.ndarray, list[str]]:
     """Joints (F, 17, 3) and statuses of the tracker run over ``frames`` with one distance."""
-    tracker = Tracker(TrackerParams(distance=distance, height_m=capture.height_m), capture.volume)
+    # The height as stated, not weighed against a measured one: the paper's body has known dimensions, and a size
+    # each distance measured for itself would compare the distances on the body's size as well as on the pose.
+    params = TrackerParams(distance=distance, height_m=capture.height_m, stated_height_weight=1.0)
+    tracker = Tracker(params, capture.volume)
     state, joints, statuses = None, [], []
     for observations in frames:
         result, state = tracker.track(state, observations)
