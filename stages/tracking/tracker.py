@@ -5,9 +5,10 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
 "robust tracking"). What the paper leaves open is handled here:
 
 - first frame and after a loss: automatic initialisation from the data (`init.initialise`);
-- the height: estimated by the initialisation (the cloud's top, then EM; averaged over the
-  initialisations of the first `scale_frames` frames) and, when the capture states one, weighed against
-  it (`stated_height_weight`, `subject_height`); the segment-length and girth factors named by
+- the height, over the initialisations of the first `scale_frames` frames (averaged): with none stated,
+  estimated by each (the cloud's top, then EM); with one stated, each searches at the current size and
+  EM measures the size from its result (`measured_height`), weighed against the stated one
+  (`stated_height_weight`, `subject_height`); the segment-length and girth factors named by
   `estimate_lengths` (groups of the body file's `lengths`) are estimated with the pose over those frames
   (prior towards the body file's proportions), then frozen. The tracked frames do not refine the
   height: their EM, with the girth and lengths free as well, drifted it upward on stout bodies;
@@ -279,8 +280,8 @@ def measured_height(y: np.ndarray, n: np.ndarray, result: FitResult, volume: np.
     """The height (metres) EM gives when it goes on from a fit of these data with the body's overall size free.
 
     With a stated height the initialisation searches at that size and the size is measured from its pose:
-    searching for the size as well fails on a subject crouching in the first frames (the second half of
-    `data_samples/leaning` started 127 mm off), where a search at a size a few per cent off does not.
+    a search for the size and the pose together cannot tell a crouching tall subject from a standing short one,
+    and a subject crouching in the first frames started the track far off (docs/results_by_hand.md).
     """
     free_size = replace(em, estimate_scale=True)
     return fit(y, n, result.body, result.pose, volume, free_size, mixture=result.mixture).height_m
