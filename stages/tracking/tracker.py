@@ -279,9 +279,10 @@ class Tracker:
 def measured_height(y: np.ndarray, n: np.ndarray, result: FitResult, volume: np.ndarray, em: EMParams) -> float:
     """The height (metres) EM gives when it goes on from a fit of these data with the body's overall size free.
 
-    With a stated height the initialisation searches at that size and the size is measured from its pose:
-    a search for the size and the pose together cannot tell a crouching tall subject from a standing short one,
-    and a subject crouching in the first frames started the track far off (docs/results_by_hand.md).
+    With a stated height the initialisation searches at the current size (the stated one, then the weighed
+    one) and the size is measured from its pose: a search for the size and the pose together cannot tell a
+    crouching tall subject from a standing short one, and a subject crouching in the first frames started the
+    track far off (docs/results_by_hand.md).
     """
     free_size = replace(em, estimate_scale=True)
     return fit(y, n, result.body, result.pose, volume, free_size, mixture=result.mixture).height_m
