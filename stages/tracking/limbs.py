@@ -3,8 +3,8 @@
 A limb EM put on the wrong side of the body or folded away from its data gets almost no
 observations, and the local minimum holds it there for many frames. A limb's segments are compared
 with its mirror limb's (`misplaced_limbs`) and with their own running level (`deserted_limbs`); a limb
-found either way gets the library's angles for that limb alone (`reinitialise_limb`), and the likelihood
-decides (eq. 12). What Horaud et al. 2009 leave open, like the initialisation.
+found either way, and every limb after an initialisation, gets the library's angles for that limb alone
+(`reinitialise_limb`), and the likelihood decides (eq. 12). What Horaud et al. 2009 leave open, like the initialisation.
 """
 
 from __future__ import annotations

@@ -24,6 +24,7 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
   turned away from its data, which may still explain as many data as its mirror), or that has folded
   onto itself since the last frame (`limbs.folded_limbs`), is re-initialised locally after every fit
   (`limbs.reinitialise_limb`, which never lands in a fold), and kept only on a clear likelihood gain;
+  after an initialisation every limb is searched so, once;
 - frames with no or too few observations: the pose is predicted (velocity decaying) and flagged
   "predicted", then "lost" when the gap lasts; tracking re-initialises when data return.
 Nothing here produces NaN: unusable rows of the input are dropped and every output is finite.
@@ -241,6 +242,13 @@ class Tracker:
         the data far better. The likelihood level is left to the tracked frames: an initialisation's fit (a
         coarse search, sometimes with a limb still wrong) set it so low that the next frames' slips went
         unnoticed.
+
+        Every limb of the initialisation's fit is then searched on its own (`limbs.reinitialise_limb`, kept
+        on a clear gain only), not just the limbs the share tests find. The whole-body search ranks library
+        poses, each with its own limbs: a pose whose trunk and legs fit can carry an arm from another pose
+        that still explains some of the data (an arm hanging by a crouching subject's legs), so that no
+        share test fires and tracking holds the arm there for tens of frames. Four limb searches cost
+        about half an initialisation's whole-body search, once per initialisation.
         """
         params = self.params
         stated = params.height_m is not None
@@ -250,8 +258,12 @@ class Tracker:
         init = initialise(y, n, body, self.volume, self.library, estimate_height=search_size, em=params.em,
                           params=params.init, rng=np.random.default_rng(params.seed))
         fitted = init.fit
+        em = replace(params.em, estimate_scale=search_size)
+        for limb in self.limbs:
+            fitted = reinitialise_limb(y, n, fitted, limb, self.volume, em, self.library,
+                                       rng=np.random.default_rng(params.seed))
         for _ in range(2):  # a limb moved by the first pass can leave its mirror (or itself) still misplaced
-            recovered = self._recover_limbs(y, n, fitted, replace(params.em, estimate_scale=search_size))
+            recovered = self._recover_limbs(y, n, fitted, em)
             if recovered is fitted:
                 break
             fitted = recovered

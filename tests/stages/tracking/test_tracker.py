@@ -279,6 +279,23 @@ def test_frames_record_the_data_supporting_each_joint_and_a_hidden_forearm_has_l
     assert json.loads(json.dumps(result.to_dict()))["joint_support"] == result.joint_support.tolist()
 
 
+def test_an_initialisation_searches_every_limb_and_keeps_what_gains_nothing(body, monkeypatch):
+    """After the whole-body search each limb gets a search of its own, whether or not a share test finds it;
+    on data where the search's limbs are right, none of them moves."""
+    rng = np.random.default_rng(27)
+    pose = _walk(body.scaled(1.75), 1)[0]
+    tried = []
+    recover = tracker.reinitialise_limb
+    monkeypatch.setattr(tracker, "reinitialise_limb",
+                        lambda y, n, result, limb, *args, **kwargs: tried.append(limb.name)
+                        or recover(y, n, result, limb, *args, **kwargs))
+    the_tracker = Tracker(PARAMS, VOLUME)
+    result, _ = the_tracker.track(None, _obs(body, pose, rng))
+    assert result.status == "initialised"
+    assert sorted(tried) == sorted(limb.name for limb in the_tracker.limbs)
+    assert np.linalg.norm(result.joints - body.joint_positions(pose), axis=1).max() < 0.02  # metres
+
+
 def test_a_folded_limb_is_tried_again_and_kept_where_the_data_fold_it(body, monkeypatch):
     """A forearm folded onto its upper arm explains a fair share of the data (the upper arm's, a second time),
     so the fold alone makes the limb recovery try it again when it appears; here the arm really bends that
