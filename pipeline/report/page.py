@@ -97,6 +97,8 @@ def _summary_section(run: LoadedRun) -> str:
         of_capture = f" of {len(frames)} capture frames" if isinstance(frames, list) else ""
         facts.append(f"{len(run.estimate.frames)} frames estimated{of_capture}, {len(run.estimate.names)} joints, "
                      f"{run.fps:g} frames/s.")
+        if run.body_height is not None:
+            facts.append(run.body_height.sentence())
     elif run.estimate_problem is not None:
         facts.append(f"No motion: {html.escape(run.estimate_problem)}.")
     else:

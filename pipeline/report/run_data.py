@@ -17,7 +17,9 @@ from pipeline.io import frames_io
 from pipeline.io.export_io import read_joints_csv
 from pipeline.io.run_layout import ANGLES_FILE, MANIFEST, STAGE_NAMES, RunLayout, read_manifest_file
 from pipeline.report.tracking_summary import (
+    BodyHeight,
     FrameStatus,
+    read_body_height,
     read_frame_statuses,
     tracker_params,
 )
@@ -132,6 +134,7 @@ class LoadedRun:
     angles: AngleTable | None
     angles_problem: str | None
     warnings: list[dict]
+    body_height: BodyHeight | None = None
 
 
 def load_run(out_dir: Path, truth_path: str | os.PathLike | None) -> LoadedRun:
@@ -162,6 +165,9 @@ def load_run(out_dir: Path, truth_path: str | os.PathLike | None) -> LoadedRun:
             angles = read_angles_csv(layout.export_file(ANGLES_FILE))
         except (InputError, UnicodeDecodeError) as error:
             angles_problem = str(error)
+    stated = capture.get("height_m")
+    body_height = read_body_height(layout.tracking_dir, frames, stated if isinstance(stated, (int, float)) else None
+                                   ) if statuses is not None else None
     return LoadedRun(out_dir, fps, capture, estimate, estimate_problem, truth,
                      found_truth if truth is not None else None, metrics, problem, statuses,
-                     tracker_params(layout.tracking_dir), angles, angles_problem, read_warnings(out_dir))
+                     tracker_params(layout.tracking_dir), angles, angles_problem, read_warnings(out_dir), body_height)

@@ -148,6 +148,45 @@ def read_frame_statuses(tracking_dir: str | Path, frames: Sequence[int]) -> list
     return statuses
 
 
+@dataclass(frozen=True)
+class BodyHeight:
+    """The height (metres) the tracker sized the body at, `tracked_m`, and the two it weighed: the `stated_m` one
+    (``tracking.height_m``, else the capture's ``subject.height_m``; None: none) and the one the data measured
+    over the first frames, `measured_m` (None where it was not measured)."""
+
+    tracked_m: float
+    stated_m: float | None
+    measured_m: float | None
+
+    def sentence(self) -> str:
+        """``"Body sized for a subject 1.709 m tall (stated 1.683 m, measured from the data 1.736 m)."``"""
+        if self.stated_m is None:
+            source = "as the data measure it"
+        elif self.measured_m is None:
+            source = "as stated"
+        else:
+            source = f"stated {self.stated_m:.3f} m, measured from the data {self.measured_m:.3f} m"
+        return f"Body sized for a subject {self.tracked_m:.3f} m tall ({source})."
+
+
+def read_body_height(tracking_dir: str | Path, frames: Sequence[int], stated_m: float | None) -> BodyHeight | None:
+    """The :class:`BodyHeight` after the last of ``frames`` (the size stops changing after the first frames), from
+    its tracking record; ``stated_m`` as the capture states it. A height set by ``--set tracking.height_m`` (the
+    tracking stage's manifest) takes its place, as in the tracking stage. None without a readable record."""
+    tracking_dir = Path(tracking_dir)
+    if not len(frames):
+        return None
+    try:
+        _, state = read_tracking(tracking_dir, frames[-1])
+        recorded = (read_manifest_file(tracking_dir) or {}).get("params")
+    except (OSError, frames_io.DamagedFileError):
+        return None
+    override = recorded.get("height_m") if isinstance(recorded, dict) else None
+    stated = override if isinstance(override, (int, float)) else stated_m
+    return BodyHeight(tracked_m=float(state.height_m), stated_m=None if stated is None else float(stated),
+                      measured_m=state.measured_height_m)
+
+
 def category_counts(statuses: Sequence[FrameStatus]) -> dict[str, Counter]:
     """Per category of :data:`CATEGORIES`, how many frames each cause accounts for (``Counter``; a frame
     with two causes counts under both, so use :func:`category_totals` for frame counts)."""

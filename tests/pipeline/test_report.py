@@ -208,6 +208,7 @@ def test_what_happened_counts_the_trackers_categories_with_their_causes(shared_t
                     ("doubtful", "1", "outlier share above 60 % (1)"), ("predicted", "0", "-"),
                     ("lost", "1", "fewer than 30 observations for more than 10 frames (1)")]
     assert f"11 frames estimated of {FRAMES} capture frames" in text
+    assert "Body sized for a subject 1.700 m tall (as the data measure it)." in text
     data = json.loads(re.search(r"id='skeleton-data'>(.*?)</script>", text).group(1))
     assert data["categories"][LOST] == "lost" and data["categories"][7] == "doubtful"
 

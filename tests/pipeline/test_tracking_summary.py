@@ -3,8 +3,10 @@ import pytest
 
 from pipeline.io import frames_io
 from pipeline.report.tracking_summary import (
+    BodyHeight,
     category_totals,
     frame_status,
+    read_body_height,
     read_frame_statuses,
     summary_line,
     tracker_params,
@@ -16,16 +18,17 @@ PARAMS = {"max_outlier_fraction": 0.6, "failure_sigma_m": 0.05, "min_observation
           "reinit_every": 0}
 
 
-def record(frame, status, *, doubtful=False, outliers=0.05, spread_m=0.02, recheck=False, since=0):
+def record(frame, status, *, doubtful=False, outliers=0.05, spread_m=0.02, recheck=False, since=0, height_m=1.7,
+           measured_m=None):
     """A tracking record as the tracker writes it (`frame_record`), with the fields the summary reads set."""
     fitted = status in ("tracked", "initialised")
     result = FrameResult(pose=np.zeros(6), joints=np.zeros((len(JOINT_NAMES), 3)),
                          log_likelihood=3000.0 + frame if fitted else 0.0, iterations=3,
                          outlier_fraction=outliers if fitted else 1.0, status=status, height_m=1.7, doubtful=doubtful)
-    state = TrackerState(pose=np.zeros(6), velocity=np.zeros(6), height_m=1.7, length_factors=np.ones(0),
+    state = TrackerState(pose=np.zeros(6), velocity=np.zeros(6), height_m=height_m, length_factors=np.ones(0),
                          height_weight=1, Sigma=np.diag([spread_m**2, (spread_m / 2) ** 2, 1e-6]), pi=np.ones(1),
                          likelihood_level=np.nan, frames_without_fit=0 if fitted else 1, lost=False,
-                         since_initialisation=since, recheck=recheck)
+                         since_initialisation=since, recheck=recheck, measured_height_m=measured_m)
     return frame_record(frame, result, state)
 
 
@@ -103,3 +106,18 @@ def test_tracker_params_default_where_the_manifest_is_silent(tmp_path):
     assert tracker_params(tmp_path) == PARAMS                  # no manifest: the tracker's defaults
     frames_io.write_json(tmp_path / "manifest.json", {"params": {"max_outlier_fraction": 0.5, "distance": "normals"}})
     assert tracker_params(tmp_path) == {**PARAMS, "max_outlier_fraction": 0.5}
+
+
+def test_the_body_height_is_read_from_the_last_record_with_what_it_weighed(tmp_path):
+    folder = tmp_path / "tracking"
+    write_records(folder, [record(0, "initialised", height_m=1.75, measured_m=1.76),
+                           record(1, "tracked", height_m=1.709, measured_m=1.736)], {**PARAMS, "height_m": None})
+    height = read_body_height(folder, range(2), 1.683)
+    assert height == BodyHeight(tracked_m=1.709, stated_m=1.683, measured_m=1.736)
+    assert height.sentence() == ("Body sized for a subject 1.709 m tall "
+                                 "(stated 1.683 m, measured from the data 1.736 m).")
+    write_records(folder, [], {**PARAMS, "height_m": 1.8})  # --set tracking.height_m overrides the capture's
+    assert read_body_height(folder, range(2), 1.683).stated_m == 1.8
+    assert BodyHeight(1.709, None, 1.709).sentence().endswith("1.709 m tall (as the data measure it).")
+    assert BodyHeight(1.683, 1.683, None).sentence().endswith("1.683 m tall (as stated).")
+    assert read_body_height(folder, range(3), 1.683) is None  # frame 2 not written yet
