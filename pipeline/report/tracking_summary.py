@@ -1,4 +1,5 @@
-"""What the tracker did on each frame, and why, from the tracking stage's per-frame records.
+"""What the tracker did on each frame, and why, from the tracking stage's per-frame records; and the height it
+sized the body at (`read_body_height`), which a wrong stated height would show first.
 
 The run's closing summary and the HTML report both say how many frames were tracked, initialised,
 doubtful, predicted or lost. A frame's record holds its status and doubt flag but not the cause; the
