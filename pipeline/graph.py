@@ -74,7 +74,7 @@ from stages.reconstruction import Observations, ReconstructionParams
 from stages.reconstruction.views import VOLUME_FACES, faces_reached
 from stages.silhouettes import SilhouetteParams
 from stages.tracking.params import TrackerParams
-from stages.tracking.results import FrameResult, TrackerState, frame_record
+from stages.tracking.results import BodyHeight, FrameResult, frame_record
 from stages.tracking.tracker import Tracker
 
 log = logging.getLogger(__name__)
@@ -237,8 +237,9 @@ def run_tracking(ctx: StageContext) -> int:
             frames_io.write_record(run_layout.tracking_path(ctx.out_dir, frame), frame_record(frame, result, state))
             bar.update(1)
     _warn_volume_contact(faces[done:], frames[done:], ctx.capture.volume)
-    if params.height_m is not None and state is not None and state.measured_height_m is not None:
-        _report_heights(params, state)
+    if state is not None:
+        _report_height(BodyHeight(tracked_m=state.height_m, stated_m=params.height_m,
+                                  measured_m=state.measured_height_m))
     return len(frames) - done
 
 
@@ -247,14 +248,15 @@ def run_tracking(ctx: StageContext) -> int:
 HEIGHT_DISAGREEMENT = 0.1
 
 
-def _report_heights(params: TrackerParams, state: TrackerState) -> None:
-    """The stated and the measured height, and the one tracked at; a warning when they disagree by far."""
-    change = state.measured_height_m / params.height_m - 1
-    line = (f"tracking: subject height {params.height_m:.3f} m as stated, {state.measured_height_m:.3f} m as the data "
-            f"measure it ({100 * change:+.1f} %); tracked at {state.height_m:.3f} m "
-            f"(tracking.stated_height_weight = {params.stated_height_weight:g})")
+def _report_height(height: BodyHeight) -> None:
+    """The height the body was sized at and the stated and measured ones it weighed, as the report gives them;
+    a warning when those two disagree by far. Nothing when no height was stated (the data's is the only one)."""
+    change = height.disagreement
+    if change is None:
+        return
+    line = f"tracking: {height.sentence()}"
     if abs(change) > HEIGHT_DISAGREEMENT:
-        log.warning("%s: check subject.height_m in capture.yaml", line)
+        log.warning("%s Check subject.height_m in capture.yaml.", line)
     else:
         log.info("%s", line)
 

@@ -17,13 +17,13 @@ from pipeline.io import frames_io
 from pipeline.io.export_io import read_joints_csv
 from pipeline.io.run_layout import ANGLES_FILE, MANIFEST, STAGE_NAMES, RunLayout, read_manifest_file
 from pipeline.report.tracking_summary import (
-    BodyHeight,
     FrameStatus,
     read_body_height,
     read_frame_statuses,
     tracker_params,
 )
 from stages.export.metrics import JointMetrics
+from stages.tracking.results import BodyHeight
 
 log = logging.getLogger(__name__)
 

@@ -30,7 +30,7 @@ from pipeline.io import frames_io
 from pipeline.io.run_layout import read_manifest_file
 from pipeline.io.tracking_io import read_tracking
 from stages.tracking.params import TrackerParams
-from stages.tracking.results import FrameResult, TrackerState
+from stages.tracking.results import BodyHeight, FrameResult, TrackerState
 
 #: The categories counted, in the order they are reported; a doubtful frame counts only as doubtful.
 CATEGORIES = ("tracked", "initialised", "doubtful", "predicted", "lost")
@@ -147,27 +147,6 @@ def read_frame_statuses(tracking_dir: str | Path, frames: Sequence[int]) -> list
         statuses.append(frame_status(frame, record, previous, params, fitted_before=fitted))
         previous, fitted = record, fitted or statuses[-1].status in ("tracked", "initialised")
     return statuses
-
-
-@dataclass(frozen=True)
-class BodyHeight:
-    """The height (metres) the tracker sized the body at, `tracked_m`, and the two it weighed: the `stated_m` one
-    (``tracking.height_m``, else the capture's ``subject.height_m``; None: none) and the one the data measured
-    over the first frames, `measured_m` (None where it was not measured)."""
-
-    tracked_m: float
-    stated_m: float | None
-    measured_m: float | None
-
-    def sentence(self) -> str:
-        """``"Body sized for a subject 1.709 m tall (stated 1.683 m, measured from the data 1.736 m)."``"""
-        if self.stated_m is None:
-            source = "as the data measure it"
-        elif self.measured_m is None:
-            source = "as stated"
-        else:
-            source = f"stated {self.stated_m:.3f} m, measured from the data {self.measured_m:.3f} m"
-        return f"Body sized for a subject {self.tracked_m:.3f} m tall ({source})."
 
 
 def read_body_height(tracking_dir: str | Path, frames: Sequence[int], stated_m: float | None) -> BodyHeight | None:

@@ -152,6 +152,35 @@ class TrackerState:
                             else float(data["measured_height_m"]))
 
 
+@dataclass(frozen=True)
+class BodyHeight:
+    """The height (metres) the tracker sized the body at, `tracked_m`, and the two it weighed: the `stated_m` one
+    (`TrackerParams.height_m`; None: none) and the one the data measured over the first frames, `measured_m`
+    (`TrackerState.measured_height_m`; None where it was not measured). The run's log and report say it."""
+
+    tracked_m: float
+    stated_m: float | None
+    measured_m: float | None
+
+    @property
+    def disagreement(self) -> float | None:
+        """How far the measured height is from the stated one, as a fraction of it (None without both)."""
+        if self.stated_m is None or self.measured_m is None:
+            return None
+        return self.measured_m / self.stated_m - 1.0
+
+    def sentence(self) -> str:
+        """``"Body sized for a subject 1.709 m tall (stated 1.683 m, measured from the data 1.736 m, +3.1 %)."``"""
+        if self.stated_m is None:
+            source = "as the data measure it"
+        elif self.measured_m is None:
+            source = "as stated"
+        else:
+            source = (f"stated {self.stated_m:.3f} m, measured from the data {self.measured_m:.3f} m, "
+                      f"{100 * self.disagreement:+.1f} %")
+        return f"Body sized for a subject {self.tracked_m:.3f} m tall ({source})."
+
+
 def frame_record(frame: int, result: FrameResult, state: TrackerState) -> dict:
     """The JSON-ready record of one tracked frame: its number, its estimate and the tracker's state after it."""
     return {"frame": frame, "result": result.to_dict(), "state": state.to_dict()}

@@ -247,8 +247,8 @@ class Tracker:
         on a clear gain only), not just the limbs the share tests find. The whole-body search ranks library
         poses, each with its own limbs: a pose whose trunk and legs fit can carry an arm from another pose
         that still explains some of the data (an arm hanging by a crouching subject's legs), so that no
-        share test fires and tracking holds the arm there for tens of frames. The four limb searches add less
-        than half of the whole-body search's cost, once per initialisation.
+        share test fires and tracking holds the arm there for tens of frames. It costs four limb searches per
+        initialisation (their figures: docs/results_by_hand.md).
         """
         params = self.params
         stated = params.height_m is not None

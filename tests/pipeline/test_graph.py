@@ -13,10 +13,9 @@ import numpy as np
 from conftest import make_capture
 
 from pipeline.cli import main
-from pipeline.graph import STAGES, _report_heights
+from pipeline.graph import STAGES, _report_height
 from pipeline.io.run_layout import STAGE_NAMES
-from stages.tracking.params import TrackerParams
-from stages.tracking.results import TrackerState
+from stages.tracking.results import BodyHeight
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -144,14 +143,14 @@ def test_every_stage_key_covers_the_code_and_data_it_runs(tmp_path):
 
 
 def test_a_stated_height_far_from_the_measured_one_is_a_warning(caplog):
-    def state(measured):
-        return TrackerState(pose=np.zeros(6), velocity=np.zeros(6), height_m=float(np.sqrt(1.60 * measured)),
-                            length_factors=np.ones(0), height_weight=10, Sigma=np.eye(3), pi=np.ones(2) / 2,
-                            likelihood_level=0.0, frames_without_fit=0, lost=False, measured_height_m=measured)
+    def height(measured):
+        return BodyHeight(tracked_m=float(np.sqrt(1.60 * measured)), stated_m=1.60, measured_m=measured)
 
     with caplog.at_level(logging.INFO, logger="pipeline.graph"):
-        _report_heights(TrackerParams(height_m=1.60), state(1.65))
-        _report_heights(TrackerParams(height_m=1.60), state(1.85))
+        _report_height(height(1.65))
+        _report_height(height(1.85))
+        _report_height(BodyHeight(tracked_m=1.7, stated_m=None, measured_m=1.7))  # nothing to weigh: no line
     (near, far) = [(record.levelno, record.getMessage()) for record in caplog.records]
-    assert near[0] == logging.INFO and "1.600 m as stated, 1.650 m as the data measure it (+3.1 %)" in near[1]
-    assert far[0] == logging.WARNING and far[1].endswith("check subject.height_m in capture.yaml")
+    assert near == (logging.INFO, "tracking: Body sized for a subject 1.625 m tall "
+                                  "(stated 1.600 m, measured from the data 1.650 m, +3.1 %).")
+    assert far[0] == logging.WARNING and far[1].endswith("+15.6 %). Check subject.height_m in capture.yaml.")

@@ -3,7 +3,6 @@ import pytest
 
 from pipeline.io import frames_io
 from pipeline.report.tracking_summary import (
-    BodyHeight,
     category_totals,
     frame_status,
     read_body_height,
@@ -12,7 +11,7 @@ from pipeline.report.tracking_summary import (
     tracker_params,
 )
 from stages.joints import JOINT_NAMES
-from stages.tracking.results import FrameResult, TrackerState, frame_record, read_frame_record
+from stages.tracking.results import BodyHeight, FrameResult, TrackerState, frame_record, read_frame_record
 
 PARAMS = {"max_outlier_fraction": 0.6, "failure_sigma_m": 0.05, "min_observations": 30, "max_predicted_frames": 10,
           "reinit_every": 0}
@@ -115,7 +114,7 @@ def test_the_body_height_is_read_from_the_last_record_with_what_it_weighed(tmp_p
     height = read_body_height(folder, range(2), 1.683)
     assert height == BodyHeight(tracked_m=1.709, stated_m=1.683, measured_m=1.736)
     assert height.sentence() == ("Body sized for a subject 1.709 m tall "
-                                 "(stated 1.683 m, measured from the data 1.736 m).")
+                                 "(stated 1.683 m, measured from the data 1.736 m, +3.1 %).")
     write_records(folder, [], {**PARAMS, "height_m": 1.8})  # --set tracking.height_m overrides the capture's
     assert read_body_height(folder, range(2), 1.683).stated_m == 1.8
     assert BodyHeight(1.709, None, 1.709).sentence().endswith("1.709 m tall (as the data measure it).")
