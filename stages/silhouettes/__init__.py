@@ -10,15 +10,18 @@ so a shadow lowers α but leaves ‖r‖ small, while a person in front of the b
 direction or the brightness. As in that paper, distortions are measured in units of the noise; with a
 clean plate instead of a training sequence, the noise is estimated from each frame:
 
-- the camera's exposure and white balance may drift from the plate's (flicker, automatic white balance,
-  a codec shifting levels): each channel has its exposure ratio g_k, fitted on the half of the image
-  that is surely background (see :func:`_noise`), and the background model is G B with G = diag(g); α and
-  the distortions below are taken against G B;
-- the noise level σ comes from the lower quartile of ‖I − GB‖ over the image, and grows where the
+- the camera's exposure, tone and white balance may drift from the plate's (flicker, automatic exposure
+  acting before the camera's gamma, automatic white balance, a codec or a grabber shifting the black
+  level): each channel k has its tone curve T_k, the frame's level where the plate's is b, fitted on the
+  background itself (medians per plate level, then means on the half of the image that is surely
+  background; see :func:`_noise`), and the background model is T(B); α and the distortions below are taken
+  against T(B). A single ratio per channel fits the room's most common tone and misses the others (a bright
+  wall above a dark floor) by more than the noise wherever the tone curve changed;
+- the noise level σ comes from the lower quartile of ‖I − T(B)‖ over the image, and grows where the
   background is textured, because a sub-pixel shift or compression changes a textured pixel by about its
   gradient times the shift: σ_p² = σ² + (κ ‖∇B‖)² / 3.
 
-The evidence is ‖I − GB‖ / σ_p, except on shadows, where only the chromaticity distortion counts. A
+The evidence is ‖I − T(B)‖ / σ_p, except on shadows, where only the chromaticity distortion counts. A
 pixel looks like a shadow when it is darker than the background by as much as a shadow darkens
 (α between ``shadow_min`` and ``shadow_max``) with its colour direction unchanged. Colour alone cannot
 tell a shadow from dark clothing in front of a background of the same hue (navy trousers on a blue mat, a

@@ -20,8 +20,8 @@ BACKGROUND_ENERGY_FLOOR = 1e-3
 # Every SAMPLE_STRIDE-th pixel along both axes enters the exposure and noise estimates: a few thousand
 # pixels fix a median or a quartile to well under a percent, at a sixteenth of the cost.
 SAMPLE_STRIDE = 4
-# The 25th percentile of a χ² variable with 3 degrees of freedom: ‖I − GB‖² / σ² of background pixels
-# under Gaussian noise of σ per channel, so σ² = (lower quartile of ‖I − GB‖²) / this.
+# The 25th percentile of a χ² variable with 3 degrees of freedom: ‖I − T(B)‖² / σ² of background pixels
+# under Gaussian noise of σ per channel, so σ² = (lower quartile of ‖I − T(B)‖²) / this.
 CHI2_3_LOWER_QUARTILE = 1.2125
 # Bounds on the per-channel noise σ (8-bit levels). Below: 8-bit quantisation, after blur and averaging,
 # is still about this much. Above: heavier than any usable camera's noise; a larger lower quartile means
@@ -37,10 +37,19 @@ MIN_NOISE_SAMPLES = 100
 # faint to show on blocks lie next to parts that do).
 COARSE_FACTOR = 4
 COARSE_MARGIN = 3
-# Bounds on each channel's exposure ratio g_k between frame and background: drift, white balance and codec
+# Bounds on each channel's exposure ratio between frame and background: drift, white balance and codec
 # level shifts stay well inside; outside, the median is not the background's (a person filling the view)
 # and is not trusted.
 EXPOSURE_RATIO_RANGE = (0.7, 1.4)
+# The tone curve T_k may also shift a level by this much (8-bit levels) beyond those ratios: a black level
+# or haze adds an offset, which a ratio alone would bound tightly in the darkest levels.
+TONE_SHIFT_MAX = 24.0
+# The tone curve is fitted on background levels binned this wide (8-bit levels): 16 bins, across which a
+# camera's tone curve is close to linear, each with hundreds of samples where the room has that colour.
+TONE_BIN_LEVELS = 16
+# Fewest sampled background pixels in a bin for its mean to enter the tone curve; sparser bins are
+# interpolated from their neighbours.
+MIN_TONE_SAMPLES = 20
 # cv2.transform's matrix summing the three channels of each pixel.
 CHANNEL_SUM = np.ones((1, 3), np.float32)
 
@@ -59,12 +68,10 @@ class BackgroundModel:
     image: np.ndarray  # (H, W, 3) uint8 the background itself
     B: np.ndarray  # (h, w, 3) uint8 background colours at the working resolution, blurred
     B_sharp: np.ndarray  # (h, w, 3) uint8 the same before the blur
-    B2: np.ndarray  # (h, w, 3) float32 the squares B_k² (a frame's G B · G B is their sum weighted by g_k²)
     texture_variance: np.ndarray  # (h, w) float32 (κ ‖∇B‖)² / 3, per-channel noise variance from texture
     # Colours below are stored channels first, as :func:`_dot` wants them (a copy saved per frame).
     sample_B: np.ndarray  # (3, m) float32 every SAMPLE_STRIDE-th pixel of B_sharp along both axes, flattened
-    sample_B2: np.ndarray  # (3, m) float32 their squares B_k²
-    sample_divisor: np.ndarray  # (m,) float32 B·B + BACKGROUND_ENERGY_FLOOR there
+    sample_bins: np.ndarray  # (3, m) intp their tone-curve bins, channel k's numbered from k × the bins per channel
     coarse_B: np.ndarray  # (3, h / COARSE_FACTOR, w / COARSE_FACTOR) float32 B_sharp averaged over blocks
     coarse_texture_variance: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR) float32 the same for the texture
     noise_floor: float  # σ (8-bit levels) below which a frame's noise estimate is not believed
@@ -99,11 +106,9 @@ def background_model(background: np.ndarray, params: SilhouetteParams, *,
         image=background,
         B=B,
         B_sharp=B_sharp,
-        B2=cv2.multiply(B, B, dtype=cv2.CV_32F),
         texture_variance=texture_variance,
         sample_B=sample_B,
-        sample_B2=sample_B * sample_B,
-        sample_divisor=_dot(sample_B, sample_B) + np.float32(BACKGROUND_ENERGY_FLOOR),
+        sample_bins=_tone_bins(sample_B),
         coarse_B=_channels_first(_block_mean(B_sharp, COARSE_FACTOR)),
         coarse_texture_variance=_block_mean(texture_variance, COARSE_FACTOR),
         noise_floor=float(noise_floor),
@@ -152,9 +157,9 @@ class Evidence:
     I_sharp: np.ndarray  # (h, w, 3) uint8 the frame at the working resolution
     noise: _Noise
     region: tuple[slice, slice] | None
-    difference2: np.ndarray  # (h', w') float32 ‖I − GB‖² in noise variances
-    chroma2: np.ndarray  # (h', w') float32 ‖I − αGB‖² in noise variances (the colour direction's change)
-    alpha: np.ndarray  # (h', w') float32 α = I·GB / GB·GB, 1 on the background
+    difference2: np.ndarray  # (h', w') float32 ‖I − T(B)‖² in noise variances
+    chroma2: np.ndarray  # (h', w') float32 ‖I − αT(B)‖² in noise variances (the colour direction's change)
+    alpha: np.ndarray  # (h', w') float32 α = I·T(B) / T(B)·T(B), 1 on the background
     shadow_like: np.ndarray  # (h', w') bool above the weak threshold, but as a shadow would be
 
     def darkening(self) -> np.ndarray:
@@ -242,36 +247,40 @@ def _blur(image: np.ndarray, blur_kernel: int) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class _Noise:
-    gains: tuple[float, float, float]  # g_k, each channel's exposure ratio of the frame to the background
+    tone: np.ndarray  # (3, 256) float32 T_k(b), the frame's expected level of channel k where the background's is b
     sigma2: float  # σ², the per-channel noise variance (8-bit levels squared)
 
-    def exposure(self) -> np.ndarray:
-        """(3, 1, 1) float32 G's diagonal, shaped to scale channels-first colours."""
-        return np.array(self.gains, np.float32).reshape(3, 1, 1)
+    def expose(self, B: np.ndarray) -> np.ndarray:
+        """(3, ...) float32 T(B) of 8-bit background levels B (3, ...), channels first (see :func:`_dot`)."""
+        return _look_up(self.tone, B)
+
+    def expose_image(self, B: np.ndarray) -> np.ndarray:
+        """(h, w, 3) float32 T(B) of a background image (h, w, 3) uint8 (OpenCV's table look-up)."""
+        return cv2.LUT(B, self.tone.T.reshape(256, 1, 3))
 
 
 def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
-    """The frame's exposure ratios and noise level, from a sample ``I`` (every SAMPLE_STRIDE-th pixel).
+    """The frame's tone curve and noise level, from a sample ``I`` (every SAMPLE_STRIDE-th pixel).
 
-    First one ratio for all channels, g = the median of α = I·B / B·B (the person covers less than half of
-    the image); the half of the sample closest to gB is then surely background, and on it each channel's
-    ratio is the least-squares g_k = Σ I_k B_k / Σ B_k². Medians of per-channel ratios would be pulled by the
-    person's colour, each channel its own way, and tint the model. σ² is the lower quartile of ‖I − GB‖²
-    over χ²₃'s, on the pixels that are not exact copies of the background. Both are clipped to plausible
-    ranges (see the constants; σ from below by the model's ``noise_floor``).
+    Each channel's tone curve T_k is first the median frame level per background level (binned,
+    :func:`_tone_curve`): the person covers less than half of the pixels of each background level, so the
+    median is the background's. The half of the sample closest to T(B) is then surely background, and T_k
+    is fitted again on it by means, which scatter less than medians of 8-bit levels. A tone curve, not a
+    ratio per channel: a camera's automatic exposure acts before its gamma, a codec or a grabber may lift the
+    black level, and a ratio that fits the room's most common tone (a floor) misses the others (a bright
+    wall) by more than the noise, all over the image. σ² is the lower quartile of ‖I − T(B)‖² over χ²₃'s, on
+    the pixels that are not exact copies of the background, clipped to a plausible range (see the
+    constants; from below by the model's ``noise_floor``).
     """
     I = _channels_first(I).reshape(3, -1)  # (3, m)
     B = model.sample_B
-    products = I * B  # (3, m) I_k B_k
-    alpha = (products[0] + products[1] + products[2]) / model.sample_divisor
-    g = np.float32(_clip_ratio(_quantile(alpha, 0.5)))
-    D = I - g * B
+    everywhere = np.ones(I.shape[1], np.float32)
+    tone = _tone_curve(I, B, model.sample_bins, everywhere, median=True)
+    D = I - _look_up(tone, B)
     distance2 = _dot(D, D)
     background = (distance2 <= np.float32(_quantile(distance2, 0.5))).astype(np.float32)  # (m,) 1 or 0
-    # Sums over the background half as products with its 0/1 indicator: a fraction of boolean indexing's cost.
-    gains = tuple(_clip_ratio(float(IB / BB)) if BB > 0 else float(g)
-                  for IB, BB in zip(products @ background, model.sample_B2 @ background, strict=True))
-    D = I - np.array(gains, np.float32)[:, None] * B
+    tone = _tone_curve(I, B, model.sample_bins, background, median=False)
+    D = I - _look_up(tone, B)
     distance2 = _dot(D, D)
     # A pixel equal to the background in every channel is a copy, not a noisy measurement of it: a video
     # codec repeats static blocks from frame to frame, so a background taken from the same video (a
@@ -279,14 +288,62 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     # around the moving person, carry the codec's noise. Only the others tell the noise level.
     measured = np.flatnonzero((I != B).any(axis=0))
     if len(measured) < max(MIN_NOISE_SAMPLES, len(distance2) // 2):
-        return _Noise(gains, model.noise_floor**2)
+        return _Noise(tone, model.noise_floor**2)
     quartile = _quantile(distance2.take(measured), 0.25)
-    return _Noise(gains, min(max(quartile / CHI2_3_LOWER_QUARTILE, model.noise_floor**2), NOISE_SIGMA_MAX**2))
+    return _Noise(tone, min(max(quartile / CHI2_3_LOWER_QUARTILE, model.noise_floor**2), NOISE_SIGMA_MAX**2))
 
 
-def _clip_ratio(ratio: float) -> float:
-    """An exposure ratio within :data:`EXPOSURE_RATIO_RANGE`."""
-    return min(max(ratio, EXPOSURE_RATIO_RANGE[0]), EXPOSURE_RATIO_RANGE[1])
+# Offsets of each channel's 256 levels in a flattened (3, 256) tone curve.
+_CHANNEL_OFFSETS = np.arange(3) * 256
+_LEVELS = np.arange(256, dtype=np.float64)
+_BINS_PER_CHANNEL = 256 // TONE_BIN_LEVELS
+
+
+def _tone_bins(B: np.ndarray) -> np.ndarray:
+    """(3, m) intp the tone-curve bin of each background level B (3, m), channel k's numbered from k × the
+    bins per channel (so that one ``np.bincount`` sums all three channels' bins)."""
+    return (B.astype(np.intp) // TONE_BIN_LEVELS) + (np.arange(3) * _BINS_PER_CHANNEL)[:, None]
+
+
+def _tone_curve(I: np.ndarray, B: np.ndarray, bins: np.ndarray, weights: np.ndarray, *, median: bool) -> np.ndarray:
+    """(3, 256) float32 each channel's tone curve T_k(b): the frame's median (``median``) or mean level I_k
+    over the pixels chosen by ``weights`` (m,) (1, others 0) whose background level B_k falls in each bin
+    (``bins``, from :func:`_tone_bins`), joined linearly between the bins' mean background levels and made
+    non-decreasing.
+
+    ``I`` and ``B`` (3, m) hold 8-bit levels. Beyond the first and last bins with ``MIN_TONE_SAMPLES``, T_k(b)
+    is b times the ratio there; a channel with no such bin keeps T_k(b) = b. T_k(b) stays within
+    ``EXPOSURE_RATIO_RANGE`` of b widened by ``TONE_SHIFT_MAX`` levels either way.
+    """
+    size = 3 * _BINS_PER_CHANNEL
+    flat_bins = bins.ravel()
+    w = np.broadcast_to(weights, B.shape).ravel()
+    count = np.bincount(flat_bins, w, size)
+    level = np.bincount(flat_bins, B.ravel() * w, size) / np.maximum(count, 1.0)
+    if median:
+        # Medians of 8-bit levels from each bin's histogram of them.
+        histogram = np.bincount(flat_bins * 256 + I.ravel().astype(np.intp), w, size * 256).reshape(size, 256)
+        below = np.cumsum(histogram, axis=1)
+        frame = np.minimum((below < 0.5 * count[:, None]).sum(axis=1), 255).astype(np.float64)
+    else:
+        frame = np.bincount(flat_bins, I.ravel() * w, size) / np.maximum(count, 1.0)
+    filled = (count >= MIN_TONE_SAMPLES).reshape(3, -1)
+    level, frame = level.reshape(3, -1), frame.reshape(3, -1)
+    tone = np.repeat(_LEVELS[None], 3, axis=0)
+    for k in np.flatnonzero(filled.any(axis=1)):
+        levels, means = level[k, filled[k]], np.maximum.accumulate(frame[k, filled[k]])
+        tone[k] = np.interp(_LEVELS, levels, means)
+        low, high = _LEVELS < levels[0], _LEVELS > levels[-1]
+        tone[k, low] = _LEVELS[low] * (means[0] / max(levels[0], 1.0))
+        tone[k, high] = _LEVELS[high] * (means[-1] / max(levels[-1], 1.0))
+    lowest = EXPOSURE_RATIO_RANGE[0] * _LEVELS - TONE_SHIFT_MAX
+    highest = EXPOSURE_RATIO_RANGE[1] * _LEVELS + TONE_SHIFT_MAX
+    return np.clip(tone, lowest, highest).astype(np.float32)
+
+
+def _look_up(tone: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """(3, ...) float32 T(B) of 8-bit background levels B (3, ...), channels first (see :func:`_dot`)."""
+    return tone.ravel().take(B.astype(np.intp) + _CHANNEL_OFFSETS.reshape(3, *[1] * (B.ndim - 1)))
 
 
 def _person_region(
@@ -294,12 +351,12 @@ def _person_region(
 ) -> tuple[slice, slice] | None:
     """The part of the working-resolution frame ``I`` (h, w, 3) uint8 worth a close look, or None.
 
-    On blocks of COARSE_FACTOR x COARSE_FACTOR working pixels, ‖I − GB‖² is compared with the weak
+    On blocks of COARSE_FACTOR x COARSE_FACTOR working pixels, ‖I − T(B)‖² is compared with the weak
     threshold at the working resolution's noise (averaging only lowers the noise, so this errs towards
     looking); the answer is the box around every block that passes, with a margin of COARSE_MARGIN
     blocks for the parts of the person too faint to show on blocks.
     """
-    D = _channels_first(_block_mean(I, COARSE_FACTOR)) - noise.exposure() * model.coarse_B
+    D = _channels_first(_block_mean(I, COARSE_FACTOR)) - noise.expose(model.coarse_B.round())
     difference2 = _dot(D, D)
     passing = cv2.compare(difference2, params.weak_threshold**2 * (model.coarse_texture_variance + noise.sigma2),
                           cv2.CMP_GT)
@@ -319,20 +376,18 @@ def _span(start: int, length: int, size: int) -> slice:
 def _evidence(
     I: np.ndarray, model: BackgroundModel, region: tuple[slice, slice], noise: _Noise
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """‖I − GB‖² and ‖I − αGB‖² per pixel of ``region``, in noise variances, and the brightness distortion α.
+    """‖I − T(B)‖² and ‖I − αT(B)‖² per pixel of ``region``, in noise variances, and the brightness distortion α.
 
-    ``I`` (h', w', 3) uint8 is the region. With α = I·GB / GB·GB, the chromaticity distortion is
-    ‖I − αGB‖² = I·I − α I·GB (the remainder orthogonal to GB) and ‖I − GB‖² = I·I − 2 I·GB + GB·GB.
-    The products are taken straight from uint8 into float32; I·GB and GB·GB are channel sums weighted by
-    g_k and g_k².
+    ``I`` (h', w', 3) uint8 is the region. With α = I·T(B) / T(B)·T(B), the chromaticity distortion is
+    ‖I − αT(B)‖² = I·I − α I·T(B) (the remainder orthogonal to T(B)) and ‖I − T(B)‖² = I·I − 2 I·T(B) + T(B)·T(B).
     """
-    gains = np.array([noise.gains], np.float32)  # (1, 3)
+    exposed = noise.expose_image(model.B[region])  # (h', w', 3) float32 T(B)
     II = cv2.transform(cv2.multiply(I, I, dtype=cv2.CV_32F), CHANNEL_SUM)  # (h', w') I·I
-    IB = cv2.transform(cv2.multiply(I, model.B[region], dtype=cv2.CV_32F), gains)  # (h', w') I·GB
-    BB = cv2.transform(model.B2[region], gains * gains)  # (h', w') GB·GB
+    IB = cv2.transform(cv2.multiply(I, exposed, dtype=cv2.CV_32F), CHANNEL_SUM)  # (h', w') I·T(B)
+    BB = cv2.transform(cv2.multiply(exposed, exposed), CHANNEL_SUM)  # (h', w') T(B)·T(B)
     alpha = cv2.divide(IB, BB + np.float32(BACKGROUND_ENERGY_FLOOR))  # (h', w') α
-    chroma2 = cv2.subtract(II, cv2.multiply(IB, alpha))  # (h', w') ‖I − αGB‖² (≥ 0 up to rounding)
-    difference2 = cv2.add(cv2.addWeighted(II, 1.0, IB, -2.0, 0.0), BB)  # ‖I − GB‖²
+    chroma2 = cv2.subtract(II, cv2.multiply(IB, alpha))  # (h', w') ‖I − αT(B)‖² (≥ 0 up to rounding)
+    difference2 = cv2.add(cv2.addWeighted(II, 1.0, IB, -2.0, 0.0), BB)  # ‖I − T(B)‖²
     variance = model.texture_variance[region] + np.float32(noise.sigma2)
     return cv2.divide(difference2, variance), cv2.divide(chroma2, variance), alpha
 

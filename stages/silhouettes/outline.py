@@ -54,7 +54,7 @@ def silhouette_from_evidence(view: Evidence, shadow: np.ndarray | None, params: 
     region = view.region
     y0, y1, x0, x1 = y0 + region[0].start, y1 + region[0].start, x0 + region[1].start, x1 + region[1].start
     frame_box = (slice(y0, y1), slice(x0, x1))  # the same in the working-resolution frame
-    matte = _matte(mask[box], view.I_sharp[frame_box], background.B_sharp[frame_box], view.noise.gains,
+    matte = _matte(mask[box], view.I_sharp[frame_box], background.B_sharp[frame_box], view.noise,
                    view.alpha[box], ds)
     if ds > 1:
         score = _full_resolution_score(matte, image, background.image, view.noise, (y0 * ds, x0 * ds), ds)
@@ -97,7 +97,7 @@ class _Matte:
 _MASK_SCORE = np.where(np.arange(256) > 0, np.float32(SCORE_FLOOR), np.float32(-SCORE_FLOOR))
 
 
-def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, gains: tuple[float, float, float], alpha: np.ndarray,
+def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, noise: _Noise, alpha: np.ndarray,
            downsample: int) -> _Matte:
     """The person's share φ of the pixels near the outline, and what it was measured against.
 
@@ -106,10 +106,10 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, gains: tuple[float, f
     nearby (pixels ``CORE_DEPTH_PX`` inside it) and λ the mean brightness distortion of the pixels just
     outside (1, or less in the person's shadow). The true outline runs where φ = 1/2; a fixed threshold
     would keep the whole blurred edge of a high-contrast outline and grow the silhouette. ``I`` (h, w, 3)
-    uint8 and the background ``B`` (h, w, 3) uint8, exposed by the frame's ``gains`` G, are not blurred, so the
-    edge is as sharp as the camera made it. φ is measured within ``MATTE_RADIUS_PX`` of the outline, on both
-    sides; elsewhere (and where F is too close to the background to measure it) the mask decides, with a small
-    magnitude so that interpolation still places the outline between pixels.
+    uint8 and the background ``B`` (h, w, 3) uint8, exposed by the frame's tone curve T (``noise``), are not
+    blurred, so the edge is as sharp as the camera made it. φ is measured within ``MATTE_RADIUS_PX`` of the
+    outline, on both sides; elsewhere (and where F is too close to the background to measure it) the mask
+    decides, with a small magnitude so that interpolation still places the outline between pixels.
     """
     depth = disk(max(1, round(CORE_DEPTH_PX / downsample)))
     radius = max(1, round(MATTE_RADIUS_PX / downsample))
@@ -131,8 +131,7 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, gains: tuple[float, f
     lam = np.where(n_outside > 0, alpha_sum.ravel().take(index) / np.maximum(n_outside, 1.0), np.float32(1.0))  # λ
     F = sums[:3] / np.maximum(n_core, 1.0)  # (3, n)
     at = _channel_index(index, 3)
-    # GB at those pixels only, as cv2.multiply(B, gains, dtype=CV_32F) makes it: the product in double, rounded.
-    exposed = (B.ravel().take(at) * np.array(gains)[:, None]).astype(np.float32)  # (3, n)
+    exposed = noise.expose(B.ravel().take(at))  # (3, n) T(B) at those pixels only
     phi, EE = _share(I.ravel().take(at), F, lam * exposed)
     measured = np.flatnonzero((n_core > 0) & (EE > MIN_MATTE_CONTRAST**2))
     share = phi.take(measured) - 0.5
@@ -183,7 +182,7 @@ def _full_resolution_score(
     outline then follows the full-resolution edge rather than its average over ``downsample`` x
     ``downsample`` blocks. ``image`` and ``background`` (H, W, 3) uint8 are whole (flat
     gathers from them are the fastest), the box starting at full-resolution pixel ``origin`` (row, column);
-    the background is exposed by the frame's ``noise`` gains, as in the matte.
+    the background is exposed by the frame's tone curve (``noise``), as in the matte.
     """
     height, width = matte.score.shape
     ds = downsample
@@ -195,7 +194,7 @@ def _full_resolution_score(
     index = (np.minimum(rows + origin[0], image.shape[0] - 1) * image.shape[1]
              + np.minimum(cols + origin[1], image.shape[1] - 1))  # (m, ds²) flat indices in the image
     at = _channel_index(index, 3)
-    lam_B = background.ravel().take(at) * (noise.exposure() * matte.lam[:, None])  # (3, m, ds²) λGB
+    lam_B = noise.expose(background.ravel().take(at)) * matte.lam[:, None]  # (3, m, ds²) λT(B)
     phi, _ = _share(image.ravel().take(at), matte.F[:, :, None], lam_B)
     score.ravel()[rows * (width * ds) + cols] = phi - 0.5
     return score

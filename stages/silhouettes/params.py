@@ -27,7 +27,7 @@ class SilhouetteParams:
         only, for very noisy input; 1 = none (the thresholds already follow the noise, and a blur widens
         the person's edges, which the weak threshold then takes in).
     strong_threshold : float
-        Evidence ‖I − GB‖ / σ (in noise standard deviations) above which a pixel seeds the person: high
+        Evidence ‖I − T(B)‖ / σ (in noise standard deviations) above which a pixel seeds the person: high
         enough that noise alone practically never reaches it.
     weak_threshold : float
         Evidence above which a pixel is person when its region holds a seed: low enough to keep clothing

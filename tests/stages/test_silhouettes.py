@@ -257,3 +257,22 @@ def test_clothing_close_to_the_wall_is_found_after_a_change_of_white_balance():
     image = np.clip(image + rng.normal(0.0, 2.0, image.shape), 0, 255).astype(np.uint8)
     mask = extract_silhouette(image, background.astype(np.uint8), SilhouetteParams())
     assert _iou(mask, truth) > 0.9
+
+
+@pytest.mark.parametrize("tone", ["gamma", "black level"])
+def test_a_change_of_tone_curve_over_a_bright_wall_and_a_dark_floor_is_not_a_person(tone):
+    # The camera's automatic exposure acts before its gamma (or a grabber lifts the black level): the frame's
+    # levels are no longer the plate's times one ratio per channel, and a ratio fitted to the floor, most of
+    # the image, would put the whole wall in the mask.
+    rng = np.random.default_rng(12)
+    background = np.empty((HEIGHT, WIDTH, 3))
+    background[: HEIGHT // 3] = (200.0, 205.0, 190.0)  # a bright wall
+    background[HEIGHT // 3 :] = (60.0, 75.0, 95.0)  # a dark wooden floor
+    background += cv2.resize(rng.uniform(-6, 6, (HEIGHT // 20, WIDTH // 20, 3)), (WIDTH, HEIGHT))
+    truth = _person_mask()
+    image = background.copy()
+    image[truth > 0] = (120.0, 110.0, 150.0)
+    image = 255.0 * (image / 255.0) ** 1.25 if tone == "gamma" else image * 0.85 + 20.0
+    image = np.clip(image + rng.normal(0.0, 2.0, image.shape), 0, 255).astype(np.uint8)
+    mask = extract_silhouette(image, np.clip(background, 0, 255).astype(np.uint8), SilhouetteParams())
+    assert _iou(mask, truth) > 0.9

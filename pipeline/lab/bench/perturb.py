@@ -1,0 +1,151 @@
+"""A copy of a capture whose videos differ from its clean plates the way a real camera's or codec's do.
+
+    python -m pipeline.lab.bench.perturb ../shared/foreign/walk --change gamma --out runs/perturbed/walk-gamma
+    python -m pipeline run runs/perturbed/walk-gamma --out runs/walk-gamma
+    python -m pipeline eval runs/walk-gamma --truth ../shared/foreign/walk/groundtruth/joints.csv
+
+The foreign captures are a validation set of four, and the project is judged on captures it has not seen, from
+other cameras and rooms. A perturbed copy asks what one such difference does to the silhouettes and the track,
+one at a time: the change applies to every frame of every video, the clean plates stay as they were (a plate
+shot before the camera's automatic exposure, white balance or the codec moved), and the copy holds the
+original's calibration and plates and links its ground truth, so that it is run and scored as the original is.
+Every video is decoded and encoded again (``none`` does only that: the codec's second generation, the control
+every other change is compared with).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from calib.errors import InputError
+
+# What each change does to a frame (float32 8-bit levels, BGR), given a random generator and the camera's index.
+Change = Callable[[np.ndarray, np.random.Generator, int], np.ndarray]
+
+#: Cameras whose automatic white balance moved since the plates: blue and red gains, alternating by camera.
+_WHITE_BALANCE = (np.array([1.08, 1.0, 0.93], np.float32), np.array([0.92, 1.0, 1.08], np.float32))
+
+
+def _tone(exponent: float) -> Change:
+    return lambda frame, rng, camera: 255.0 * (frame / 255.0) ** exponent
+
+
+CHANGES: dict[str, tuple[str, Change]] = {
+    "none": ("decoded and encoded again only", lambda frame, rng, camera: frame),
+    "gamma": ("exposure raised before the camera's gamma: I' = 255 (I / 255)^0.8", _tone(0.8)),
+    "gamma_dark": ("exposure lowered before the camera's gamma: I' = 255 (I / 255)^1.25", _tone(1.25)),
+    "black_level": ("black level lifted, contrast lowered (a grabber, haze): I' = 0.85 I + 20",
+                    lambda frame, rng, camera: 0.85 * frame + 20.0),
+    "exposure": ("exposure 0.8 of the plates'", lambda frame, rng, camera: 0.8 * frame),
+    "flicker": ("each frame's exposure drawn in [0.9, 1.1] (mains flicker)",
+                lambda frame, rng, camera: frame * rng.uniform(0.9, 1.1)),
+    "white_balance": ("each camera's blue and red gains moved by 7-8 %",
+                      lambda frame, rng, camera: frame * _WHITE_BALANCE[camera % 2]),
+    "noise": ("Gaussian sensor noise of 8 levels added",
+              lambda frame, rng, camera: frame + rng.normal(0.0, 8.0, frame.shape)),
+    "compression": ("every frame through JPEG at quality 20 (blocking, ringing)",
+                    lambda frame, rng, camera: _jpeg(frame, 20)),
+    "blur": ("the frames blurred (a Gaussian of 1.5 px) against sharp plates",
+             lambda frame, rng, camera: cv2.GaussianBlur(frame, (0, 0), 1.5)),
+}
+
+
+def _jpeg(frame: np.ndarray, quality: int) -> np.ndarray:
+    _, encoded = cv2.imencode(".jpg", _to_uint8(frame), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    return cv2.imdecode(encoded, cv2.IMREAD_COLOR).astype(np.float32)
+
+
+def _to_uint8(frame: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(frame), 0, 255).astype(np.uint8)
+
+
+def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0) -> Path:
+    """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
+    to every frame of its videos; returns ``out``.
+
+    capture.yaml, the calibration and the background plates are copied, the ground truth (when there is one)
+    linked. The videos are written as MPEG-4 Part 2 (the codec OpenCV's wheels can write) at the originals' frame
+    rate; only captures whose frames are videos (``videos/<camera>.<ext>``) can be changed.
+
+    Raises
+    ------
+    InputError
+        An unknown change, ``out`` already there, or a capture without videos.
+    """
+    capture, out = Path(capture), Path(out)
+    if change not in CHANGES:
+        raise InputError(f"unknown change {change!r} (expected one of {', '.join(CHANGES)})")
+    if out.exists():
+        raise InputError(f"{out}: already exists (give a new folder; nothing is overwritten)")
+    videos = sorted(path for path in (capture / "videos").glob("*") if path.is_file()) \
+        if (capture / "videos").is_dir() else []
+    if not videos:
+        raise InputError(f"{capture}: no videos/ folder with videos (only captures of videos can be perturbed)")
+    apply = CHANGES[change][1]
+    rng = np.random.default_rng(seed)
+    partial = out.with_name(out.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    (partial / "videos").mkdir(parents=True)
+    shutil.copy2(capture / "capture.yaml", partial / "capture.yaml")
+    for folder in ("calibration", "background"):
+        if (capture / folder).is_dir():
+            shutil.copytree(capture / folder, partial / folder)
+    if (capture / "groundtruth").is_dir():
+        (partial / "groundtruth").symlink_to((capture / "groundtruth").resolve(), target_is_directory=True)
+    for camera, video in enumerate(videos):
+        _rewrite(video, partial / "videos" / (video.stem + ".mp4"), lambda frame, c=camera: apply(frame, rng, c))
+    partial.rename(out)
+    return out
+
+
+def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray], np.ndarray]) -> None:
+    """Decode ``source``, change every frame (as float32) and encode the result to ``target``."""
+    reader = cv2.VideoCapture(str(source))
+    fps = reader.get(cv2.CAP_PROP_FPS)
+    writer = None
+    try:
+        while True:
+            ok, frame = reader.read()
+            if not ok:
+                break
+            if writer is None:
+                writer = cv2.VideoWriter(str(target), cv2.VideoWriter_fourcc(*"mp4v"), fps,
+                                         (frame.shape[1], frame.shape[0]))
+                if not writer.isOpened():
+                    raise InputError(f"{target}: OpenCV cannot write an MPEG-4 video here")
+            writer.write(_to_uint8(change(frame.astype(np.float32))))
+    finally:
+        reader.release()
+        if writer is not None:
+            writer.release()
+    if writer is None:
+        raise InputError(f"{source}: no frame could be decoded")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m pipeline.lab.bench.perturb", formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=__doc__.split("\n\n")[0],
+        epilog="changes:\n" + "\n".join(f"  {name:14s}{text}" for name, (text, _) in CHANGES.items()))
+    parser.add_argument("capture", type=Path, help="capture directory (with capture.yaml and videos/)")
+    parser.add_argument("--change", required=True, choices=sorted(CHANGES))
+    parser.add_argument("--out", required=True, type=Path, help="new capture directory (must not exist)")
+    parser.add_argument("--seed", type=int, default=0, help="random draws of flicker and noise")
+    args = parser.parse_args(argv)
+    try:
+        perturb_capture(args.capture, args.out, args.change, seed=args.seed)
+    except InputError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,71 @@
+"""``pipeline.lab.bench.perturb``: a copy of a capture whose videos differ from its plates as a camera's would."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calib.errors import InputError
+from pipeline.lab.bench.perturb import main, perturb_capture
+
+FRAMES, HEIGHT, WIDTH = 4, 48, 64
+
+
+def _frames(video: Path) -> list[np.ndarray]:
+    reader = cv2.VideoCapture(str(video))
+    frames = []
+    while (read := reader.read())[0]:
+        frames.append(read[1])
+    reader.release()
+    return frames
+
+
+@pytest.fixture
+def capture(tmp_path) -> Path:
+    """A capture folder with two short videos of smooth colours, a plate per camera, a calibration and truth."""
+    root = tmp_path / "capture"
+    for folder in ("videos", "background", "calibration", "groundtruth"):
+        (root / folder).mkdir(parents=True)
+    (root / "capture.yaml").write_text("fps: 25\n")
+    (root / "calibration" / "rig.toml").write_text("# a calibration\n")
+    (root / "groundtruth" / "joints.csv").write_text("frame,joint,x,y,z\n")
+    rng = np.random.default_rng(0)
+    for camera in ("cam0", "cam1"):
+        plate = cv2.resize(rng.uniform(60, 200, (4, 5, 3)), (WIDTH, HEIGHT)).astype(np.uint8)
+        cv2.imwrite(str(root / "background" / f"{camera}.png"), plate)
+        writer = cv2.VideoWriter(str(root / "videos" / f"{camera}.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 25,
+                                 (WIDTH, HEIGHT))
+        for _ in range(FRAMES):
+            writer.write(plate)
+        writer.release()
+    return root
+
+
+def test_a_black_level_change_is_applied_to_every_frame_and_the_rest_is_kept(capture, tmp_path):
+    out = perturb_capture(capture, tmp_path / "lifted", "black_level")
+    assert (out / "capture.yaml").read_text() == "fps: 25\n"
+    assert (out / "calibration" / "rig.toml").is_file() and (out / "background" / "cam1.png").is_file()
+    assert (out / "groundtruth").is_symlink() and (out / "groundtruth" / "joints.csv").is_file()
+    for camera in ("cam0", "cam1"):
+        before, after = _frames(capture / "videos" / f"{camera}.mp4"), _frames(out / "videos" / f"{camera}.mp4")
+        assert len(after) == len(before) == FRAMES
+        for original, changed in zip(before, after, strict=True):
+            # the codec's second generation adds a level or two; the change itself is 0.85 I + 20
+            assert np.abs(changed.astype(float) - (0.85 * original + 20.0)).mean() < 3.0
+    assert not (tmp_path / "lifted.partial").exists()
+
+
+def test_nothing_is_overwritten_and_an_unknown_change_is_refused(capture, tmp_path, capsys):
+    (tmp_path / "taken").mkdir()
+    with pytest.raises(InputError, match="already exists"):
+        perturb_capture(capture, tmp_path / "taken", "gamma")
+    with pytest.raises(InputError, match="unknown change 'sepia'"):
+        perturb_capture(capture, tmp_path / "new", "sepia")
+    (capture / "videos" / "cam0.mp4").unlink()
+    (capture / "videos" / "cam1.mp4").unlink()
+    assert main([str(capture), "--change", "noise", "--out", str(tmp_path / "new")]) == 2
+    assert "no videos/ folder with videos" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
