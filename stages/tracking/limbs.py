@@ -4,7 +4,8 @@ A limb EM put on the wrong side of the body or folded away from its data gets al
 observations, and the local minimum holds it there for many frames. A limb's segments are compared
 with its mirror limb's (`misplaced_limbs`) and with their own running level (`deserted_limbs`); a limb
 found either way, and every limb after an initialisation, gets the library's angles for that limb alone
-(`reinitialise_limb`), and the likelihood decides (eq. 12). What Horaud et al. 2009 leave open, like the initialisation.
+(`reinitialise_limb`), and the likelihood decides (eq. 12); a limb and its mirror that took each other's data
+are exchanged back (`swap_limbs`). What Horaud et al. 2009 leave open, like the initialisation.
 """
 
 from __future__ import annotations
@@ -224,6 +225,26 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     if best.log_likelihood[-1] < result.log_likelihood[-1] + LIMB_MARGIN * len(y):
         return result
     return best
+
+
+def swap_limbs(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Limb, volume: np.ndarray,
+               em: EMParams) -> FitResult:
+    """The fit with `limb` and its mirror limb exchanged, each given the other's angles (mirrored) and refitted
+    by EM, when that gains `LIMB_MARGIN` per observation; else `result`.
+
+    Left and right legs look alike in silhouettes: where they pass each other (a walk's stride), EM can follow
+    each onto the other's data, and from then on each explains the other's observations as well as its own
+    would, so that neither share test fires; only the hips' and knees' directions are wrong, and the
+    likelihood sinks a little more at every frame. Re-initialising one limb cannot undo it (its data are
+    taken by the other); exchanging both can.
+    """
+    pose = result.pose.copy()
+    pose[limb.dofs] = result.pose[limb.mirror_dofs] * limb.mirror_sign
+    pose[limb.mirror_dofs] = result.pose[limb.dofs] * limb.mirror_sign
+    swapped = fit(y, n, result.body, result.body.clip(pose), volume, em, mixture=result.mixture)
+    if swapped.log_likelihood[-1] < result.log_likelihood[-1] + LIMB_MARGIN * len(y):
+        return result
+    return swapped
 
 
 def folded(body: BodyModel, pose: np.ndarray, limb: Limb) -> bool:

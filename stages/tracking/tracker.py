@@ -24,7 +24,9 @@ velocity), which is close enough for EM to converge in a few iterations (Horaud 
   turned away from its data, which may still explain as many data as its mirror), or that has folded
   onto itself since the last frame (`limbs.folded_limbs`), is re-initialised locally after every fit
   (`limbs.reinitialise_limb`, which never lands in a fold), and kept only on a clear likelihood gain;
-  after an initialisation every limb is searched so, once;
+  after an initialisation every limb is searched so, once; a fit worse than usual (`refit_drop` below the
+  likelihood level) also tries each pair of mirror limbs exchanged (`limbs.swap_limbs`: legs that passed
+  each other and took each other's data, which no share test sees);
 - frames with no or too few observations: the pose is predicted (velocity decaying) and flagged
   "predicted", then "lost" when the gap lasts; tracking re-initialises when data return.
 Nothing here produces NaN: unusable rows of the input are dropped and every output is finite.
@@ -52,6 +54,7 @@ from stages.tracking.limbs import (
     misplaced_limbs,
     reinitialise_limb,
     segment_shares,
+    swap_limbs,
 )
 from stages.tracking.mixture import Mixture, volume_size
 from stages.tracking.params import TrackerParams, shipped_body
@@ -120,6 +123,10 @@ class Tracker:
         mixture = Mixture(Sigma=state.Sigma + params.sigma_m**2 * np.eye(len(state.Sigma)), pi=state.pi)
         tracked = self._fit_from(prediction, state, y, n, sized, mixture, em)
         tracked = self._recover_limbs(y, n, tracked, em, state.segment_shares, state.pose)
+        if tracked.log_likelihood[-1] / len(y) < state.likelihood_level - params.refit_drop:
+            for limb in self.limbs:
+                if limb.segments[0] < limb.mirror_segments[0]:  # each pair once
+                    tracked = swap_limbs(y, n, tracked, limb, self.volume, em)
         doubtful = _failed(tracked, params)
         tried = doubtful or 0 < params.reinit_every <= state.since_initialisation + 1 or state.recheck
         if tried:

@@ -1,6 +1,7 @@
 """Tracking over time on data sampled from the body's own ellipsoids, and degenerate inputs."""
 
 import json
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -317,3 +318,26 @@ def test_a_folded_limb_is_tried_again_and_kept_where_the_data_fold_it(body, monk
         tried_by_frame.append(list(tried))
     assert tried_by_frame[1:] == [[], [], [], ["l_upperarm"], [], []]  # once, when the fold appears
     assert np.linalg.norm(result.joints - body.joint_positions(body.clip(pose)), axis=1).max() < 0.01  # metres
+
+
+def test_a_frame_worse_than_usual_tries_each_pair_of_limbs_exchanged(body, monkeypatch):
+    """Exchanging mirror limbs costs an EM fit per pair, so it is tried only where legs that took each other's
+    data would show: a fit `refit_drop` below the track's usual likelihood."""
+    rng = np.random.default_rng(31)
+    tried = []
+    exchange = tracker.swap_limbs
+    monkeypatch.setattr(tracker, "swap_limbs", lambda y, n, result, limb, *args: tried.append(limb.name)
+                        or exchange(y, n, result, limb, *args))
+    the_tracker, state = Tracker(PARAMS, VOLUME), None
+    poses = _walk(body.scaled(1.75), 4)
+    for pose in poses[:3]:
+        _, state = the_tracker.track(state, _obs(body, pose, rng))
+    assert tried == []
+    usual = replace(state, likelihood_level=state.likelihood_level + 2 * PARAMS.refit_drop + 1.0)
+    result, _ = the_tracker.track(usual, _obs(body, poses[3], rng))
+    assert sorted(tried) == sorted({min(limb.name, _mirror(limb.name)) for limb in the_tracker.limbs})
+    assert np.linalg.norm(result.joints - body.joint_positions(poses[3]), axis=1).max() < 0.02  # metres
+
+
+def _mirror(name: str) -> str:
+    return ("r_" if name.startswith("l_") else "l_") + name[2:]

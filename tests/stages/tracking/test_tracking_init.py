@@ -9,7 +9,15 @@ from stages.tracking.body_file import load_body
 from stages.tracking.em import EMParams, fit
 from stages.tracking.init import InitParams, initialise
 from stages.tracking.library import generic_poses, load_pose_library
-from stages.tracking.limbs import body_limbs, deserted_limbs, folded, misplaced_limbs, reinitialise_limb, segment_shares
+from stages.tracking.limbs import (
+    body_limbs,
+    deserted_limbs,
+    folded,
+    misplaced_limbs,
+    reinitialise_limb,
+    segment_shares,
+    swap_limbs,
+)
 
 
 @pytest.mark.parametrize("name", ["default", "paper"])
@@ -234,3 +242,28 @@ def test_screened_initialisation_scores_are_the_full_scores_of_the_poses_that_su
     assert survived.sum() == keep and np.all(np.isinf(screened[~survived]))
     np.testing.assert_allclose(screened[survived], full[survived], rtol=1e-12)
     assert survived[np.argsort(-full.max(axis=1))[:InitParams().refine]].all()
+
+
+def test_legs_that_took_each_other_s_data_are_exchanged_back():
+    """Mid-stride, legs swapped (each given the other's angles) explain the data well enough for EM to stay; the
+    exchange puts each back on its own data, and a fit whose legs are right is left as it is."""
+    body = load_body("default").scaled(1.75)
+    truth = body.zero_pose()
+    truth[3] = 0.3
+    for name, degrees in [("l_thigh.flex", 30), ("r_thigh.flex", -30), ("l_shank.flex", 20), ("r_shank.flex", 20)]:
+        truth[body.dof_names.index(name)] = np.radians(degrees)
+    truth = body.clip(truth)
+    y, n = sample_ellipsoids(body, truth, 600, np.random.default_rng(3), outlier_fraction=0.2)
+    legs = next(limb for limb in body_limbs(body) if limb.name == "l_thigh")
+    swapped = truth.copy()
+    swapped[legs.dofs] = truth[legs.mirror_dofs] * legs.mirror_sign
+    swapped[legs.mirror_dofs] = truth[legs.dofs] * legs.mirror_sign
+    crossed = fit(y, n, body, body.clip(swapped), VOLUME, EMParams(max_iterations=1))
+
+    def error(result):  # metres, the worst joint
+        return np.linalg.norm(result.body.joint_positions(result.pose) - body.joint_positions(truth), axis=1).max()
+
+    assert error(crossed) > 0.1
+    exchanged = swap_limbs(y, n, crossed, legs, VOLUME, EMParams())
+    assert error(exchanged) < 0.01
+    assert swap_limbs(y, n, exchanged, legs, VOLUME, EMParams()) is exchanged
