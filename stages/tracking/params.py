@@ -74,8 +74,7 @@ class TrackerParams:
     refit_drop, refit_iterations : float, int
         A fit whose log-likelihood per observation is `refit_drop` nats below the running level gets up
         to `refit_iterations` (at least 1) more EM iterations with a strict stopping rule before it is
-        judged, and after its limb recovery each pair of mirror limbs exchanged (`limbs.swap_limbs`);
-        inf never refits.
+        judged, and after its limb recovery the legs exchanged (`limbs.swap_limbs`); inf never refits.
     restart_drop : float
         When such a fit is still `restart_drop` nats below the level, EM also runs from the last pose
         (no velocity) and the better fit is kept (inf never restarts): a motion that stops or turns
