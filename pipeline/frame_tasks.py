@@ -66,21 +66,22 @@ def single_threaded_opencv() -> Iterator[None]:
         cv2.setNumThreads(threads)
 
 
-def cached_background_model(path: Path, params: SilhouetteParams,
-                            noise_floor: float = NOISE_SIGMA_MIN) -> BackgroundModel:
-    """The background model of the image at ``path`` (with its ``noise_floor``), read and built once per worker.
+def cached_background_model(path: Path, params: SilhouetteParams, noise_floor: float = NOISE_SIGMA_MIN,
+                            tone_curve: bool = True) -> BackgroundModel:
+    """The background model of the image at ``path`` (with its ``noise_floor`` and ``tone_curve``,
+    :func:`~stages.silhouettes.background_model`), read and built once per worker.
 
     Reading a colour PNG and building the model cost as much as segmenting a few frames, per camera;
     the file's modification time and size are part of the key, so a rewritten background is read again.
     """
     status = os.stat(path)
-    return _background_model(str(path), status.st_mtime_ns, status.st_size, params, noise_floor)
+    return _background_model(str(path), status.st_mtime_ns, status.st_size, params, noise_floor, tone_curve)
 
 
 @functools.lru_cache(maxsize=CACHED_BACKGROUNDS)
 def _background_model(path: str, mtime_ns: int, size: int, params: SilhouetteParams,
-                      noise_floor: float) -> BackgroundModel:
-    return background_model(frames_io.read_image(path), params, noise_floor=noise_floor)
+                      noise_floor: float, tone_curve: bool) -> BackgroundModel:
+    return background_model(frames_io.read_image(path), params, noise_floor=noise_floor, tone_curve=tone_curve)
 
 
 def cached_floor_geometry(rig: Rig, volume: np.ndarray, params: SilhouetteParams) -> FloorGeometry:
@@ -111,7 +112,8 @@ def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: Silhouet
 
     The cameras of a frame are segmented together: whether a darker patch is the person's shadow on the
     floor is settled across the views (:func:`stages.silhouettes.extract_silhouettes`). ``noise_floors``
-    holds the noise floor of each camera whose background was estimated from the frames.
+    holds the noise floor of each camera whose background was estimated from the frames; their frames' exposure
+    is fitted as one ratio per channel, not as a tone curve (:func:`~stages.silhouettes.background_model`).
     """
     floors = noise_floors or {}
     names = capture.rig.names
@@ -122,7 +124,8 @@ def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: Silhouet
                 _write_masks(out_dir, names, frame, _checked(masks, capture, params))
             return
         backgrounds = [cached_background_model(background_path(out_dir, camera), params,
-                                               floors.get(camera, NOISE_SIGMA_MIN)) for camera in names]
+                                               floors.get(camera, NOISE_SIGMA_MIN), tone_curve=camera not in floors)
+                       for camera in names]
         floor = cached_floor_geometry(capture.rig, capture.volume, params)
         # A frame's images are done with once its masks are written, before the next frame is decoded.
         streams = [capture.iter_images(camera, chunk, reuse=True) for camera in names]

@@ -128,7 +128,7 @@ def _round(samples: Sequence[CameraSamples], backgrounds: Sequence[np.ndarray], 
     hull alone says where he is. Later rounds' backgrounds are free of them, and the own silhouette, tighter
     than any hull, marks him, where the hull agrees (what the hull does not explain is not him).
     """
-    models = [background_model(b, params) for b in backgrounds]
+    models = [background_model(b, params, tone_curve=False) for b in backgrounds]
     count = len(samples[0].small)
     covers = [np.zeros(s.small.shape[:3], bool) for s in samples]
     sizes = np.zeros(count, np.int64)

@@ -71,20 +71,27 @@ class BackgroundModel:
     texture_variance: np.ndarray  # (h, w) float32 (κ ‖∇B‖)² / 3, per-channel noise variance from texture
     # Colours below are stored channels first, as :func:`_dot` wants them (a copy saved per frame).
     sample_B: np.ndarray  # (3, m) float32 every SAMPLE_STRIDE-th pixel of B_sharp along both axes, flattened
+    sample_B2: np.ndarray  # (3, m) float32 their squares B_k²
+    sample_divisor: np.ndarray  # (m,) float32 B·B + BACKGROUND_ENERGY_FLOOR there
     sample_bins: np.ndarray  # (3, m) intp their tone-curve bins, channel k's numbered from k × the bins per channel
     coarse_B: np.ndarray  # (3, h / COARSE_FACTOR, w / COARSE_FACTOR) float32 B_sharp averaged over blocks
     coarse_texture_variance: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR) float32 the same for the texture
     noise_floor: float  # σ (8-bit levels) below which a frame's noise estimate is not believed
+    tone_curve: bool  # whether a frame's tone curve is fitted (else one exposure ratio per channel)
 
 
 def background_model(background: np.ndarray, params: SilhouetteParams, *,
-                     noise_floor: float = NOISE_SIGMA_MIN) -> BackgroundModel:
+                     noise_floor: float = NOISE_SIGMA_MIN, tone_curve: bool = True) -> BackgroundModel:
     """The per-camera part of :func:`extract_silhouette`, for a background (H, W, 3) uint8.
 
     ``noise_floor`` is the lowest noise σ (8-bit levels, at the working resolution) a frame's estimate may
     give: by default the quantisation's; a background estimated from the frames themselves knows how much
     they scatter about it (:func:`stages.background.sample_camera`), where a single frame's estimate, made
     on the pixels that match the background best, may see less than the frames' codec leaves near the person.
+
+    ``tone_curve`` False keeps each frame's exposure to one ratio per channel (see :func:`_noise`): for a
+    background estimated from the frames themselves, whose tone is theirs by construction and whose levels
+    may hold what remains of a subject who stood still, which a tone curve would learn as the room's.
     """
     background = np.asarray(background)
     if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:
@@ -108,10 +115,13 @@ def background_model(background: np.ndarray, params: SilhouetteParams, *,
         B_sharp=B_sharp,
         texture_variance=texture_variance,
         sample_B=sample_B,
+        sample_B2=sample_B * sample_B,
+        sample_divisor=_dot(sample_B, sample_B) + np.float32(BACKGROUND_ENERGY_FLOOR),
         sample_bins=_tone_bins(sample_B),
         coarse_B=_channels_first(_block_mean(B_sharp, COARSE_FACTOR)),
         coarse_texture_variance=_block_mean(texture_variance, COARSE_FACTOR),
         noise_floor=float(noise_floor),
+        tone_curve=bool(tone_curve),
     )
 
 
@@ -274,12 +284,15 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     """
     I = _channels_first(I).reshape(3, -1)  # (3, m)
     B = model.sample_B
-    everywhere = np.ones(I.shape[1], np.float32)
-    tone = _tone_curve(I, B, model.sample_bins, everywhere, median=True)
-    D = I - _look_up(tone, B)
-    distance2 = _dot(D, D)
-    background = (distance2 <= np.float32(_quantile(distance2, 0.5))).astype(np.float32)  # (m,) 1 or 0
-    tone = _tone_curve(I, B, model.sample_bins, background, median=False)
+    if model.tone_curve:
+        everywhere = np.ones(I.shape[1], np.float32)
+        tone = _tone_curve(I, B, model.sample_bins, everywhere, median=True)
+        D = I - _look_up(tone, B)
+        distance2 = _dot(D, D)
+        background = (distance2 <= np.float32(_quantile(distance2, 0.5))).astype(np.float32)  # (m,) 1 or 0
+        tone = _tone_curve(I, B, model.sample_bins, background, median=False)
+    else:
+        tone = _ratio_tone(I, model)
     D = I - _look_up(tone, B)
     distance2 = _dot(D, D)
     # A pixel equal to the background in every channel is a copy, not a noisy measurement of it: a video
@@ -339,6 +352,27 @@ def _tone_curve(I: np.ndarray, B: np.ndarray, bins: np.ndarray, weights: np.ndar
     lowest = EXPOSURE_RATIO_RANGE[0] * _LEVELS - TONE_SHIFT_MAX
     highest = EXPOSURE_RATIO_RANGE[1] * _LEVELS + TONE_SHIFT_MAX
     return np.clip(tone, lowest, highest).astype(np.float32)
+
+
+def _ratio_tone(I: np.ndarray, model: BackgroundModel) -> np.ndarray:
+    """(3, 256) float32 the tone curve T_k(b) = g_k b of one exposure ratio per channel, from the sample ``I`` (3, m).
+
+    First one ratio for all channels, g = the median of α = I·B / B·B (the person covers less than half of
+    the image); the half of the sample closest to gB is then surely background, and on it each channel's
+    ratio is the least-squares g_k = Σ I_k B_k / Σ B_k², within ``EXPOSURE_RATIO_RANGE``. Medians of
+    per-channel ratios would be pulled by the person's colour, each channel its own way, and tint the model.
+    """
+    B = model.sample_B
+    products = I * B  # (3, m) I_k B_k
+    alpha = (products[0] + products[1] + products[2]) / model.sample_divisor
+    g = np.float32(np.clip(_quantile(alpha, 0.5), *EXPOSURE_RATIO_RANGE))
+    D = I - g * B
+    distance2 = _dot(D, D)
+    background = (distance2 <= np.float32(_quantile(distance2, 0.5))).astype(np.float32)  # (m,) 1 or 0
+    # Sums over the background half as products with its 0/1 indicator: a fraction of boolean indexing's cost.
+    IB, BB = products @ background, model.sample_B2 @ background
+    gains = np.where(BB > 0, np.clip(IB / np.maximum(BB, 1e-12), *EXPOSURE_RATIO_RANGE), g)
+    return (gains[:, None] * _LEVELS).astype(np.float32)
 
 
 def _look_up(tone: np.ndarray, B: np.ndarray) -> np.ndarray:
