@@ -47,7 +47,7 @@ TONE_SHIFT_MAX = 24.0
 # The tone curve is fitted on background levels binned this wide (8-bit levels): 16 bins, across which a
 # camera's tone curve is close to linear, each with hundreds of samples where the room has that colour.
 TONE_BIN_LEVELS = 16
-# Fewest sampled background pixels in a bin for its mean to enter the tone curve; sparser bins are
+# Fewest sampled pixels in a bin for its median or mean to enter the tone curve; sparser bins are
 # interpolated from their neighbours.
 MIN_TONE_SAMPLES = 20
 # cv2.transform's matrix summing the three channels of each pixel.
@@ -287,10 +287,7 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     if model.tone_curve:
         everywhere = np.ones(I.shape[1], np.float32)
         tone = _tone_curve(I, B, model.sample_bins, everywhere, median=True)
-        D = I - _look_up(tone, B)
-        distance2 = _dot(D, D)
-        background = (distance2 <= np.float32(_quantile(distance2, 0.5))).astype(np.float32)  # (m,) 1 or 0
-        tone = _tone_curve(I, B, model.sample_bins, background, median=False)
+        tone = _tone_curve(I, B, model.sample_bins, _closest_half(I, _look_up(tone, B)), median=False)
     else:
         tone = _ratio_tone(I, model)
     D = I - _look_up(tone, B)
@@ -366,13 +363,19 @@ def _ratio_tone(I: np.ndarray, model: BackgroundModel) -> np.ndarray:
     products = I * B  # (3, m) I_k B_k
     alpha = (products[0] + products[1] + products[2]) / model.sample_divisor
     g = np.float32(np.clip(_quantile(alpha, 0.5), *EXPOSURE_RATIO_RANGE))
-    D = I - g * B
-    distance2 = _dot(D, D)
-    background = (distance2 <= np.float32(_quantile(distance2, 0.5))).astype(np.float32)  # (m,) 1 or 0
+    background = _closest_half(I, g * B)
     # Sums over the background half as products with its 0/1 indicator: a fraction of boolean indexing's cost.
     IB, BB = products @ background, model.sample_B2 @ background
     gains = np.where(BB > 0, np.clip(IB / np.maximum(BB, 1e-12), *EXPOSURE_RATIO_RANGE), g)
     return (gains[:, None] * _LEVELS).astype(np.float32)
+
+
+def _closest_half(I: np.ndarray, expected: np.ndarray) -> np.ndarray:
+    """(m,) float32 1 for the half of the sample ``I`` (3, m) closest to its ``expected`` background colours (3, m),
+    0 for the others: the person covers less than half of the image, so that half is surely background."""
+    D = I - expected
+    distance2 = _dot(D, D)
+    return (distance2 <= np.float32(_quantile(distance2, 0.5))).astype(np.float32)
 
 
 def _look_up(tone: np.ndarray, B: np.ndarray) -> np.ndarray:

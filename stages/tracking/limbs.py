@@ -227,6 +227,14 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     return best
 
 
+def exchanged(pose: np.ndarray, limb: Limb) -> np.ndarray:
+    """A copy of `pose` (D,) with `limb` and its mirror limb each given the other's angles, mirrored."""
+    swapped = pose.copy()
+    swapped[limb.dofs] = pose[limb.mirror_dofs] * limb.mirror_sign
+    swapped[limb.mirror_dofs] = pose[limb.dofs] * limb.mirror_sign
+    return swapped
+
+
 def swap_limbs(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Limb, volume: np.ndarray,
                em: EMParams) -> FitResult:
     """The fit with `limb` and its mirror limb exchanged, each given the other's angles (mirrored) and refitted
@@ -238,10 +246,8 @@ def swap_limbs(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Limb, volu
     likelihood sinks a little more at every frame. Re-initialising one limb cannot undo it (its data are
     taken by the other); exchanging both can.
     """
-    pose = result.pose.copy()
-    pose[limb.dofs] = result.pose[limb.mirror_dofs] * limb.mirror_sign
-    pose[limb.mirror_dofs] = result.pose[limb.dofs] * limb.mirror_sign
-    swapped = fit(y, n, result.body, result.body.clip(pose), volume, em, mixture=result.mixture)
+    pose = result.body.clip(exchanged(result.pose, limb))
+    swapped = fit(y, n, result.body, pose, volume, em, mixture=result.mixture)
     if swapped.log_likelihood[-1] < result.log_likelihood[-1] + LIMB_MARGIN * len(y):
         return result
     return swapped

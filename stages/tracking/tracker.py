@@ -90,10 +90,9 @@ class Tracker:
     legs : list of Limb
         One of each pair of mirror limbs hanging from the root segment (the legs, from the pelvis), which
         a frame worse than usual tries exchanged (`limbs.swap_limbs`): legs pass each other at every stride,
-        and an EM fit per pair and such frame is the cost, paid for the arms too it would be 25 % of a
-        walk's tracking time with no case found where arms had swapped. None with a distance other than
-        "normals": legs exchanged cover the same points, and without the normals' evidence the exchange won on
-        noise (the paper suite's points alone at 150 observations lost the track on 86 % of the frames).
+        while the arms' exchange would cost an EM fit per such frame as well for no case found. None with a
+        distance other than "normals": legs exchanged cover the same points, and without the normals'
+        evidence the exchange wins on noise (its figures: docs/results_by_hand.md).
     """
 
     def __init__(self, params: TrackerParams, volume: np.ndarray, body: BodyModel | None = None):
@@ -107,9 +106,9 @@ class Tracker:
         self.library = load_pose_library(self.body)
         self.limbs = body_limbs(self.body)
         root = np.flatnonzero(self.body.parent < 0)
-        self.legs = [limb for limb in self.limbs
-                     if self.body.parent[limb.segments[0]] in root and limb.segments[0] < limb.mirror_segments[0]
-                     and params.distance == "normals"]
+        legs = [limb for limb in self.limbs
+                if self.body.parent[limb.segments[0]] in root and limb.segments[0] < limb.mirror_segments[0]]
+        self.legs = legs if params.distance == "normals" else []
         self._sized: tuple = (None, None)
 
     def track(self, state: TrackerState | None, obs) -> tuple[FrameResult, TrackerState]:

@@ -12,6 +12,7 @@ from stages.tracking.library import generic_poses, load_pose_library
 from stages.tracking.limbs import (
     body_limbs,
     deserted_limbs,
+    exchanged,
     folded,
     misplaced_limbs,
     reinitialise_limb,
@@ -255,15 +256,12 @@ def test_legs_that_took_each_other_s_data_are_exchanged_back():
     truth = body.clip(truth)
     y, n = sample_ellipsoids(body, truth, 600, np.random.default_rng(3), outlier_fraction=0.2)
     legs = next(limb for limb in body_limbs(body) if limb.name == "l_thigh")
-    swapped = truth.copy()
-    swapped[legs.dofs] = truth[legs.mirror_dofs] * legs.mirror_sign
-    swapped[legs.mirror_dofs] = truth[legs.dofs] * legs.mirror_sign
-    crossed = fit(y, n, body, body.clip(swapped), VOLUME, EMParams(max_iterations=1))
+    crossed = fit(y, n, body, body.clip(exchanged(truth, legs)), VOLUME, EMParams(max_iterations=1))
 
     def error(result):  # metres, the worst joint
         return np.linalg.norm(result.body.joint_positions(result.pose) - body.joint_positions(truth), axis=1).max()
 
     assert error(crossed) > 0.1
-    exchanged = swap_limbs(y, n, crossed, legs, VOLUME, EMParams())
-    assert error(exchanged) < 0.01
-    assert swap_limbs(y, n, exchanged, legs, VOLUME, EMParams()) is exchanged
+    back = swap_limbs(y, n, crossed, legs, VOLUME, EMParams())
+    assert error(back) < 0.01
+    assert swap_limbs(y, n, back, legs, VOLUME, EMParams()) is back
