@@ -73,7 +73,8 @@ class BackgroundModel:
     sample_B: np.ndarray  # (3, m) float32 every SAMPLE_STRIDE-th pixel of B_sharp along both axes, flattened
     sample_B2: np.ndarray  # (3, m) float32 their squares B_k²
     sample_divisor: np.ndarray  # (m,) float32 B·B + BACKGROUND_ENERGY_FLOOR there
-    sample_bins: np.ndarray  # (3, m) intp their tone-curve bins, channel k's numbered from k × the bins per channel
+    sample_levels: np.ndarray  # (3, m) intp their 8-bit levels, channel k's numbered from k × 256
+    sample_keys: np.ndarray  # (3, m) intp 256 × their tone-curve bins (channel k's from k × the bins per channel)
     coarse_B: np.ndarray  # (3, h / COARSE_FACTOR, w / COARSE_FACTOR) float32 B_sharp averaged over blocks
     coarse_texture_variance: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR) float32 the same for the texture
     noise_floor: float  # σ (8-bit levels) below which a frame's noise estimate is not believed
@@ -117,7 +118,8 @@ def background_model(background: np.ndarray, params: SilhouetteParams, *,
         sample_B=sample_B,
         sample_B2=sample_B * sample_B,
         sample_divisor=_dot(sample_B, sample_B) + np.float32(BACKGROUND_ENERGY_FLOOR),
-        sample_bins=_tone_bins(sample_B),
+        sample_levels=sample_B.astype(np.intp) + _CHANNEL_OFFSETS[:, None],
+        sample_keys=256 * _tone_bins(sample_B),
         coarse_B=_channels_first(_block_mean(B_sharp, COARSE_FACTOR)),
         coarse_texture_variance=_block_mean(texture_variance, COARSE_FACTOR),
         noise_floor=float(noise_floor),
@@ -282,12 +284,12 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     the pixels that are not exact copies of the background, clipped to a plausible range (see the
     constants; from below by the model's ``noise_floor``).
     """
-    I = _channels_first(I).reshape(3, -1)  # (3, m)
+    levels = np.ascontiguousarray(I.transpose(2, 0, 1)).reshape(3, -1)  # (3, m) uint8
+    I = levels.astype(np.float32)
     B = model.sample_B
     if model.tone_curve:
-        everywhere = np.ones(I.shape[1], np.float32)
-        tone = _tone_curve(I, B, model.sample_bins, everywhere, median=True)
-        tone = _tone_curve(I, B, model.sample_bins, _closest_half(I, _look_up(tone, B)), median=False)
+        tone = _tone_curve(levels, model, median=True)
+        tone = _tone_curve(levels, model, np.flatnonzero(_closest_half(I, _look_up(tone, B))), median=False)
     else:
         tone = _ratio_tone(I, model)
     D = I - _look_up(tone, B)
@@ -307,6 +309,8 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
 _CHANNEL_OFFSETS = np.arange(3) * 256
 _LEVELS = np.arange(256, dtype=np.float64)
 _BINS_PER_CHANNEL = 256 // TONE_BIN_LEVELS
+# Each tone-curve bin's background levels, one row per bin of the three channels: (3 × bins, TONE_BIN_LEVELS).
+_BINNED_LEVELS = np.tile(_LEVELS.reshape(_BINS_PER_CHANNEL, TONE_BIN_LEVELS), (3, 1))
 
 
 def _tone_bins(B: np.ndarray) -> np.ndarray:
@@ -315,28 +319,31 @@ def _tone_bins(B: np.ndarray) -> np.ndarray:
     return (B.astype(np.intp) // TONE_BIN_LEVELS) + (np.arange(3) * _BINS_PER_CHANNEL)[:, None]
 
 
-def _tone_curve(I: np.ndarray, B: np.ndarray, bins: np.ndarray, weights: np.ndarray, *, median: bool) -> np.ndarray:
+def _tone_curve(I: np.ndarray, model: BackgroundModel, chosen: np.ndarray | None = None, *,
+                median: bool) -> np.ndarray:
     """(3, 256) float32 each channel's tone curve T_k(b): the frame's median (``median``) or mean level I_k
-    over the pixels chosen by ``weights`` (m,) (1, others 0) whose background level B_k falls in each bin
-    (``bins``, from :func:`_tone_bins`), joined linearly between the bins' mean background levels and made
-    non-decreasing.
+    over the ``chosen`` pixels (indices into the sample; None: all) whose background level B_k falls in each
+    bin, joined linearly between the bins' mean background levels and made non-decreasing.
 
-    ``I`` and ``B`` (3, m) hold 8-bit levels. Beyond the first and last bins with ``MIN_TONE_SAMPLES``, T_k(b)
-    is b times the ratio there; a channel with no such bin keeps T_k(b) = b. T_k(b) stays within
-    ``EXPOSURE_RATIO_RANGE`` of b widened by ``TONE_SHIFT_MAX`` levels either way.
+    ``I`` (3, m) uint8 holds the sample's 8-bit levels, ``model`` the background's at the same pixels. Both
+    are counted into histograms of integer levels per bin, from which the medians, means and counts follow
+    exactly (sums of 8-bit levels are exact in floating point). Beyond the first and last bins with
+    ``MIN_TONE_SAMPLES``, T_k(b) is b times the ratio there; a channel with no such bin keeps T_k(b) = b.
+    T_k(b) stays within ``EXPOSURE_RATIO_RANGE`` of b widened by ``TONE_SHIFT_MAX`` levels either way.
     """
+    keys, backgrounds = model.sample_keys, model.sample_levels
+    if chosen is not None:
+        keys, backgrounds, I = keys.take(chosen, axis=1), backgrounds.take(chosen, axis=1), I.take(chosen, axis=1)
     size = 3 * _BINS_PER_CHANNEL
-    flat_bins = bins.ravel()
-    w = np.broadcast_to(weights, B.shape).ravel()
-    count = np.bincount(flat_bins, w, size)
-    level = np.bincount(flat_bins, B.ravel() * w, size) / np.maximum(count, 1.0)
+    background = np.bincount(backgrounds.ravel(), minlength=3 * 256).reshape(size, TONE_BIN_LEVELS)
+    count = background.sum(axis=1)
+    level = (background * _BINNED_LEVELS).sum(axis=1) / np.maximum(count, 1.0)
+    histogram = np.bincount((keys + I).ravel(), minlength=size * 256).reshape(size, 256)  # the frame's levels
     if median:
-        # Medians of 8-bit levels from each bin's histogram of them.
-        histogram = np.bincount(flat_bins * 256 + I.ravel().astype(np.intp), w, size * 256).reshape(size, 256)
         below = np.cumsum(histogram, axis=1)
         frame = np.minimum((below < 0.5 * count[:, None]).sum(axis=1), 255).astype(np.float64)
     else:
-        frame = np.bincount(flat_bins, I.ravel() * w, size) / np.maximum(count, 1.0)
+        frame = (histogram @ _LEVELS) / np.maximum(count, 1.0)
     filled = (count >= MIN_TONE_SAMPLES).reshape(3, -1)
     level, frame = level.reshape(3, -1), frame.reshape(3, -1)
     tone = np.repeat(_LEVELS[None], 3, axis=0)
