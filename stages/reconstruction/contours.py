@@ -76,45 +76,59 @@ def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
 
     Positions are smoothed along the contour without shrinking it (``_unshrunk``, a Gaussian of
     ``smoothing_px`` points; removing the pixel staircase) and moved half a pixel outwards onto the true
-    outline.
+    outline. The contours are processed together, concatenated, each padded with its own wrapped ends
+    (``_wrapped``) so that the filters along them see only their own contour: a mask then costs a few numpy
+    calls however many contours it has.
     """
     contours, _ = cv2.findContours(mask, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
     bounds = cv2.boundingRect(np.concatenate(contours)) if contours else (0, 0, 0, 0)
-    pieces = [c.reshape(-1, 2).astype(np.float64) for c in contours if len(c) >= MIN_CONTOUR_POINTS]
+    pieces = [c for c in contours if len(c) >= MIN_CONTOUR_POINTS]
     if not pieces:
         empty = np.zeros((0, 2))
         return Outline(empty, empty, empty, np.zeros(0, int), np.zeros(0), np.zeros(0, bool), bounds)
     height, width = mask.shape
-    all_pixels, all_tangents, all_outward, all_ids, all_steps, all_concave = [], [], [], [], [], []
-    for index, raw in enumerate(pieces):
-        pixels = _unshrunk(raw, smoothing_px) if smoothing_px > 0 else raw
-        derivative = _along_contour(raw, max(smoothing_px, 1.0), 1)
-        tangents = derivative / np.maximum(row_norms(derivative), 1e-12)
-        outward = tangents[:, ::-1] * (1.0, -1.0)  # (ty, -tx)
-        if _mostly_inside(mask, pixels + SIDE_PROBE_PX * outward):
-            outward = -outward
-        all_pixels.append(pixels + OUTLINE_OFFSET_PX * outward)
-        all_tangents.append(tangents)
-        all_outward.append(outward)
-        all_ids.append(np.full(len(raw), index))
-        all_steps.append(row_norms(raw - np.concatenate([raw[-1:], raw[:-1]]))[:, 0])  # from the previous point
-        all_concave.append(_bending(raw, outward) > 1.0 / CONCAVE_RADIUS_PX)
-    pixels = np.concatenate(all_pixels)
+    raw = np.concatenate(pieces).reshape(-1, 2).astype(np.float64)
+    lengths = np.array([len(c) for c in pieces])
+    contour = np.repeat(np.arange(len(pieces)), lengths)
+    # Twicing filters twice, so it reads twice its radius around a point.
+    reach = max(2 * _radius(smoothing_px) if smoothing_px > 0 else 0, _radius(max(smoothing_px, 1.0)),
+                _radius(CURVATURE_SCALE_PX))
+    rows, interior = _wrapped(lengths, reach)
+    padded = raw.take(rows, axis=0)
+    pixels = _unshrunk(padded, smoothing_px).compress(interior, axis=0) if smoothing_px > 0 else raw
+    derivative = _along_contour(padded, max(smoothing_px, 1.0), 1).compress(interior, axis=0)
+    tangents = derivative / np.maximum(row_norms(derivative), 1e-12)
+    outward = tangents[:, ::-1] * (1.0, -1.0)  # (ty, -tx)
+    flipped = _mostly_inside(mask, pixels + SIDE_PROBE_PX * outward, contour, lengths).take(contour)
+    outward[flipped] *= -1.0
+    pixels = pixels + OUTLINE_OFFSET_PX * outward
     u, v = pixels[:, 0], pixels[:, 1]
     usable = (
         (u > BORDER_MARGIN_PX) & (v > BORDER_MARGIN_PX)
         & (u < width - 1 - BORDER_MARGIN_PX) & (v < height - 1 - BORDER_MARGIN_PX)
-        & ~np.concatenate(all_concave)
+        & ~(_bending(padded, interior, outward) > 1.0 / CONCAVE_RADIUS_PX)
     )
-    return Outline(
-        pixels,
-        np.concatenate(all_tangents),
-        np.concatenate(all_outward),
-        np.concatenate(all_ids),
-        np.cumsum(np.concatenate(all_steps)),
-        usable,
-        bounds,
-    )
+    # Each point's step from the previous point of its contour (the first point's from its contour's last).
+    previous = np.arange(len(raw)) - 1
+    previous[np.cumsum(lengths) - lengths] += lengths
+    steps = row_norms(raw - raw.take(previous, axis=0))[:, 0]
+    return Outline(pixels, tangents, outward, contour, np.cumsum(steps), usable, bounds)
+
+
+def _wrapped(lengths: np.ndarray, reach: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows (P,), interior (P,) bool)``: closed contours of ``lengths`` (n,) points, concatenated, laid out
+    each with ``reach`` more points at either end, those ``mode="wrap"`` reads beyond its ends: ``rows``
+    indexes the concatenation, ``interior`` marks each contour's own points, in order.
+
+    A filter reaching at most ``reach`` points along the padded contours gives each interior point the
+    neighbours, hence the sum, it has when its contour alone is filtered with ``mode="wrap"``.
+    """
+    padded = lengths + 2 * reach
+    # Each padded row's position in its contour, from -reach to length + reach - 1.
+    offset = np.arange(padded.sum()) - np.repeat(np.cumsum(padded) - padded + reach, padded)
+    length = np.repeat(lengths, padded)
+    rows = np.repeat(np.cumsum(lengths) - lengths, padded) + offset % length
+    return rows, (offset >= 0) & (offset < length)
 
 
 def _unshrunk(raw: np.ndarray, sigma: float) -> np.ndarray:
@@ -137,11 +151,16 @@ def _along_contour(raw: np.ndarray, sigma: float, order: int) -> np.ndarray:
     return correlate1d(raw, _gaussian_weights(sigma, order), axis=0, mode="wrap")
 
 
+def _radius(sigma: float) -> int:
+    """How many points either side ``gaussian_filter1d`` reads at ``sigma``: its default truncation at 4 sigma."""
+    return int(4.0 * sigma + 0.5)
+
+
 @functools.lru_cache(maxsize=16)
 def _gaussian_weights(sigma: float, order: int) -> np.ndarray:
     """The correlation weights of ``gaussian_filter1d`` for ``sigma`` and derivative ``order``: its response
     to a unit impulse is its kernel, the weights reversed."""
-    radius = int(4.0 * sigma + 0.5)  # gaussian_filter1d's default truncation at 4 sigma
+    radius = _radius(sigma)
     impulse = np.zeros(2 * radius + 1)
     impulse[radius] = 1.0
     weights = gaussian_filter1d(impulse, sigma, order=order, mode="constant")[::-1].copy()
@@ -149,19 +168,21 @@ def _gaussian_weights(sigma: float, order: int) -> np.ndarray:
     return weights
 
 
-def _bending(raw: np.ndarray, outward: np.ndarray) -> np.ndarray:
-    """(L,) signed curvature (1 / pixels) of the closed contour ``raw`` (L, 2), positive where it bends
-    towards ``outward`` (L, 2), i.e. where the silhouette is concave: r''·n / |r'|² at CURVATURE_SCALE_PX."""
-    first = _along_contour(raw, CURVATURE_SCALE_PX, 1)
-    second = _along_contour(raw, CURVATURE_SCALE_PX, 2)
+def _bending(padded: np.ndarray, interior: np.ndarray, outward: np.ndarray) -> np.ndarray:
+    """(L,) signed curvature (1 / pixels) of the closed contours ``padded`` (P, 2) at their ``interior`` (P,)
+    points (see ``_wrapped``), positive where they bend towards ``outward`` (L, 2), i.e. where the
+    silhouette is concave: r''·n / |r'|² at CURVATURE_SCALE_PX."""
+    first = _along_contour(padded, CURVATURE_SCALE_PX, 1).compress(interior, axis=0)
+    second = _along_contour(padded, CURVATURE_SCALE_PX, 2).compress(interior, axis=0)
     return np.einsum("ij,ij->i", second, outward) / np.maximum(np.einsum("ij,ij->i", first, first), 1e-12)
 
 
-def _mostly_inside(mask: np.ndarray, probes: np.ndarray) -> bool:
-    """Whether most ``probes`` (L, 2) fall on foreground pixels of ``mask``."""
+def _mostly_inside(mask: np.ndarray, probes: np.ndarray, contour: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """(n,) bool: whether most ``probes`` (L, 2) of each contour fall on foreground pixels of ``mask``, given
+    the contour of each probe ``contour`` (L,) and the contours' ``lengths`` (n,)."""
     height, width = mask.shape
     u, v = np.minimum(np.maximum(np.rint(probes).astype(int), 0), (width - 1, height - 1)).T  # np.clip's result
-    return np.count_nonzero(mask[v, u]) * 2 > len(probes)
+    return np.bincount(contour.compress(mask[v, u] > 0), minlength=len(lengths)) * 2 > lengths
 
 
 def cone_normals(camera: Camera, normalised: np.ndarray, tangents: np.ndarray, outward: np.ndarray) -> np.ndarray:
@@ -202,5 +223,11 @@ def normalised_steps(camera: Camera, normalised: np.ndarray, *steps: np.ndarray)
 
 def row_norms(vectors: np.ndarray) -> np.ndarray:
     """(L, 1) Euclidean lengths of ``vectors`` (L, k): the arithmetic of ``np.linalg.norm(vectors, axis=1,
-    keepdims=True)`` (same bits) without its argument handling, which cost more than the sum on outlines."""
-    return np.sqrt(np.add.reduce(vectors * vectors, axis=1, keepdims=True))
+    keepdims=True)`` (same bits: the squares summed from the first column on) without its argument handling,
+    and column by column, because a numpy reduction over rows of two or three numbers is slower than adding
+    the columns."""
+    columns = vectors.T
+    total = columns[0] * columns[0]
+    for column in columns[1:]:
+        total += column * column
+    return np.sqrt(total)[:, None]

@@ -387,8 +387,9 @@ def _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_
         q = _edge_major(A[:, 2:] * c - A[:, :2] @ e.T, A[:, 2])
         with np.errstate(divide="ignore", invalid="ignore"):
             bound = q / p
-        low = np.where(p < 0, bound, -np.inf).max(axis=0)
-        high = np.where(p > 0, bound, np.inf).min(axis=0)
+        # Reductions over the half-lines that bound each side, without a masked copy of ``bound`` per side.
+        low = np.max(bound, axis=0, where=p < 0, initial=-np.inf)
+        high = np.min(bound, axis=0, where=p > 0, initial=np.inf)
         parallel = p == 0  # a ray parallel to an edge: outside for good if it starts outside
         if parallel.any():
             never = np.any(parallel & (q < 0), axis=0)
