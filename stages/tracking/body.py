@@ -27,28 +27,6 @@ from stages.tracking import compiled
 
 
 @dataclass(frozen=True)
-class Kinematics:
-    """Forward kinematics of one pose.
-
-    Attributes
-    ----------
-    R : (S, 3, 3) float
-        World rotation of every segment frame (identity in the zero pose).
-    t : (S, 3) float
-        World position of every segment's joint centre, metres.
-    axis : (D, 3) float
-        World direction of every DOF (unit; for translations the direction moved along).
-    origin : (D, 3) float
-        A world point on every revolute DOF's axis (its joint centre), metres.
-    """
-
-    R: np.ndarray
-    t: np.ndarray
-    axis: np.ndarray
-    origin: np.ndarray
-
-
-@dataclass(frozen=True)
 class Ellipsoids:
     """Posed ellipsoids: x is on ellipsoid p when (x − t_p)ᵀ R_p D_p R_pᵀ (x − t_p) = 1.
 
@@ -65,6 +43,41 @@ class Ellipsoids:
     R: np.ndarray
     t: np.ndarray
     semi_axes: np.ndarray
+
+    @functools.cached_property
+    def shapes(self) -> tuple[np.ndarray, np.ndarray]:
+        """M_p = R_p diag(a²) R_pᵀ and M_p² (E, 3, 3) each (`compiled.shapes`), the shape matrices of eq. (4).
+
+        An EM iteration reads them in the M-step's normal equations, its covariance and the next E-step, all
+        at the same pose: computed once per posed body.
+        """
+        return compiled.shapes(self.R, self.semi_axes)
+
+
+@dataclass(frozen=True)
+class Kinematics:
+    """Forward kinematics of one pose.
+
+    Attributes
+    ----------
+    R : (S, 3, 3) float
+        World rotation of every segment frame (identity in the zero pose).
+    t : (S, 3) float
+        World position of every segment's joint centre, metres.
+    axis : (D, 3) float
+        World direction of every DOF (unit; for translations the direction moved along).
+    origin : (D, 3) float
+        A world point on every revolute DOF's axis (its joint centre), metres.
+    ellipsoids : Ellipsoids
+        The body's ellipsoids placed on these frames (`BodyModel.ellipsoids`). They are posed with the
+        frames because every pose EM visits needs them, several times per iteration.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    axis: np.ndarray
+    origin: np.ndarray
+    ellipsoids: Ellipsoids
 
 
 @dataclass(frozen=True)
@@ -182,15 +195,12 @@ class BodyModel:
         return np.clip(pose, self.lower, self.upper)
 
     def fk(self, pose: np.ndarray) -> Kinematics:
-        """Forward kinematics: segment frames and world DOF axes of `pose` (D,)."""
+        """Forward kinematics: segment frames, world DOF axes and posed ellipsoids of `pose` (D,)."""
         return _forward_kinematics(self, np.asarray(pose, dtype=float))
 
     def ellipsoids(self, pose_or_kin: np.ndarray | Kinematics) -> Ellipsoids:
-        """World ellipsoids (R_p, t_p, semi-axes) of a pose (D,) or of its kinematics."""
-        kin = self._kinematics(pose_or_kin)
-        R, t = compiled.place_ellipsoids(kin.R, kin.t, self.ellipsoid_segment, self.ellipsoid_rotation,
-                                         self.ellipsoid_centre)
-        return Ellipsoids(R=R, t=t, semi_axes=self.semi_axes)
+        """World ellipsoids (R_p, t_p, semi-axes) of a pose (D,) or of its kinematics (this body's `fk`)."""
+        return self._kinematics(pose_or_kin).ellipsoids
 
     def posed_ellipsoids(self, poses: np.ndarray) -> Ellipsoids:
         """`ellipsoids` of many poses (H, D) at once, as arrays with a leading pose axis (H, E, ...)."""
@@ -376,6 +386,7 @@ _PERMUTATIONS = np.array(list(itertools.permutations(range(3))))
 def _forward_kinematics(body: BodyModel, pose: np.ndarray) -> Kinematics:
     if pose.shape != (body.pose_size,):
         raise ValueError(f"pose has shape {pose.shape}, expected ({body.pose_size},)")
-    R, t, axis, origin = compiled.forward_kinematics(body.parent, body.offset, body._dof_start, body.dof_axis,
-                                                     body.dof_revolute, pose)
-    return Kinematics(R=R, t=t, axis=axis, origin=origin)
+    R, t, axis, origin, R_e, t_e = compiled.posed_body(body.parent, body.offset, body._dof_start, body.dof_axis,
+                                                       body.dof_revolute, pose, body.ellipsoid_segment,
+                                                       body.ellipsoid_rotation, body.ellipsoid_centre)
+    return Kinematics(R=R, t=t, axis=axis, origin=origin, ellipsoids=Ellipsoids(R=R_e, t=t_e, semi_axes=body.semi_axes))

@@ -18,6 +18,11 @@ core: numba's threads were tried, and on a machine shared with other work they m
 times slower. The loops stay in this one module although it is long: numba's disk cache of a function is
 invalidated only when its own file changes, not when a helper compiled into it from another file does,
 and the warm-up (`python -m pipeline warmup`) stamps this one file.
+
+The M-step's two small dense problems are here too, the damped normal equations (`damped_solve`) and the
+bounds on Σ's eigenvalues (`clipped_eigenvalues`): on systems this small numpy's per-call checks cost more
+than the work. They call the LAPACK routines numpy calls (gesv, syevd; numba takes them from SciPy's build),
+which give numpy's bits (the tests compare them).
 """
 
 from __future__ import annotations
@@ -462,6 +467,28 @@ def pose_normal_equations(H6, g6, ellipsoid_segment, moves, axis, origin, revolu
 
 
 @njit(cache=True, error_model="numpy")
+def damped_solve(H, g, damping):
+    """The Levenberg-Marquardt step δ of (H + diag(damping)) δ = −g (`gauss_newton.gauss_newton_step`), H (D, D).
+
+    LAPACK's gesv, as `np.linalg.solve(H + np.diag(damping), -g)` calls it; an M-step may solve it several times.
+    """
+    damped = H.copy()
+    for d in range(H.shape[0]):
+        damped[d, d] += damping[d]
+    return np.linalg.solve(damped, -g)
+
+
+@njit(cache=True, error_model="numpy")
+def clipped_eigenvalues(Sigma, low, high):
+    """Σ (k, k), symmetrised, with its eigenvalues clipped to [low, high] (`mixture.bound_covariance`).
+
+    Σ = V Λ Vᵀ by LAPACK's syevd, as `np.linalg.eigh` calls it, rebuilt as V clip(Λ) Vᵀ.
+    """
+    values, vectors = np.linalg.eigh(0.5 * (Sigma + Sigma.T))
+    return (vectors * np.minimum(np.maximum(values, low), high)) @ vectors.T
+
+
+@njit(cache=True, error_model="numpy")
 def noisy_covariance(n, i, p, e, weight, M, M2, noise2, Sigma, iterations):
     """EM for Σ in e_k = z_k + w_k, z ~ N(0, Σ), w ~ N(0, σ_n² A_k²) (`distances.CompiledNormals.covariance`):
     `iterations` updates Σ ← Σ − Σ (S₁/T) Σ + Σ (S₂/T) Σ from `Sigma`, with S₁ = Σ_k t_k Σ_k⁻¹,
@@ -566,7 +593,7 @@ def forward_kinematics(parent, offset, dof_start, dof_axis, dof_revolute, pose):
 
 @njit(cache=True, error_model="numpy")
 def place_ellipsoids(R_segment, t_segment, segment, rotation, centre):
-    """World axes R (E, 3, 3) and centres t (E, 3) of ellipsoids riding on posed segments (`body.ellipsoids`).
+    """World axes R (E, 3, 3) and centres t (E, 3) of ellipsoids riding on posed segments (`posed_body`).
 
     Ellipsoid e is fixed in its segment's frame (axes `rotation[e]`, centre `centre[e]`): R = R_s rotation,
     t = t_s + R_s centre with s = segment[e].
@@ -581,6 +608,15 @@ def place_ellipsoids(R_segment, t_segment, segment, rotation, centre):
             for b in range(3):
                 R[e, a, b] = r0 * rotation[e, 0, b] + r1 * rotation[e, 1, b] + r2 * rotation[e, 2, b]
     return R, t
+
+
+@njit(cache=True, error_model="numpy")
+def posed_body(parent, offset, dof_start, dof_axis, dof_revolute, pose, segment, rotation, centre):
+    """`forward_kinematics` then `place_ellipsoids` of one pose (`body.BodyModel.fk`): segment frames R (S, 3, 3)
+    and t (S, 3), DOF axes (D, 3) and origins (D, 3), ellipsoid axes (E, 3, 3) and centres (E, 3)."""
+    R_segment, t_segment, axis, origin = forward_kinematics(parent, offset, dof_start, dof_axis, dof_revolute, pose)
+    R, t = place_ellipsoids(R_segment, t_segment, segment, rotation, centre)
+    return R_segment, t_segment, axis, origin, R, t
 
 
 @njit(cache=True, error_model="numpy")

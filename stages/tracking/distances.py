@@ -316,14 +316,14 @@ class CompiledNormals(NormalsDistance):
         P = len(ellipsoids.t)
         first = np.zeros(len(y), dtype=int) if previous is None else previous.best
         t, t_outlier, log_likelihood, pairs, weights, best, explained = compiled.e_step(
-            y, n, ellipsoids.t, *compiled.shapes(ellipsoids.R, ellipsoids.semi_axes), ellipsoids.semi_axes,
+            y, n, ellipsoids.t, *ellipsoids.shapes, ellipsoids.semi_axes,
             mixture.Sigma, np.log(mixture.pi[:P]), log_outlier, normal_noise_rad**2, np.log(NEGLIGIBLE_POSTERIOR),
             PRUNE_POSTERIOR, first)
         return EStep(t=t, t_outlier=t_outlier, log_likelihood=log_likelihood, pairs=pairs, weights=weights, best=best,
                      explained=explained)
 
     def log_evidence(self, y, n, chosen, mixture, log_pi, base, normal_noise_rad):
-        return compiled.log_evidence(y, n, chosen.t, *compiled.shapes(chosen.R, chosen.semi_axes), chosen.semi_axes,
+        return compiled.log_evidence(y, n, chosen.t, *chosen.shapes, chosen.semi_axes,
                                      mixture.Sigma, log_pi, base, normal_noise_rad**2, np.log(NEGLIGIBLE_POSTERIOR))
 
     def hypothesis_scores(self, y, n, hypotheses, mixture, which, base, blocks, normal_noise_rad):
@@ -337,11 +337,11 @@ class CompiledNormals(NormalsDistance):
             np.log(NEGLIGIBLE_POSTERIOR))
 
     def pair_residuals(self, y, n, i, p, kin, ellipsoids):
-        return compiled.residuals(y, n, i, p, ellipsoids.t, compiled.shapes(ellipsoids.R, ellipsoids.semi_axes)[0])
+        return compiled.residuals(y, n, i, p, ellipsoids.t, ellipsoids.shapes[0])
 
     def normal_equations(self, y, n, i, p, W, kin, ellipsoids, scale):
         e, r, Bw, H6, g6, J_scale, norm2 = compiled.normal_equations(
-            y, n, i, p, W, ellipsoids.t, compiled.shapes(ellipsoids.R, ellipsoids.semi_axes)[0], kin.t[0])
+            y, n, i, p, W, ellipsoids.t, ellipsoids.shapes[0], kin.t[0])
         return e, r, Bw, H6, g6, J_scale if scale else None, norm2
 
     def covariance(self, n, i, p, e, t, ellipsoids, Sigma, normal_noise_rad, max_sigma_m):
@@ -357,7 +357,7 @@ class CompiledNormals(NormalsDistance):
         """
         if not normal_noise_rad > 0.0:
             return super().covariance(n, i, p, e, t, ellipsoids, Sigma, normal_noise_rad, max_sigma_m)
-        M, M2 = compiled.shapes(ellipsoids.R, ellipsoids.semi_axes)
+        M, M2 = ellipsoids.shapes
         return bound_covariance(compiled.noisy_covariance(n, i, p, e, t, M, M2, normal_noise_rad**2, Sigma,
                                                           NOISY_COVARIANCE_ITERATIONS), max_sigma_m)
 
