@@ -18,11 +18,6 @@ core: numba's threads were tried, and on a machine shared with other work they m
 times slower. The loops stay in this one module although it is long: numba's disk cache of a function is
 invalidated only when its own file changes, not when a helper compiled into it from another file does,
 and the warm-up (`python -m pipeline warmup`) stamps this one file.
-
-The M-step's two small dense problems are here too, the damped normal equations (`damped_solve`) and the
-bounds on Σ's eigenvalues (`clipped_eigenvalues`): on systems this small numpy's per-call checks cost more
-than the work. They call the LAPACK routines numpy calls (gesv, syevd; numba takes them from SciPy's build),
-which give numpy's bits (the tests compare them).
 """
 
 from __future__ import annotations
@@ -464,28 +459,6 @@ def pose_normal_equations(H6, g6, ellipsoid_segment, moves, axis, origin, revolu
         for b in range(a):
             H[a, b] = H[b, a]
     return H, g
-
-
-@njit(cache=True, error_model="numpy")
-def damped_solve(H, g, damping):
-    """The Levenberg-Marquardt step δ of (H + diag(damping)) δ = −g (`gauss_newton.gauss_newton_step`), H (D, D).
-
-    LAPACK's gesv, as `np.linalg.solve(H + np.diag(damping), -g)` calls it; an M-step may solve it several times.
-    """
-    damped = H.copy()
-    for d in range(H.shape[0]):
-        damped[d, d] += damping[d]
-    return np.linalg.solve(damped, -g)
-
-
-@njit(cache=True, error_model="numpy")
-def clipped_eigenvalues(Sigma, low, high):
-    """Σ (k, k), symmetrised, with its eigenvalues clipped to [low, high] (`mixture.bound_covariance`).
-
-    Σ = V Λ Vᵀ by LAPACK's syevd, as `np.linalg.eigh` calls it, rebuilt as V clip(Λ) Vᵀ.
-    """
-    values, vectors = np.linalg.eigh(0.5 * (Sigma + Sigma.T))
-    return (vectors * np.minimum(np.maximum(values, low), high)) @ vectors.T
 
 
 @njit(cache=True, error_model="numpy")

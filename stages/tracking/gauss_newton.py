@@ -89,7 +89,7 @@ def gauss_newton_step(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
     diag = np.diag(H) + RIDGE
     damping = LM_DAMPING
     for _ in range(LM_TRIES):
-        step = compiled.damped_solve(H, g, damping * diag + RIDGE)
+        step = np.linalg.solve(H + np.diag(damping * diag + RIDGE), -g)
         candidate = body.clip(pose + step[:D])
         body_c = _updated_body(problem, body, step[D:])
         kin_c = body_c.fk(candidate)

@@ -17,8 +17,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.tracking import compiled
-
 # Σ is estimated from the residuals; with nearly exact data it would shrink towards 0 and the
 # posteriors would turn into hard, brittle assignments. The floor is the model's own inexactness
 # (ellipsoids are not a body surface): a few millimetres.
@@ -116,7 +114,8 @@ def evidence_terms(I: int, P: int, mixture: Mixture, V: float, which: np.ndarray
 
 def bound_covariance(Sigma: np.ndarray, max_sigma_m: float) -> np.ndarray:
     """Σ with its eigenvalues clipped to [SIGMA_FLOOR_M², max_sigma_m²] (symmetric positive definite)."""
-    return compiled.clipped_eigenvalues(Sigma, SIGMA_FLOOR_M**2, max(max_sigma_m, SIGMA_FLOOR_M) ** 2)
+    vals, vecs = np.linalg.eigh(0.5 * (Sigma + Sigma.T))
+    return (vecs * np.clip(vals, SIGMA_FLOOR_M**2, max(max_sigma_m, SIGMA_FLOOR_M) ** 2)) @ vecs.T
 
 
 def bound_priors(pi: np.ndarray, min_outlier_prior: float) -> np.ndarray:

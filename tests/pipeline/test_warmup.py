@@ -56,7 +56,7 @@ def _env() -> dict:
 #: Entry points of `stages.tracking.compiled` that the tracker calls from Python; the others are helpers
 #: compiled into them (and cached on their own when they are compiled).
 ENTRY_POINTS = ("e_step", "log_evidence", "hypothesis_scores", "shapes", "residuals", "normal_equations",
-                "whitened_norm2", "pose_normal_equations", "damped_solve", "clipped_eigenvalues", "noisy_covariance",
+                "whitened_norm2", "pose_normal_equations", "noisy_covariance",
                 "posed_body", "posed_ellipsoids")
 
 

@@ -127,19 +127,3 @@ def test_pruning_bounds_use_sigmas_largest_eigenvalue(seed):
     assert largest == pytest.approx(np.linalg.eigvalsh(Sigma)[-1], rel=1e-9)
     np.testing.assert_allclose(reach[:, 2], largest + 0.03 * (semi.max(1) ** 2 / semi.min(1)) ** 2, rtol=1e-12)
 
-
-def test_damped_solve_is_numpys_solve(pairs):
-    *_, rng = pairs
-    A = rng.normal(size=(31, 31))
-    H, g, damping = A @ A.T, rng.normal(size=31), rng.uniform(0.0, 1e-3, 31)
-    # the same LAPACK solver on the same matrix: the same bits, so the tracker's poses do not move
-    assert np.array_equal(compiled.damped_solve(H, g, damping), np.linalg.solve(H + np.diag(damping), -g))
-
-
-def test_clipped_eigenvalues_are_numpys(pairs):
-    *_, rng = pairs
-    A = rng.normal(size=(3, 3)) * 0.03
-    Sigma = A @ A.T
-    values, vectors = np.linalg.eigh(0.5 * (Sigma + Sigma.T))
-    expected = (vectors * np.clip(values, 1e-5, 4e-4)) @ vectors.T
-    assert np.array_equal(compiled.clipped_eigenvalues(Sigma, 1e-5, 4e-4), expected)
