@@ -132,10 +132,12 @@ class Tracker:
         prediction = sized.clip(state.pose + state.velocity)
         mixture = Mixture(Sigma=state.Sigma + params.sigma_m**2 * np.eye(len(state.Sigma)), pi=state.pi)
         tracked = self._fit_from(prediction, state, y, n, sized, mixture, em)
-        tracked = self._recover_limbs(y, n, tracked, em, state.segment_shares, state.pose)
+        tracked, moved = self._recover_limbs(y, n, tracked, em, state.segment_shares, state.pose)
         if tracked.log_likelihood[-1] / len(y) < state.likelihood_level - params.refit_drop:
             for legs in self.legs:
-                tracked = swap_limbs(y, n, tracked, legs, self.volume, em)
+                exchanged = swap_limbs(y, n, tracked, legs, self.volume, em)
+                moved += [legs.dofs, legs.mirror_dofs] if exchanged is not tracked else []
+                tracked = exchanged
         doubtful = _failed(tracked, params)
         tried = doubtful or 0 < params.reinit_every <= state.since_initialisation + 1 or state.recheck
         if tried:
@@ -145,7 +147,7 @@ class Tracker:
             margin = 0.0 if doubtful or state.recheck else params.reinit_margin * len(y)
             if result.log_likelihood > tracked.log_likelihood[-1] + margin:
                 return result, new_state
-        return self._tracked(state, tracked, len(y), learning, doubtful, tried)
+        return self._tracked(state, tracked, len(y), learning, doubtful, tried, moved)
 
     def _sized_body(self, state: TrackerState) -> BodyModel:
         """The body at the state's height and length factors, remembered for the last ones asked.
@@ -195,9 +197,12 @@ class Tracker:
         return tracked
 
     def _tracked(self, state: TrackerState, tracked: FitResult, observations: int, learning: bool, doubtful: bool,
-                 tried: bool) -> tuple[FrameResult, TrackerState]:
+                 tried: bool, moved: list[np.ndarray]) -> tuple[FrameResult, TrackerState]:
         """The estimate of a tracked frame and the state after it: the length factors' running mean (while
-        `learning`), the likelihood level and segment shares (exponential averages), the velocity."""
+        `learning`), the likelihood level and segment shares (exponential averages), the velocity.
+
+        The DOFs of limbs a search or an exchange `moved` get no velocity: their change over this frame is a
+        correction, not motion, and carried on it would throw the limb as far again at the next frame."""
         per_obs = tracked.log_likelihood[-1] / observations
         height, lengths, weight = state.height_m, state.length_factors, state.height_weight
         if learning:  # running mean of the per-frame estimates of ln ℓ
@@ -213,6 +218,8 @@ class Tracker:
         # A doubtful fit's motion is not carried on: the next frame starts from it at rest.
         moving = state.frames_without_fit == 0 and not doubtful
         velocity = tracked.pose - state.pose if moving else np.zeros_like(state.velocity)
+        for dofs in moved:
+            velocity[dofs] = 0.0
         new_state = TrackerState(pose=tracked.pose, velocity=velocity, height_m=height, length_factors=lengths,
                                  measured_height_m=state.measured_height_m, height_weight=weight,
                                  Sigma=tracked.mixture.Sigma, pi=tracked.mixture.pi,
@@ -227,11 +234,11 @@ class Tracker:
         return result, new_state
 
     def _recover_limbs(self, y, n, result: FitResult, em: EMParams, usual_shares=None,
-                       previous: np.ndarray | None = None) -> FitResult:
+                       previous: np.ndarray | None = None) -> tuple[FitResult, list[np.ndarray]]:
         """The fit with each limb that explains far fewer data than its mirror, or than it usually does
         (`usual_shares`, the running level of `limbs.segment_shares`; None: no history), or that has folded
         onto itself since the `previous` pose (`limbs.folded_limbs`; None: no previous pose), re-initialised
-        locally.
+        locally; and the DOFs of the limbs that moved so.
 
         A limb EM put on the wrong side of the body or folded away from its data gets almost no
         observations, and the local minimum holds it there for many frames; trying the library's angles
@@ -243,10 +250,13 @@ class Tracker:
         if self.params.limbs.share_ratio > 0:
             limbs += folded_limbs(self.limbs, result, previous)
         limbs = list({limb.name: limb for limb in limbs}.values())  # each once, in the order found
+        moved = []
         for limb in limbs:
-            result = reinitialise_limb(y, n, result, limb, self.volume, em, self.library,
-                                       rng=np.random.default_rng(self.params.seed))
-        return result
+            searched = reinitialise_limb(y, n, result, limb, self.volume, em, self.library,
+                                         rng=np.random.default_rng(self.params.seed))
+            moved += [limb.dofs] if searched is not result else []
+            result = searched
+        return result, moved
 
     def _initialise(self, state: TrackerState, y, n, body: BodyModel) -> tuple[FrameResult, TrackerState]:
         """Initialise from the data alone (`init.initialise`) and start a fresh track.
@@ -279,7 +289,7 @@ class Tracker:
             fitted = reinitialise_limb(y, n, fitted, limb, self.volume, em, self.library,
                                        rng=np.random.default_rng(params.seed))
         for _ in range(2):  # a limb moved by the first pass can leave its mirror (or itself) still misplaced
-            recovered = self._recover_limbs(y, n, fitted, em)
+            recovered, _ = self._recover_limbs(y, n, fitted, em)
             if recovered is fitted:
                 break
             fitted = recovered

@@ -337,3 +337,29 @@ def test_a_frame_worse_than_usual_tries_the_legs_exchanged(body, monkeypatch):
     result, _ = the_tracker.track(usual, _obs(body, poses[3], rng))
     assert tried == ["l_thigh"]
     assert np.linalg.norm(result.joints - body.joint_positions(poses[3]), axis=1).max() < 0.02  # metres
+
+
+def test_a_limb_a_search_moved_carries_no_velocity_into_the_next_frame(body, monkeypatch):
+    """A limb search's jump is a correction, not motion: carried on as velocity, the next frame's prediction would
+    throw the limb as far again. The other DOFs keep their motion."""
+    rng = np.random.default_rng(32)
+    the_tracker, state = Tracker(PARAMS, VOLUME), None
+    poses = _walk(body.scaled(1.75), 4)
+    for pose in poses[:3]:
+        _, state = the_tracker.track(state, _obs(body, pose, rng))
+    arm = next(limb for limb in the_tracker.limbs if limb.name == "l_upperarm")
+
+    def search(y, n, result, limb, *args, **kwargs):
+        if limb is not arm:
+            return result
+        moved = result.pose.copy()
+        moved[arm.dofs] += 0.5
+        return replace(result, pose=result.body.clip(moved))
+
+    monkeypatch.setattr(tracker, "misplaced_limbs", lambda limbs, *args: [arm])
+    monkeypatch.setattr(tracker, "reinitialise_limb", search)
+    result, after = the_tracker.track(state, _obs(body, poses[3], rng))
+    assert result.status == "tracked"
+    assert not after.velocity[arm.dofs].any()
+    others = np.setdiff1d(np.arange(body.pose_size), arm.dofs)
+    assert np.abs(after.velocity[others]).max() > 0.01  # the walk goes on
