@@ -4,6 +4,7 @@ differs from the background in units of the noise (the colour model of the packa
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -75,7 +76,10 @@ class BackgroundModel:
     sample_divisor: np.ndarray  # (m,) float32 B·B + BACKGROUND_ENERGY_FLOOR there
     sample_levels: np.ndarray  # (3, m) intp their 8-bit levels, channel k's numbered from k × 256
     sample_keys: np.ndarray  # (3, m) intp 256 × their tone-curve bins (channel k's from k × the bins per channel)
-    coarse_B: np.ndarray  # (3, h / COARSE_FACTOR, w / COARSE_FACTOR) float32 B_sharp averaged over blocks
+    sample_bins: tuple[np.ndarray, np.ndarray]  # :func:`_bin_levels` of the whole sample, the same every frame
+    # (3, h / COARSE_FACTOR, w / COARSE_FACTOR) intp B_sharp averaged over blocks and rounded to 8-bit levels,
+    # channel k's numbered from k × 256 (as sample_levels)
+    coarse_levels: np.ndarray
     coarse_texture_variance: np.ndarray  # (h / COARSE_FACTOR, w / COARSE_FACTOR) float32 the same for the texture
     noise_floor: float  # σ (8-bit levels) below which a frame's noise estimate is not believed
     tone_curve: bool  # whether a frame's tone curve is fitted (else one exposure ratio per channel)
@@ -107,6 +111,7 @@ def background_model(background: np.ndarray, params: SilhouetteParams, *,
     jitter = params.background_jitter_px
     texture_variance = squared_gradient * np.float32(jitter * jitter / 3.0)
     sample_B = _channels_first(B_sharp[::SAMPLE_STRIDE, ::SAMPLE_STRIDE]).reshape(3, -1)  # the frame's is unblurred
+    sample_levels = _flat_levels(sample_B)
     return BackgroundModel(
         shape=background.shape,
         downsample=params.downsample,
@@ -118,9 +123,10 @@ def background_model(background: np.ndarray, params: SilhouetteParams, *,
         sample_B=sample_B,
         sample_B2=sample_B * sample_B,
         sample_divisor=_dot(sample_B, sample_B) + np.float32(BACKGROUND_ENERGY_FLOOR),
-        sample_levels=sample_B.astype(np.intp) + _CHANNEL_OFFSETS[:, None],
+        sample_levels=sample_levels,
         sample_keys=256 * _tone_bins(sample_B),
-        coarse_B=_channels_first(_block_mean(B_sharp, COARSE_FACTOR)),
+        sample_bins=_bin_levels(sample_levels),
+        coarse_levels=_flat_levels(_channels_first(_block_mean(B_sharp, COARSE_FACTOR)).round()),
         coarse_texture_variance=_block_mean(texture_variance, COARSE_FACTOR),
         noise_floor=float(noise_floor),
         tone_curve=bool(tone_curve),
@@ -266,6 +272,10 @@ class _Noise:
         """(3, ...) float32 T(B) of 8-bit background levels B (3, ...), channels first (see :func:`_dot`)."""
         return _look_up(self.tone, B)
 
+    def expose_levels(self, levels: np.ndarray) -> np.ndarray:
+        """(3, ...) float32 T(B) of background levels already numbered by :func:`_flat_levels` (the model's)."""
+        return self.tone.ravel().take(levels)
+
     def expose_image(self, B: np.ndarray) -> np.ndarray:
         """(h, w, 3) float32 T(B) of a background image (h, w, 3) uint8 (OpenCV's table look-up)."""
         return cv2.LUT(B, self.tone.T.reshape(256, 1, 3))
@@ -289,10 +299,11 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     B = model.sample_B
     if model.tone_curve:
         tone = _tone_curve(levels, model, median=True)
-        tone = _tone_curve(levels, model, np.flatnonzero(_closest_half(I, _look_up(tone, B))), median=False)
+        tone = _tone_curve(levels, model, np.flatnonzero(_closest_half(I, tone.ravel().take(model.sample_levels))),
+                           median=False)
     else:
         tone = _ratio_tone(I, model)
-    D = I - _look_up(tone, B)
+    D = I - tone.ravel().take(model.sample_levels)
     distance2 = _dot(D, D)
     # A pixel equal to the background in every channel is a copy, not a noisy measurement of it: a video
     # codec repeats static blocks from frame to frame, so a background taken from the same video (a
@@ -311,12 +322,23 @@ _LEVELS = np.arange(256, dtype=np.float64)
 _BINS_PER_CHANNEL = 256 // TONE_BIN_LEVELS
 # Each tone-curve bin's background levels, one row per bin of the three channels: (3 × bins, TONE_BIN_LEVELS).
 _BINNED_LEVELS = np.tile(_LEVELS.reshape(_BINS_PER_CHANNEL, TONE_BIN_LEVELS), (3, 1))
+# Bounds on T_k(b) (256,): EXPOSURE_RATIO_RANGE times b, widened by TONE_SHIFT_MAX levels either way.
+_LOWEST_TONE = EXPOSURE_RATIO_RANGE[0] * _LEVELS - TONE_SHIFT_MAX
+_HIGHEST_TONE = EXPOSURE_RATIO_RANGE[1] * _LEVELS + TONE_SHIFT_MAX
 
 
 def _tone_bins(B: np.ndarray) -> np.ndarray:
     """(3, m) intp the tone-curve bin of each background level B (3, m), channel k's numbered from k × the
     bins per channel (so that one ``np.bincount`` sums all three channels' bins)."""
     return (B.astype(np.intp) // TONE_BIN_LEVELS) + (np.arange(3) * _BINS_PER_CHANNEL)[:, None]
+
+
+def _bin_levels(levels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(count, level)`` (3 × bins,) of background levels ``levels`` (3, m) intp (channel k's numbered from
+    k × 256): how many fall in each tone-curve bin (int) and their mean there (float; 0 in an empty bin)."""
+    background = np.bincount(levels.ravel(), minlength=3 * 256).reshape(-1, TONE_BIN_LEVELS)
+    count = background.sum(axis=1)
+    return count, (background * _BINNED_LEVELS).sum(axis=1) / np.maximum(count, 1.0)
 
 
 def _tone_curve(I: np.ndarray, model: BackgroundModel, chosen: np.ndarray | None = None, *,
@@ -331,31 +353,46 @@ def _tone_curve(I: np.ndarray, model: BackgroundModel, chosen: np.ndarray | None
     ``MIN_TONE_SAMPLES``, T_k(b) is b times the ratio there; a channel with no such bin keeps T_k(b) = b.
     T_k(b) stays within ``EXPOSURE_RATIO_RANGE`` of b widened by ``TONE_SHIFT_MAX`` levels either way.
     """
-    keys, backgrounds = model.sample_keys, model.sample_levels
-    if chosen is not None:
-        keys, backgrounds, I = keys.take(chosen, axis=1), backgrounds.take(chosen, axis=1), I.take(chosen, axis=1)
-    size = 3 * _BINS_PER_CHANNEL
-    background = np.bincount(backgrounds.ravel(), minlength=3 * 256).reshape(size, TONE_BIN_LEVELS)
-    count = background.sum(axis=1)
-    level = (background * _BINNED_LEVELS).sum(axis=1) / np.maximum(count, 1.0)
-    histogram = np.bincount((keys + I).ravel(), minlength=size * 256).reshape(size, 256)  # the frame's levels
-    if median:
-        below = np.cumsum(histogram, axis=1)
-        frame = np.minimum((below < 0.5 * count[:, None]).sum(axis=1), 255).astype(np.float64)
+    keys = model.sample_keys + I  # (3, m) each pixel's bin and frame level, as one index of the histogram
+    if chosen is None:
+        count, level = model.sample_bins
     else:
-        frame = (histogram @ _LEVELS) / np.maximum(count, 1.0)
+        # Flat gathers of the three channels at once (faster than takes along an axis).
+        at = chosen + (np.arange(3) * I.shape[1])[:, None]
+        keys = keys.ravel().take(at)
+        count, level = _bin_levels(model.sample_levels.ravel().take(at))
+    histogram = np.bincount(keys.ravel(), minlength=len(count) * 256)  # the frame's levels, bin after bin
+    if median:
+        frame = _bin_medians(histogram, count)
+    else:
+        frame = (histogram.reshape(-1, 256) @ _LEVELS) / np.maximum(count, 1.0)
     filled = (count >= MIN_TONE_SAMPLES).reshape(3, -1)
     level, frame = level.reshape(3, -1), frame.reshape(3, -1)
     tone = np.repeat(_LEVELS[None], 3, axis=0)
-    for k in np.flatnonzero(filled.any(axis=1)):
+    for k in np.flatnonzero(filled.any(axis=1)).tolist():
         levels, means = level[k, filled[k]], np.maximum.accumulate(frame[k, filled[k]])
         tone[k] = np.interp(_LEVELS, levels, means)
-        low, high = _LEVELS < levels[0], _LEVELS > levels[-1]
-        tone[k, low] = _LEVELS[low] * (means[0] / max(levels[0], 1.0))
-        tone[k, high] = _LEVELS[high] * (means[-1] / max(levels[-1], 1.0))
-    lowest = EXPOSURE_RATIO_RANGE[0] * _LEVELS - TONE_SHIFT_MAX
-    highest = EXPOSURE_RATIO_RANGE[1] * _LEVELS + TONE_SHIFT_MAX
-    return np.clip(tone, lowest, highest).astype(np.float32)
+        # The levels below the first bin's mean and above the last's: ends of the ascending _LEVELS.
+        first, last = levels[0], levels[-1]
+        low, high = math.ceil(first), math.floor(last) + 1
+        tone[k, :low] = _LEVELS[:low] * (means[0] / max(first, 1.0))
+        tone[k, high:] = _LEVELS[high:] * (means[-1] / max(last, 1.0))
+    return np.clip(tone, _LOWEST_TONE, _HIGHEST_TONE).astype(np.float32)
+
+
+def _bin_medians(histogram: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """(bins,) float64 the median level of each bin's ``histogram`` (bins × 256,) int of 8-bit levels, whose
+    rows hold ``count`` (bins,) int levels: the number of levels whose running count stays below half the bin's.
+
+    One running count over all the bins, searched for each bin's half: a search per bin rather than a
+    comparison per level. A level's running count stays below half of its bin's exactly when it is below
+    the counts of the bins before plus the half rounded up (counts are integers); an empty bin gives 0.
+    """
+    running = np.cumsum(histogram)
+    before = running[255::256] - count  # (bins,) levels in the bins before each
+    first = np.arange(len(count)) * 256
+    below = np.searchsorted(running, before + (count + 1) // 2, side="left") - first
+    return np.clip(below, 0, 255).astype(np.float64)
 
 
 def _ratio_tone(I: np.ndarray, model: BackgroundModel) -> np.ndarray:
@@ -387,7 +424,13 @@ def _closest_half(I: np.ndarray, expected: np.ndarray) -> np.ndarray:
 
 def _look_up(tone: np.ndarray, B: np.ndarray) -> np.ndarray:
     """(3, ...) float32 T(B) of 8-bit background levels B (3, ...), channels first (see :func:`_dot`)."""
-    return tone.ravel().take(B.astype(np.intp) + _CHANNEL_OFFSETS.reshape(3, *[1] * (B.ndim - 1)))
+    return tone.ravel().take(_flat_levels(B))
+
+
+def _flat_levels(B: np.ndarray) -> np.ndarray:
+    """(3, ...) intp the 8-bit levels B (3, ...) as positions in a flattened (3, 256) tone curve, channel k's
+    numbered from k × 256: a background's are made once, and each frame's tone curve is read at them."""
+    return B.astype(np.intp) + _CHANNEL_OFFSETS.reshape(3, *[1] * (B.ndim - 1))
 
 
 def _person_region(
@@ -400,7 +443,7 @@ def _person_region(
     looking); the answer is the box around every block that passes, with a margin of COARSE_MARGIN
     blocks for the parts of the person too faint to show on blocks.
     """
-    D = _channels_first(_block_mean(I, COARSE_FACTOR)) - noise.expose(model.coarse_B.round())
+    D = _channels_first(_block_mean(I, COARSE_FACTOR)) - noise.expose_levels(model.coarse_levels)
     difference2 = _dot(D, D)
     passing = cv2.compare(difference2, params.weak_threshold**2 * (model.coarse_texture_variance + noise.sigma2),
                           cv2.CMP_GT)
