@@ -108,6 +108,10 @@ class TrackerState:
         The last frame was an initialisation that failed the checks: the next frame tracks from it but
         also weighs a fresh initialisation against that fit, whether or not the fit passes the checks (a
         pose fitted to clutter can hold the next frame's data in a wrong optimum that passes them).
+    velocity_covariance, velocity_variance : (D,) float or None
+        Running levels (the likelihood level's exponential average) of each DOF's product of consecutive
+        frame-to-frame changes v_{t−1} v_t and of its square v_{t−1}² over the tracked frames, from which the
+        prediction weighs the velocity (`tracker.velocity_gain`); None until two tracked frames in a row.
     """
 
     pose: np.ndarray
@@ -124,6 +128,8 @@ class TrackerState:
     segment_shares: np.ndarray | None = None
     recheck: bool = False
     measured_height_m: float | None = None
+    velocity_covariance: np.ndarray | None = None
+    velocity_variance: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
@@ -131,7 +137,9 @@ class TrackerState:
         return {**asdict(self), "pose": self.pose.tolist(), "velocity": self.velocity.tolist(),
                 "length_factors": self.length_factors.tolist(), "Sigma": self.Sigma.tolist(),
                 "pi": self.pi.tolist(), "likelihood_level": level,
-                "segment_shares": None if self.segment_shares is None else self.segment_shares.tolist()}
+                "segment_shares": _listed(self.segment_shares),
+                "velocity_covariance": _listed(self.velocity_covariance),
+                "velocity_variance": _listed(self.velocity_variance)}
 
     @staticmethod
     def from_dict(data: dict) -> TrackerState:
@@ -145,11 +153,20 @@ class TrackerState:
                             else float(data["likelihood_level"]),
                             frames_without_fit=int(data["frames_without_fit"]), lost=bool(data["lost"]),
                             since_initialisation=int(data.get("since_initialisation", 0)),
-                            segment_shares=None if data.get("segment_shares") is None
-                            else np.asarray(data["segment_shares"], dtype=float),
+                            segment_shares=_array(data.get("segment_shares")),
                             recheck=bool(data.get("recheck", False)),
+                            velocity_covariance=_array(data.get("velocity_covariance")),
+                            velocity_variance=_array(data.get("velocity_variance")),
                             measured_height_m=None if data.get("measured_height_m") is None
                             else float(data["measured_height_m"]))
+
+
+def _listed(values: np.ndarray | None) -> list | None:
+    return None if values is None else values.tolist()
+
+
+def _array(values: list | None) -> np.ndarray | None:
+    return None if values is None else np.asarray(values, dtype=float)
 
 
 @dataclass(frozen=True)

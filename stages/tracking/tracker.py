@@ -2,7 +2,9 @@
 
 Every frame starts from the previous pose plus the previous frame-to-frame change (constant
 velocity), which is close enough for EM to converge in a few iterations (Horaud et al. 2009, Sec. 3:
-"robust tracking"). What the paper leaves open is handled here:
+"robust tracking"); each DOF's change is carried on in the share the track has found it predictive
+(`velocity_gain`), and a limb's change by a search or an exchange not at all. What the paper leaves open
+is handled here:
 
 - first frame and after a loss: automatic initialisation from the data (`init.initialise`);
 - the height, over the initialisations of the first `scale_frames` frames (averaged): with none stated,
@@ -129,7 +131,7 @@ class Tracker:
             return self._initialise(state, y, n, sized)
         learning = state.height_weight < params.scale_frames
         em = replace(params.em, estimate_lengths=learning and bool(params.estimate_lengths))
-        prediction = sized.clip(state.pose + state.velocity)
+        prediction = sized.clip(state.pose + velocity_gain(state) * state.velocity)
         mixture = Mixture(Sigma=state.Sigma + params.sigma_m**2 * np.eye(len(state.Sigma)), pi=state.pi)
         tracked = self._fit_from(prediction, state, y, n, sized, mixture, em)
         tracked, moved = self._recover_limbs(y, n, tracked, em, state.segment_shares, state.pose)
@@ -220,12 +222,19 @@ class Tracker:
         velocity = tracked.pose - state.pose if moving else np.zeros_like(state.velocity)
         for dofs in moved:
             velocity[dofs] = 0.0
+        covariance, variance = state.velocity_covariance, state.velocity_variance
+        if moving and np.any(state.velocity):
+            if covariance is None:
+                covariance, variance = np.zeros_like(velocity), np.zeros_like(velocity)
+            covariance = (1 - _LEVEL_RATE) * covariance + _LEVEL_RATE * state.velocity * velocity
+            variance = (1 - _LEVEL_RATE) * variance + _LEVEL_RATE * state.velocity**2
         new_state = TrackerState(pose=tracked.pose, velocity=velocity, height_m=height, length_factors=lengths,
                                  measured_height_m=state.measured_height_m, height_weight=weight,
                                  Sigma=tracked.mixture.Sigma, pi=tracked.mixture.pi,
                                  likelihood_level=level, frames_without_fit=0, lost=False,
                                  since_initialisation=0 if tried else state.since_initialisation + 1,
-                                 segment_shares=shares)
+                                 segment_shares=shares, velocity_covariance=covariance,
+                                 velocity_variance=variance)
         result = FrameResult(pose=tracked.pose, joints=tracked.body.joint_positions(tracked.pose),
                              log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
                              outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m,
@@ -351,6 +360,22 @@ def joint_support(body: BodyModel, mixture: Mixture, n_observations: int) -> np.
     at_centre = np.all(np.abs(body.joint_offset) < _AT_JOINT_CENTRE_M, axis=1) & (body.parent[segment] >= 0)
     placing = np.where(at_centre, body.parent[segment], segment)
     return n_observations * segment_shares(body, mixture)[placing]
+
+
+def velocity_gain(state: TrackerState) -> np.ndarray | float:
+    """(D,) how much of each DOF's last frame-to-frame change the next frame's prediction carries on, in [0, 1]
+    (1 until the track has measured it).
+
+    The least-squares coefficient of a DOF's change on its change one frame earlier over the recent tracked
+    frames, ⟨v_{t−1} v_t⟩ / ⟨v_{t−1}²⟩ (`TrackerState.velocity_covariance` over `velocity_variance`): close to 1
+    where the motion is smooth from frame to frame (a run's legs, a walker's translation), towards 0 where the
+    changes are mostly the fits' own jitter, which a full constant-velocity step would carry into the next
+    frame's start doubled (a slow walk's or a crouch's joints).
+    """
+    if state.velocity_variance is None:
+        return 1.0
+    ratio = state.velocity_covariance / np.maximum(state.velocity_variance, np.finfo(float).tiny)
+    return np.clip(np.where(state.velocity_variance > 0, ratio, 1.0), 0.0, 1.0)
 
 
 def _failed(result: FitResult, params: TrackerParams) -> bool:

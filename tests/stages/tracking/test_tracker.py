@@ -13,7 +13,7 @@ from stages.tracking import tracker
 from stages.tracking.body_file import load_body
 from stages.tracking.params import TrackerParams
 from stages.tracking.results import STATUSES, TrackerState
-from stages.tracking.tracker import Tracker
+from stages.tracking.tracker import Tracker, velocity_gain
 
 PARAMS = TrackerParams(height_m=1.75, init_headings=6, init_refine=2)
 
@@ -363,3 +363,23 @@ def test_a_limb_a_search_moved_carries_no_velocity_into_the_next_frame(body, mon
     assert not after.velocity[arm.dofs].any()
     others = np.setdiff1d(np.arange(body.pose_size), arm.dofs)
     assert np.abs(after.velocity[others]).max() > 0.01  # the walk goes on
+
+
+def test_the_prediction_carries_on_the_changes_the_track_found_smooth(body):
+    """Each DOF's last change is carried into the next frame's start as far as such changes predicted the next
+    one on this track: a walk's driven DOFs (smooth from frame to frame) keep it whole, a subject standing
+    still, whose changes are the fits' jitter, keeps none of it."""
+    rng = np.random.default_rng(5)
+    walking = _walk(body.scaled(1.75), 12)
+    driven = [body.dof_names.index(name) for name in ("l_thigh.flex", "r_thigh.flex", "l_forearm.flex")] + [1]
+    gains = {}
+    for name, poses in (("walk", walking), ("still", [walking[0]] * 12)):
+        the_tracker, state = Tracker(PARAMS, VOLUME), None
+        assert velocity_gain(state or the_tracker._first_state()) == 1.0  # nothing measured yet
+        for pose in poses:
+            _, state = the_tracker.track(state, _obs(body, pose, rng))
+        gains[name] = np.broadcast_to(velocity_gain(state), state.pose.shape)
+        assert TrackerState.from_dict(json.loads(json.dumps(state.to_dict()))).velocity_variance.tolist() == \
+            state.velocity_variance.tolist()
+    assert gains["walk"][driven].min() > 0.9
+    assert gains["still"].max() < 0.3
