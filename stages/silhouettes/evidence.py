@@ -124,7 +124,7 @@ def background_model(background: np.ndarray, params: SilhouetteParams, *,
         sample_B2=sample_B * sample_B,
         sample_divisor=_dot(sample_B, sample_B) + np.float32(BACKGROUND_ENERGY_FLOOR),
         sample_levels=sample_levels,
-        sample_keys=256 * _tone_bins(sample_B),
+        sample_keys=256 * (sample_levels // TONE_BIN_LEVELS),
         sample_bins=_bin_levels(sample_levels),
         coarse_levels=_flat_levels(_channels_first(_block_mean(B_sharp, COARSE_FACTOR)).round()),
         coarse_texture_variance=_block_mean(texture_variance, COARSE_FACTOR),
@@ -274,7 +274,7 @@ class _Noise:
 
     def expose_levels(self, levels: np.ndarray) -> np.ndarray:
         """(3, ...) float32 T(B) of background levels already numbered by :func:`_flat_levels` (the model's)."""
-        return self.tone.ravel().take(levels)
+        return _toned(self.tone, levels)
 
     def expose_image(self, B: np.ndarray) -> np.ndarray:
         """(h, w, 3) float32 T(B) of a background image (h, w, 3) uint8 (OpenCV's table look-up)."""
@@ -299,11 +299,11 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     B = model.sample_B
     if model.tone_curve:
         tone = _tone_curve(levels, model, median=True)
-        tone = _tone_curve(levels, model, np.flatnonzero(_closest_half(I, tone.ravel().take(model.sample_levels))),
+        tone = _tone_curve(levels, model, np.flatnonzero(_closest_half(I, _toned(tone, model.sample_levels))),
                            median=False)
     else:
         tone = _ratio_tone(I, model)
-    D = I - tone.ravel().take(model.sample_levels)
+    D = I - _toned(tone, model.sample_levels)
     distance2 = _dot(D, D)
     # A pixel equal to the background in every channel is a copy, not a noisy measurement of it: a video
     # codec repeats static blocks from frame to frame, so a background taken from the same video (a
@@ -325,12 +325,6 @@ _BINNED_LEVELS = np.tile(_LEVELS.reshape(_BINS_PER_CHANNEL, TONE_BIN_LEVELS), (3
 # Bounds on T_k(b) (256,): EXPOSURE_RATIO_RANGE times b, widened by TONE_SHIFT_MAX levels either way.
 _LOWEST_TONE = EXPOSURE_RATIO_RANGE[0] * _LEVELS - TONE_SHIFT_MAX
 _HIGHEST_TONE = EXPOSURE_RATIO_RANGE[1] * _LEVELS + TONE_SHIFT_MAX
-
-
-def _tone_bins(B: np.ndarray) -> np.ndarray:
-    """(3, m) intp the tone-curve bin of each background level B (3, m), channel k's numbered from k × the
-    bins per channel (so that one ``np.bincount`` sums all three channels' bins)."""
-    return (B.astype(np.intp) // TONE_BIN_LEVELS) + (np.arange(3) * _BINS_PER_CHANNEL)[:, None]
 
 
 def _bin_levels(levels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -424,7 +418,13 @@ def _closest_half(I: np.ndarray, expected: np.ndarray) -> np.ndarray:
 
 def _look_up(tone: np.ndarray, B: np.ndarray) -> np.ndarray:
     """(3, ...) float32 T(B) of 8-bit background levels B (3, ...), channels first (see :func:`_dot`)."""
-    return tone.ravel().take(_flat_levels(B))
+    return _toned(tone, _flat_levels(B))
+
+
+def _toned(tone: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """(3, ...) float32 the tone curve ``tone`` (3, 256) read at background ``levels`` (3, ...) numbered by
+    :func:`_flat_levels`."""
+    return tone.ravel().take(levels)
 
 
 def _flat_levels(B: np.ndarray) -> np.ndarray:

@@ -222,9 +222,7 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
         refined = fit(y, n, body, q, volume, em, mixture=mixture)
         if refined.log_likelihood[-1] > best.log_likelihood[-1] and not folded(refined.body, refined.pose, limb):
             best = refined
-    if best.log_likelihood[-1] < result.log_likelihood[-1] + LIMB_MARGIN * len(y):
-        return result
-    return best
+    return _clearly_better(best, result, len(y))
 
 
 def exchanged(pose: np.ndarray, limb: Limb) -> np.ndarray:
@@ -247,10 +245,14 @@ def swap_limbs(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Limb, volu
     taken by the other); exchanging both can.
     """
     pose = result.body.clip(exchanged(result.pose, limb))
-    swapped = fit(y, n, result.body, pose, volume, em, mixture=result.mixture)
-    if swapped.log_likelihood[-1] < result.log_likelihood[-1] + LIMB_MARGIN * len(y):
+    return _clearly_better(fit(y, n, result.body, pose, volume, em, mixture=result.mixture), result, len(y))
+
+
+def _clearly_better(candidate: FitResult, result: FitResult, observations: int) -> FitResult:
+    """`candidate` when its likelihood beats `result`'s by `LIMB_MARGIN` nats per observation, else `result`."""
+    if candidate.log_likelihood[-1] < result.log_likelihood[-1] + LIMB_MARGIN * observations:
         return result
-    return swapped
+    return candidate
 
 
 def folded(body: BodyModel, pose: np.ndarray, limb: Limb) -> bool:

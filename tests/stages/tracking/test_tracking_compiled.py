@@ -126,4 +126,3 @@ def test_pruning_bounds_use_sigmas_largest_eigenvalue(seed):
     reach, largest = compiled._bounds(semi, Sigma, np.log(np.full(4, 0.2)), np.log(1e-9), 0.03)
     assert largest == pytest.approx(np.linalg.eigvalsh(Sigma)[-1], rel=1e-9)
     np.testing.assert_allclose(reach[:, 2], largest + 0.03 * (semi.max(1) ** 2 / semi.min(1)) ** 2, rtol=1e-12)
-
