@@ -173,6 +173,24 @@ def folded_limbs(limbs: list[Limb], result: FitResult, previous: np.ndarray | No
             and (previous is None or not folded(result.body, previous, limb))]
 
 
+def search_backoff(misses: np.ndarray, wait: np.ndarray, searched: np.ndarray,
+                   kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each limb's searches in a row that kept the fit and the frames it now waits before a share test may
+    search it again (L,) int each, after a frame in which the limbs `searched` were searched and those `kept`
+    stayed where EM had put them (L,) bool each. Also for the legs' exchange (`swap_limbs`).
+
+    A limb that the search keeps where it is, frame after frame, has few data because the data are few there
+    (an arm held against a ducking subject's body explains a fraction of its mirror's data), not because it
+    is misplaced: the search found nothing better and, the data changing little from one frame to the next,
+    will not at the next. Such a limb is searched at doubling intervals (after k searches in a row that kept
+    it, the next 2^k − 1 frames are skipped), so that its cost grows with the log of the time its data stay
+    few rather than with the time; a search that moves it, or a frame where no test suspects it, starts the
+    count again.
+    """
+    misses = np.where(searched, np.where(kept, misses + 1, 0), np.where(wait > 0, misses, 0))
+    return misses, np.where(searched, 2**misses - 1, np.maximum(wait - 1, 0))
+
+
 def _starved(own: np.ndarray, reference: np.ndarray, params: LimbParams) -> bool:
     """Whether a segment explains fewer data than `share_ratio` times a reference of at least `min_observations`."""
     return bool(np.any((reference >= params.min_observations) & (own < params.share_ratio * reference)))

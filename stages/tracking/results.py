@@ -112,6 +112,12 @@ class TrackerState:
         Running levels (the likelihood level's exponential average) of each DOF's product of consecutive
         frame-to-frame changes v_{t−1} v_t and of its square v_{t−1}² over the tracked frames, from which the
         prediction weighs the velocity (`tracker.velocity_gain`); None until two tracked frames in a row.
+    search_misses, search_wait : (L,) int or None
+        Per limb of `Tracker.limbs`, its searches in a row that kept the fit and the frames it waits before a
+        share test may search it again (`limbs.search_backoff`); None until a tracked frame sets them.
+    exchange_misses, exchange_wait : (X,) int or None
+        The same for the exchange of each pair of `Tracker.legs` (`limbs.swap_limbs`), tried on a fit worse
+        than usual.
     """
 
     pose: np.ndarray
@@ -130,6 +136,10 @@ class TrackerState:
     measured_height_m: float | None = None
     velocity_covariance: np.ndarray | None = None
     velocity_variance: np.ndarray | None = None
+    search_misses: np.ndarray | None = None
+    search_wait: np.ndarray | None = None
+    exchange_misses: np.ndarray | None = None
+    exchange_wait: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
@@ -139,7 +149,9 @@ class TrackerState:
                 "pi": self.pi.tolist(), "likelihood_level": level,
                 "segment_shares": _listed(self.segment_shares),
                 "velocity_covariance": _listed(self.velocity_covariance),
-                "velocity_variance": _listed(self.velocity_variance)}
+                "velocity_variance": _listed(self.velocity_variance),
+                "search_misses": _listed(self.search_misses), "search_wait": _listed(self.search_wait),
+                "exchange_misses": _listed(self.exchange_misses), "exchange_wait": _listed(self.exchange_wait)}
 
     @staticmethod
     def from_dict(data: dict) -> TrackerState:
@@ -157,6 +169,10 @@ class TrackerState:
                             recheck=bool(data.get("recheck", False)),
                             velocity_covariance=_array(data.get("velocity_covariance")),
                             velocity_variance=_array(data.get("velocity_variance")),
+                            search_misses=_array(data.get("search_misses"), int),
+                            search_wait=_array(data.get("search_wait"), int),
+                            exchange_misses=_array(data.get("exchange_misses"), int),
+                            exchange_wait=_array(data.get("exchange_wait"), int),
                             measured_height_m=None if data.get("measured_height_m") is None
                             else float(data["measured_height_m"]))
 
@@ -165,8 +181,8 @@ def _listed(values: np.ndarray | None) -> list | None:
     return None if values is None else values.tolist()
 
 
-def _array(values: list | None) -> np.ndarray | None:
-    return None if values is None else np.asarray(values, dtype=float)
+def _array(values: list | None, dtype=float) -> np.ndarray | None:
+    return None if values is None else np.asarray(values, dtype=dtype)
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,9 @@ is handled here:
   (`limbs.reinitialise_limb`, which never lands in a fold), and kept only on a clear likelihood gain;
   after an initialisation every limb is searched so, once; a fit worse than usual (`refit_drop` below the
   likelihood level) also tries the legs exchanged (`limbs.swap_limbs`: legs that passed each other and
-  took each other's data, which no share test sees);
+  took each other's data, which no share test sees); a limb (or the legs' exchange) that such searches keep
+  finding in place frame after frame is searched at doubling intervals while the fits stay as good as
+  usual (`limbs.search_backoff`);
 - frames with no or too few observations: the pose is predicted (velocity decaying) and flagged
   "predicted", then "lost" when the gap lasts; tracking re-initialises when data return.
 Nothing here produces NaN: unusable rows of the input are dropped and every output is finite.
@@ -55,6 +57,7 @@ from stages.tracking.limbs import (
     folded_limbs,
     misplaced_limbs,
     reinitialise_limb,
+    search_backoff,
     segment_shares,
     swap_limbs,
 )
@@ -134,12 +137,9 @@ class Tracker:
         prediction = sized.clip(state.pose + velocity_gain(state) * state.velocity)
         mixture = Mixture(Sigma=state.Sigma + params.sigma_m**2 * np.eye(len(state.Sigma)), pi=state.pi)
         tracked = self._fit_from(prediction, state, y, n, sized, mixture, em)
-        tracked, moved = self._recover_limbs(y, n, tracked, em, state.segment_shares, state.pose)
-        if tracked.log_likelihood[-1] / len(y) < state.likelihood_level - params.refit_drop:
-            for legs in self.legs:
-                exchanged = swap_limbs(y, n, tracked, legs, self.volume, em)
-                moved += [legs.dofs, legs.mirror_dofs] if exchanged is not tracked else []
-                tracked = exchanged
+        tracked, moved, searches = self._search_limbs(y, n, tracked, state, em)
+        tracked, exchanged, exchanges = self._exchange_legs(y, n, tracked, state, em)
+        moved += exchanged
         doubtful = _failed(tracked, params)
         tried = doubtful or 0 < params.reinit_every <= state.since_initialisation + 1 or state.recheck
         if tried:
@@ -149,7 +149,7 @@ class Tracker:
             margin = 0.0 if doubtful or state.recheck else params.reinit_margin * len(y)
             if result.log_likelihood > tracked.log_likelihood[-1] + margin:
                 return result, new_state
-        return self._tracked(state, tracked, len(y), learning, doubtful, tried, moved)
+        return self._tracked(state, tracked, len(y), learning, doubtful, tried, moved, searches, exchanges)
 
     def _sized_body(self, state: TrackerState) -> BodyModel:
         """The body at the state's height and length factors, remembered for the last ones asked.
@@ -198,10 +198,45 @@ class Tracker:
                 tracked = replace(still, iterations=tracked.iterations + still.iterations)
         return tracked
 
+    def _search_limbs(self, y, n, tracked: FitResult, state: TrackerState,
+                      em: EMParams) -> tuple[FitResult, list[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """The tracked fit after the limb searches (`_recover_limbs`), the DOFs of the limbs they moved, and
+        the limbs' searches in a row that kept the fit and their waits after this frame (`limbs.search_backoff`).
+
+        A limb waits only while the fit is as good as usual: a fit worse than usual (`refit_drop`) is a change
+        the wait did not foresee (a kick starting from a leg the search had kept in place).
+        """
+        misses, wait = _search_counts(state.search_misses, state.search_wait, len(self.limbs))
+        usual = tracked.log_likelihood[-1] / len(y) >= state.likelihood_level - self.params.refit_drop
+        tracked, searched, kept = self._recover_limbs(y, n, tracked, em, state.segment_shares, state.pose,
+                                                      (wait > 0) & usual)
+        moved = [limb.dofs for limb, still in zip(self.limbs, kept, strict=True) if not still]
+        return tracked, moved, search_backoff(misses, wait, searched, kept)
+
+    def _exchange_legs(self, y, n, tracked: FitResult, state: TrackerState,
+                       em: EMParams) -> tuple[FitResult, list[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """The tracked fit after each pair of `legs` was tried exchanged (`limbs.swap_limbs`) if it is worse than
+        usual (`refit_drop`) and the pair is not waiting, the DOFs of the exchanges kept, and the pairs' tries in
+        a row that kept the fit and their waits after this frame (`limbs.search_backoff`)."""
+        misses, wait = _search_counts(state.exchange_misses, state.exchange_wait, len(self.legs))
+        worse = tracked.log_likelihood[-1] / len(y) < state.likelihood_level - self.params.refit_drop
+        tried = worse & (wait == 0)
+        kept = np.ones(len(self.legs), dtype=bool)
+        moved = []
+        for index in np.flatnonzero(tried):
+            legs = self.legs[index]
+            exchanged = swap_limbs(y, n, tracked, legs, self.volume, em)
+            kept[index] = exchanged is tracked
+            moved += [] if kept[index] else [legs.dofs, legs.mirror_dofs]
+            tracked = exchanged
+        return tracked, moved, search_backoff(misses, wait, tried, kept)
+
     def _tracked(self, state: TrackerState, tracked: FitResult, observations: int, learning: bool, doubtful: bool,
-                 tried: bool, moved: list[np.ndarray]) -> tuple[FrameResult, TrackerState]:
+                 tried: bool, moved: list[np.ndarray], searches: tuple[np.ndarray, np.ndarray],
+                 exchanges: tuple[np.ndarray, np.ndarray]) -> tuple[FrameResult, TrackerState]:
         """The estimate of a tracked frame and the state after it: the length factors' running mean (while
-        `learning`), the likelihood level and segment shares (exponential averages), the velocity.
+        `learning`), the likelihood level and segment shares (exponential averages), the velocity, the limbs'
+        `searches` and the legs' `exchanges` in a row that kept the fit and their waits (`limbs.search_backoff`).
 
         The DOFs of limbs a search or an exchange `moved` get no velocity: their change over this frame is a
         correction, not motion, and carried on it would throw the limb as far again at the next frame."""
@@ -234,7 +269,8 @@ class Tracker:
                                  likelihood_level=level, frames_without_fit=0, lost=False,
                                  since_initialisation=0 if tried else state.since_initialisation + 1,
                                  segment_shares=shares, velocity_covariance=covariance,
-                                 velocity_variance=variance)
+                                 velocity_variance=variance, search_misses=searches[0], search_wait=searches[1],
+                                 exchange_misses=exchanges[0], exchange_wait=exchanges[1])
         result = FrameResult(pose=tracked.pose, joints=tracked.body.joint_positions(tracked.pose),
                              log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
                              outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m,
@@ -243,29 +279,34 @@ class Tracker:
         return result, new_state
 
     def _recover_limbs(self, y, n, result: FitResult, em: EMParams, usual_shares=None,
-                       previous: np.ndarray | None = None) -> tuple[FitResult, list[np.ndarray]]:
+                       previous: np.ndarray | None = None,
+                       waiting: np.ndarray | None = None) -> tuple[FitResult, np.ndarray, np.ndarray]:
         """The fit with each limb that explains far fewer data than its mirror, or than it usually does
         (`usual_shares`, the running level of `limbs.segment_shares`; None: no history), or that has folded
         onto itself since the `previous` pose (`limbs.folded_limbs`; None: no previous pose), re-initialised
-        locally; and the DOFs of the limbs that moved so.
+        locally; and which of `self.limbs` were searched and which of them kept their place (L,) bool each.
+        The limbs `waiting` (L,) bool (`limbs.search_backoff`; None: none) are left to the fold test.
 
         A limb EM put on the wrong side of the body or folded away from its data gets almost no
         observations, and the local minimum holds it there for many frames; trying the library's angles
         for that limb alone (`limbs.reinitialise_limb`) finds it again, and the likelihood decides.
         """
-        limbs = misplaced_limbs(self.limbs, result, len(y), self.params.limbs)
+        ready = self.limbs if waiting is None else [limb for limb, wait in zip(self.limbs, waiting, strict=True)
+                                                    if not wait]
+        limbs = misplaced_limbs(ready, result, len(y), self.params.limbs)
         if usual_shares is not None:
-            limbs += deserted_limbs(self.limbs, result, usual_shares, len(y), self.params.limbs)
+            limbs += deserted_limbs(ready, result, usual_shares, len(y), self.params.limbs)
         if self.params.limbs.share_ratio > 0:
             limbs += folded_limbs(self.limbs, result, previous)
-        limbs = list({limb.name: limb for limb in limbs}.values())  # each once, in the order found
-        moved = []
-        for limb in limbs:
-            searched = reinitialise_limb(y, n, result, limb, self.volume, em, self.library,
-                                         rng=np.random.default_rng(self.params.seed))
-            moved += [limb.dofs] if searched is not result else []
-            result = searched
-        return result, moved
+        suspects = {limb.name for limb in limbs}
+        searched = np.array([limb.name in suspects for limb in self.limbs])
+        kept = np.ones(len(self.limbs), dtype=bool)
+        for index in np.flatnonzero(searched):
+            recovered = reinitialise_limb(y, n, result, self.limbs[index], self.volume, em, self.library,
+                                          rng=np.random.default_rng(self.params.seed))
+            kept[index] = recovered is result
+            result = recovered
+        return result, searched, kept
 
     def _initialise(self, state: TrackerState, y, n, body: BodyModel) -> tuple[FrameResult, TrackerState]:
         """Initialise from the data alone (`init.initialise`) and start a fresh track.
@@ -298,7 +339,7 @@ class Tracker:
             fitted = reinitialise_limb(y, n, fitted, limb, self.volume, em, self.library,
                                        rng=np.random.default_rng(params.seed))
         for _ in range(2):  # a limb moved by the first pass can leave its mirror (or itself) still misplaced
-            recovered, _ = self._recover_limbs(y, n, fitted, em)
+            recovered, _, _ = self._recover_limbs(y, n, fitted, em)
             if recovered is fitted:
                 break
             fitted = recovered
@@ -314,7 +355,8 @@ class Tracker:
                             pi=fitted.mixture.pi,
                             likelihood_level=state.likelihood_level if doubtful else np.nan,
                             frames_without_fit=0, lost=False, since_initialisation=0, segment_shares=None,
-                            recheck=doubtful)
+                            recheck=doubtful, search_misses=None, search_wait=None,
+                            exchange_misses=None, exchange_wait=None)
         result = FrameResult(pose=fitted.pose, joints=fitted.body.joint_positions(fitted.pose),
                              log_likelihood=fitted.log_likelihood[-1], iterations=fitted.iterations,
                              outlier_fraction=fitted.outlier_fraction, status="initialised", height_m=init.height_m,
@@ -360,6 +402,13 @@ def joint_support(body: BodyModel, mixture: Mixture, n_observations: int) -> np.
     at_centre = np.all(np.abs(body.joint_offset) < _AT_JOINT_CENTRE_M, axis=1) & (body.parent[segment] >= 0)
     placing = np.where(at_centre, body.parent[segment], segment)
     return n_observations * segment_shares(body, mixture)[placing]
+
+
+def _search_counts(misses: np.ndarray | None, wait: np.ndarray | None, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """A state's misses and waits of `limbs.search_backoff`, zeros (count,) when it has none yet."""
+    if misses is None or wait is None:
+        return np.zeros(count, dtype=int), np.zeros(count, dtype=int)
+    return misses, wait
 
 
 def velocity_gain(state: TrackerState) -> np.ndarray | float:
