@@ -183,12 +183,13 @@ def search_backoff(misses: np.ndarray, wait: np.ndarray, searched: np.ndarray,
     (an arm held against a ducking subject's body explains a fraction of its mirror's data), not because it
     is misplaced: the search found nothing better and, the data changing little from one frame to the next,
     will not at the next. Such a limb is searched at doubling intervals (after k searches in a row that kept
-    it, the next 2^k − 1 frames are skipped), so that its cost grows with the log of the time its data stay
-    few rather than with the time; a search that moves it, or a frame where no test suspects it, starts the
+    it, the next 2^(k−1) − 1 frames are skipped: none after one, as a limb slipping off its data over two
+    frames is common, then 1, 3, 7...), so that its cost grows with the log of the time its data stay few
+    rather than with the time; a search that moves it, or a frame where no test suspects it, starts the
     count again.
     """
     misses = np.where(searched, np.where(kept, misses + 1, 0), np.where(wait > 0, misses, 0))
-    return misses, np.where(searched, 2**misses - 1, np.maximum(wait - 1, 0))
+    return misses, np.where(searched, 2 ** np.maximum(misses - 1, 0) - 1, np.maximum(wait - 1, 0))
 
 
 def _starved(own: np.ndarray, reference: np.ndarray, params: LimbParams) -> bool:
