@@ -169,8 +169,12 @@ def folded_limbs(limbs: list[Limb], result: FitResult, previous: np.ndarray | No
     show the fold (a chambered kick's knee), no hypothesis beats it, and trying again at every frame it lasts
     would cost a limb re-initialisation each.
     """
-    return [limb for limb in limbs if folded(result.body, result.pose, limb)
-            and (previous is None or not folded(result.body, previous, limb))]
+    now = result.body.ellipsoids(result.pose)
+    suspects = [limb for limb in limbs if _folded_in(result.body, now, limb)]
+    if previous is None or not suspects:
+        return suspects
+    before = result.body.ellipsoids(previous)
+    return [limb for limb in suspects if not _folded_in(result.body, before, limb)]
 
 
 def search_backoff(misses: np.ndarray, wait: np.ndarray, searched: np.ndarray,
@@ -283,7 +287,11 @@ def folded(body: BodyModel, pose: np.ndarray, limb: Limb) -> bool:
     there from a pose that was right, the wrist then put back at the shoulder. Tracking still follows a
     limb that bends that far from frame to frame; only a jump there is refused.
     """
-    ellipsoids = body.ellipsoids(pose)
+    return _folded_in(body, body.ellipsoids(pose), limb)
+
+
+def _folded_in(body: BodyModel, ellipsoids: Ellipsoids, limb: Limb) -> bool:
+    """`folded` for the body's posed `ellipsoids`, which the tests of every limb of a pose share."""
     for segment in limb.segments[1:]:
         inner = np.flatnonzero(body.ellipsoid_segment == body.parent[segment])
         centres = ellipsoids.t[body.ellipsoid_segment == segment]
