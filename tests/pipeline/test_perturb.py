@@ -58,6 +58,14 @@ def test_a_black_level_change_is_applied_to_every_frame_and_the_rest_is_kept(cap
     assert not (tmp_path / "lifted.partial").exists()
 
 
+def test_a_copy_without_plates_is_a_recording_made_without_a_clean_plate(capture, tmp_path):
+    assert main([str(capture), "--change", "none", "--no-plates", "--out", str(tmp_path / "bare")]) == 0
+    out = tmp_path / "bare"
+    assert not (out / "background").exists()
+    assert (out / "calibration" / "rig.toml").is_file() and (out / "groundtruth" / "joints.csv").is_file()
+    assert len(_frames(out / "videos" / "cam0.mp4")) == FRAMES
+
+
 def test_nothing_is_overwritten_and_an_unknown_change_is_refused(capture, tmp_path, capsys):
     (tmp_path / "taken").mkdir()
     with pytest.raises(InputError, match="already exists"):

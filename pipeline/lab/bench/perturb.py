@@ -10,7 +10,10 @@ one at a time: the change applies to every frame of every video, the clean plate
 shot before the camera's automatic exposure, white balance or the codec moved), and the copy holds the
 original's calibration and plates and links its ground truth, so that it is run and scored as the original is.
 Every video is decoded and encoded again (``none`` does only that: the codec's second generation, the control
-every other change is compared with).
+every other change is compared with). With ``--no-plates`` the copy has no clean plates at all, as a recording
+made without one: the pipeline then estimates each camera's background from the frames.
+
+    python -m pipeline.lab.bench.perturb ../shared/foreign/walk --change none --no-plates --out runs/walk-noplate
 """
 
 from __future__ import annotations
@@ -66,12 +69,13 @@ def _to_uint8(frame: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(frame), 0, 255).astype(np.uint8)
 
 
-def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0) -> Path:
+def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, plates: bool = True) -> Path:
     """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
     to every frame of its videos; returns ``out``.
 
-    capture.yaml, the calibration and the background plates are copied, the ground truth (when there is one)
-    linked. The videos are written as MPEG-4 Part 2 (the codec OpenCV's wheels can write) at the originals' frame
+    capture.yaml, the calibration and the background plates (unless ``plates`` is False) are copied, the ground
+    truth (when there is one) linked.
+    The videos are written as MPEG-4 Part 2 (the codec OpenCV's wheels can write) at the originals' frame
     rate; only captures whose frames are videos (``videos/<camera>.<ext>``) can be changed.
 
     Raises
@@ -94,7 +98,7 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0) -> 
     shutil.rmtree(partial, ignore_errors=True)
     (partial / "videos").mkdir(parents=True)
     shutil.copy2(capture / "capture.yaml", partial / "capture.yaml")
-    for folder in ("calibration", "background"):
+    for folder in ("calibration", "background") if plates else ("calibration",):
         if (capture / folder).is_dir():
             shutil.copytree(capture / folder, partial / folder)
     if (capture / "groundtruth").is_dir():
@@ -138,9 +142,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--change", required=True, choices=sorted(CHANGES))
     parser.add_argument("--out", required=True, type=Path, help="new capture directory (must not exist)")
     parser.add_argument("--seed", type=int, default=0, help="random draws of flicker and noise")
+    parser.add_argument("--no-plates", action="store_true",
+                        help="leave the clean plates out (the background is then estimated from the frames)")
     args = parser.parse_args(argv)
     try:
-        perturb_capture(args.capture, args.out, args.change, seed=args.seed)
+        perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
