@@ -276,30 +276,47 @@ class BodyModel:
                              f"got {factors.tolist()}")
         if np.array_equal(factors, self.length_factors):
             return self
-        group_ratio = factors / self.length_factors
-        ratio = np.ones(len(self.segment_names))
+        return self.with_each_lengths(factors[None])[0]
+
+    def with_each_lengths(self, factors: np.ndarray) -> tuple[BodyModel, ...]:
+        """`with_lengths` of every row of `factors` (B, G), computed together.
+
+        The Gauss-Newton step differentiates the residuals by each factor in turn
+        (`gauss_newton._extra_columns`): one body per factor, and stretching them at once costs little
+        more than one, most of `with_lengths`'s cost being per call rather than per segment.
+        """
+        factors = np.asarray(factors, dtype=float)
+        if factors.ndim != 2 or factors.shape[1] != len(self.length_groups) or not np.all(factors > 0):
+            raise ValueError(f"length factors: expected rows of {len(self.length_groups)} positive numbers, "
+                             f"got {factors.tolist()}")
+        group_ratio = factors / self.length_factors  # (B,G)
+        ratio = np.ones((len(factors), len(self.segment_names)))
         grouped = self.length_group >= 0
-        ratio[grouped] = group_ratio[self.length_group[grouped]]
+        ratio[:, grouped] = group_ratio[:, self.length_group[grouped]]
         u = self.length_axis
-        S = np.eye(3) + (ratio - 1.0)[:, None, None] * u[:, :, None] * u[:, None, :]  # (S,3,3)
-        offset = self.offset.copy()
-        offset[1:] = np.einsum("sab,sb->sa", S[self.parent[1:]], self.offset[1:])
+        S = np.eye(3) + (ratio - 1.0)[:, :, None, None] * u[:, :, None] * u[:, None, :]  # (B,S,3,3)
+        offset = np.repeat(self.offset[None], len(factors), axis=0)
+        offset[:, 1:] = np.einsum("zsab,sb->zsa", S[:, self.parent[1:]], self.offset[1:])
         moved = self.joint_group >= 0
-        along = np.einsum("sa,sa->s", offset[moved], self.joint_axis[moved])
-        offset[moved] += (group_ratio[self.joint_group[moved]] - 1.0)[:, None] * along[:, None] * self.joint_axis[moved]
-        S_e = S[self.ellipsoid_segment]
-        rotation, semi_axes = self.ellipsoid_rotation.copy(), self.semi_axes.copy()
-        stretched = ratio[self.ellipsoid_segment] != 1.0  # the others keep their shape exactly
+        along = np.einsum("zsa,sa->zs", offset[:, moved], self.joint_axis[moved])
+        offset[:, moved] += ((group_ratio[:, self.joint_group[moved]] - 1.0)[:, :, None] * along[:, :, None]
+                             * self.joint_axis[moved])
+        S_e = S[:, self.ellipsoid_segment]  # (B,E,3,3)
+        rotation = np.repeat(self.ellipsoid_rotation[None], len(factors), axis=0)
+        semi_axes = np.repeat(self.semi_axes[None], len(factors), axis=0)
+        stretched = ratio[:, self.ellipsoid_segment] != 1.0  # the others keep their shape exactly
         if np.any(stretched):
-            R, a, S_s = self.ellipsoid_rotation[stretched], self.semi_axes[stretched], S_e[stretched]
+            e = np.nonzero(stretched)[1]
+            R, a, S_s = self.ellipsoid_rotation[e], self.semi_axes[e], S_e[stretched]
             A = np.einsum("eab,eb,ecb->eac", R, a**2, R)
             rotation[stretched], semi_axes[stretched] = _principal_axes(S_s @ A @ S_s.transpose(0, 2, 1), R)
         girth = self.girth_group >= 0
-        semi_axes[girth, 1:] *= group_ratio[self.girth_group[girth], None]
-        return replace(self, offset=offset, ellipsoid_rotation=rotation, semi_axes=semi_axes,
-                       ellipsoid_centre=np.einsum("eab,eb->ea", S_e, self.ellipsoid_centre),
-                       joint_offset=np.einsum("jab,jb->ja", S[self.joint_segment], self.joint_offset),
-                       length_factors=factors.copy())
+        semi_axes[:, girth, 1:] *= group_ratio[:, self.girth_group[girth], None]
+        centre = np.einsum("zeab,eb->zea", S_e, self.ellipsoid_centre, order="C")  # compiled for C arrays
+        joint_offset = np.einsum("zjab,jb->zja", S[:, self.joint_segment], self.joint_offset, order="C")
+        return tuple(replace(self, offset=offset[b], ellipsoid_rotation=rotation[b], semi_axes=semi_axes[b],
+                             ellipsoid_centre=centre[b], joint_offset=joint_offset[b],
+                             length_factors=factors[b].copy()) for b in range(len(factors)))
 
     def with_length_groups(self, names: tuple[str, ...]) -> BodyModel:
         """The same body with only the length groups `names` left free (in that order).

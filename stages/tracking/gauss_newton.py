@@ -141,10 +141,8 @@ def _extra_columns(problem: LeastSquares, body: BodyModel, pose: np.ndarray, e: 
     if problem.estimate_scale:
         columns.append(J_scale[:, :, None])
     if problem.estimate_lengths:
-        for g in range(len(body.length_groups)):
-            factors = body.length_factors.copy()
-            factors[g] *= np.exp(LENGTH_STEP)
-            stretched = body.with_lengths(factors)
+        one_step = np.where(np.eye(len(body.length_groups), dtype=bool), np.exp(LENGTH_STEP), 1.0)
+        for stretched in body.with_each_lengths(body.length_factors * one_step):  # row g: factor g stepped
             e_g = problem.residuals(stretched, stretched.fk(pose))
             columns.append(((e_g - e) / LENGTH_STEP)[:, :, None])
     return np.concatenate(columns, axis=2) if columns else np.zeros(e.shape + (0,))

@@ -257,3 +257,18 @@ def test_girth_factor_scales_only_the_short_semi_axes():
     np.testing.assert_allclose(stout.semi_axes[:, 1:], body.semi_axes[:, 1:] * 1.2, rtol=1e-12)
     only = stout.with_length_groups(("girth",))
     np.testing.assert_allclose(only.with_lengths(np.ones(1)).semi_axes, body.semi_axes, atol=1e-12)
+
+
+def test_lengths_stretched_together_equal_each_stretched_alone():
+    full = load_body("default")
+    rng = np.random.default_rng(3)
+    for body in (full, full.with_length_groups(("upperarm", "shank", "girth", "forearm", "shoulders"))):
+        G = len(body.length_groups)
+        body = body.with_lengths(np.exp(rng.normal(0.0, 0.1, G)))
+        one_step = body.length_factors * np.where(np.eye(G, dtype=bool), np.exp(1e-5), 1.0)  # the Jacobian's
+        for factors in (one_step, body.length_factors * np.exp(rng.normal(0.0, 0.1, (3, G)))):
+            for together, factor in zip(body.with_each_lengths(factors), factors, strict=True):
+                alone = body.with_lengths(factor)
+                for field in ("offset", "ellipsoid_rotation", "ellipsoid_centre", "semi_axes", "joint_offset",
+                              "length_factors"):
+                    np.testing.assert_allclose(getattr(together, field), getattr(alone, field), rtol=0, atol=1e-12)
