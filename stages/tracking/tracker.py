@@ -28,9 +28,10 @@ is handled here:
   (`limbs.reinitialise_limb`, which never lands in a fold), and kept only on a clear likelihood gain;
   after an initialisation every limb is searched so, once; a fit worse than usual (`refit_drop` below the
   likelihood level) also tries the legs exchanged (`limbs.swap_limbs`: legs that passed each other and
-  took each other's data, which no share test sees); a limb (or the legs' exchange) that such searches keep
-  finding in place frame after frame is searched at doubling intervals while the fits stay as good as
-  usual (`limbs.search_backoff`);
+  took each other's data, which no share test sees); a limb that the share tests suspect and its searches keep
+  in place frame after frame is searched at doubling intervals while the fits stay as good as usual, and the
+  legs' exchange at doubling intervals over a run of worse fits that it does not improve
+  (`limbs.search_backoff`);
 - frames with no or too few observations: the pose is predicted (velocity decaying) and flagged
   "predicted", then "lost" when the gap lasts; tracking re-initialises when data return.
 Nothing here produces NaN: unusable rows of the input are dropped and every output is finite.
