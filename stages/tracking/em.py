@@ -99,6 +99,10 @@ class FitResult:
         ln P(Y | Λ) before each iteration and after the last one (length iterations + 1).
     outlier_fraction : float
         Mean posterior of the outlier class at the final pose.
+    kin : Kinematics
+        The kinematics of `pose` on `body` (`BodyModel.fk`), for what is computed at the fitted pose next.
+    joints : (17, 3) float
+        Joint centres of `pose` on `body` (`BodyModel.joint_positions`), which the stopping rule computed.
     estep : EStep or None
         The E-step at the final pose and mixture: a fit continued from this one starts from it.
     """
@@ -110,6 +114,8 @@ class FitResult:
     converged: bool
     log_likelihood: tuple[float, ...]
     outlier_fraction: float
+    kin: Kinematics
+    joints: np.ndarray
     estep: EStep | None = None
 
     @property
@@ -285,4 +291,5 @@ def fit(y: np.ndarray, n: np.ndarray, body: BodyModel, pose: np.ndarray, volume:
         converged = abs(history[-1] - history[-2]) < params.tolerance * len(y) or displacement < params.displacement_m
     outliers = float(estep.t_outlier.mean()) if len(y) else 1.0
     return FitResult(pose=pose, body=body, mixture=mixture, iterations=iterations, converged=converged,
-                     log_likelihood=tuple(history), outlier_fraction=outliers, estep=estep)
+                     log_likelihood=tuple(history), outlier_fraction=outliers, kin=kin, joints=joints,
+                     estep=estep)

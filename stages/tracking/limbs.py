@@ -75,6 +75,9 @@ class Limb:
         DOFs of the chain and the mirror chain's corresponding DOFs.
     mirror_sign : (K,) float
         A pose mirrored left-right has mirror_dofs = mirror_sign × dofs (twists change sign).
+    nested : (2, N) int
+        Every pair (ellipsoid of a segment past the chain's first, ellipsoid of that segment's parent):
+        where `folded` looks for a centre inside its parent, per frame and limb, so found once.
     """
 
     name: str
@@ -83,6 +86,7 @@ class Limb:
     dofs: np.ndarray
     mirror_dofs: np.ndarray
     mirror_sign: np.ndarray
+    nested: np.ndarray
 
 
 _MIRROR_PREFIXES = ("l_", "r_")
@@ -117,7 +121,8 @@ def body_limbs(body: BodyModel) -> list[Limb]:
         reflected = body.dof_axis[dofs] * np.array([1.0, -1.0, -1.0])
         sign = np.sign(np.einsum("ka,ka->k", body.dof_axis[mirror_dofs], reflected))
         limbs.append(Limb(name=name, segments=np.array(chain), mirror_segments=np.array(mirrored),
-                          dofs=np.array(dofs), mirror_dofs=np.array(mirror_dofs), mirror_sign=sign))
+                          dofs=np.array(dofs), mirror_dofs=np.array(mirror_dofs), mirror_sign=sign,
+                          nested=_nested_ellipsoids(body, chain[1:])))
     return limbs
 
 
@@ -140,7 +145,7 @@ def misplaced_limbs(limbs: list[Limb], result: FitResult, n_observations: int,
     itself the norm.
     """
     per_segment = n_observations * segment_shares(result.body, result.mixture)
-    return [limb for limb in limbs if _starved(per_segment[limb.segments], per_segment[limb.mirror_segments], params)]
+    return _starved(limbs, per_segment, per_segment, [limb.mirror_segments for limb in limbs], params)
 
 
 def deserted_limbs(limbs: list[Limb], result: FitResult, usual_shares: np.ndarray, n_observations: int,
@@ -157,7 +162,7 @@ def deserted_limbs(limbs: list[Limb], result: FitResult, usual_shares: np.ndarra
     """
     per_segment = n_observations * segment_shares(result.body, result.mixture)
     usual = n_observations * np.asarray(usual_shares)
-    return [limb for limb in limbs if _starved(per_segment[limb.segments], usual[limb.segments], params)]
+    return _starved(limbs, per_segment, usual, [limb.segments for limb in limbs], params)
 
 
 def folded_limbs(limbs: list[Limb], result: FitResult, previous: np.ndarray | None = None) -> list[Limb]:
@@ -169,12 +174,12 @@ def folded_limbs(limbs: list[Limb], result: FitResult, previous: np.ndarray | No
     show the fold (a chambered kick's knee), no hypothesis beats it, and trying again at every frame it lasts
     would cost a limb re-initialisation each.
     """
-    now = result.body.ellipsoids(result.pose)
-    suspects = [limb for limb in limbs if _folded_in(result.body, now, limb)]
+    now = _folded_each(result.kin.ellipsoids, limbs)
+    suspects = [limb for limb, bent in zip(limbs, now, strict=True) if bent]
     if previous is None or not suspects:
         return suspects
-    before = result.body.ellipsoids(previous)
-    return [limb for limb in suspects if not _folded_in(result.body, before, limb)]
+    before = _folded_each(result.body.ellipsoids(previous), suspects)
+    return [limb for limb, bent in zip(suspects, before, strict=True) if not bent]
 
 
 def search_backoff(misses: np.ndarray, wait: np.ndarray, searched: np.ndarray,
@@ -196,9 +201,20 @@ def search_backoff(misses: np.ndarray, wait: np.ndarray, searched: np.ndarray,
     return misses, np.where(searched, 2 ** np.maximum(misses - 1, 0) - 1, np.maximum(wait - 1, 0))
 
 
-def _starved(own: np.ndarray, reference: np.ndarray, params: LimbParams) -> bool:
-    """Whether a segment explains fewer data than `share_ratio` times a reference of at least `min_observations`."""
-    return bool(np.any((reference >= params.min_observations) & (own < params.share_ratio * reference)))
+def _starved(limbs: list[Limb], own: np.ndarray, reference: np.ndarray, compared: list[np.ndarray],
+             params: LimbParams) -> list[Limb]:
+    """The `limbs` with a segment s explaining fewer data `own[s]` than `share_ratio` times a reference of at least
+    `min_observations`, `reference[c]` with c the segment that `compared` (one array per limb, aligned with its
+    segments) puts against s. `own` and `reference` are per segment (S,); the limbs are tested together, at
+    every frame."""
+    if not limbs:
+        return []
+    references = reference[np.concatenate(compared)]
+    short = (references >= params.min_observations) & (
+        own[np.concatenate([limb.segments for limb in limbs])] < params.share_ratio * references)
+    owner = np.repeat(np.arange(len(limbs)), [len(limb.segments) for limb in limbs])
+    starved = np.bincount(owner, weights=short, minlength=len(limbs)) > 0
+    return [limb for limb, hit in zip(limbs, starved, strict=True) if hit]
 
 
 def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Limb, volume: np.ndarray,
@@ -287,19 +303,26 @@ def folded(body: BodyModel, pose: np.ndarray, limb: Limb) -> bool:
     there from a pose that was right, the wrist then put back at the shoulder. Tracking still follows a
     limb that bends that far from frame to frame; only a jump there is refused.
     """
-    return _folded_in(body, body.ellipsoids(pose), limb)
+    return bool(_folded_each(body.ellipsoids(pose), [limb])[0])
 
 
-def _folded_in(body: BodyModel, ellipsoids: Ellipsoids, limb: Limb) -> bool:
-    """`folded` for the body's posed `ellipsoids`, which the tests of every limb of a pose share."""
-    for segment in limb.segments[1:]:
-        inner = np.flatnonzero(body.ellipsoid_segment == body.parent[segment])
-        centres = ellipsoids.t[body.ellipsoid_segment == segment]
-        # centre offsets in the parent ellipsoids' axes, over their semi-axes: inside when of norm < 1
-        scaled = np.einsum("cpa,pab->cpb", centres[:, None] - ellipsoids.t[inner], ellipsoids.R[inner])
-        if np.any(((scaled / ellipsoids.semi_axes[inner]) ** 2).sum(axis=-1) < 1.0):
-            return True
-    return False
+def _folded_each(ellipsoids: Ellipsoids, limbs: list[Limb]) -> np.ndarray:
+    """`folded` (L,) bool of each of `limbs` on the posed `ellipsoids`: the tracker tests every limb at every
+    frame, and one pass over all their ellipsoid pairs costs what one limb's did."""
+    outer, inner = np.concatenate([limb.nested for limb in limbs], axis=1)
+    # centre offsets in the parent ellipsoids' axes, over their semi-axes: inside when of norm < 1
+    scaled = np.einsum("ka,kab->kb", ellipsoids.t[outer] - ellipsoids.t[inner], ellipsoids.R[inner])
+    inside = ((scaled / ellipsoids.semi_axes[inner]) ** 2).sum(axis=-1) < 1.0
+    owner = np.repeat(np.arange(len(limbs)), [limb.nested.shape[1] for limb in limbs])
+    return np.bincount(owner, weights=inside, minlength=len(limbs)) > 0
+
+
+def _nested_ellipsoids(body: BodyModel, segments: list[int]) -> np.ndarray:
+    """`Limb.nested` of the `segments`: (2, N) pairs of an ellipsoid of one of them and one of its parent's."""
+    pairs = [(outer, inner) for segment in segments
+             for outer in np.flatnonzero(body.ellipsoid_segment == segment)
+             for inner in np.flatnonzero(body.ellipsoid_segment == body.parent[segment])]
+    return np.array(pairs, dtype=int).reshape(-1, 2).T
 
 
 def _screened_scores(y: np.ndarray, n: np.ndarray, hypotheses: Ellipsoids, mixture: Mixture, V: float,

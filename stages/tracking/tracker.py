@@ -272,7 +272,7 @@ class Tracker:
                                  segment_shares=shares, velocity_covariance=covariance,
                                  velocity_variance=variance, search_misses=searches[0], search_wait=searches[1],
                                  exchange_misses=exchanges[0], exchange_wait=exchanges[1])
-        result = FrameResult(pose=tracked.pose, joints=tracked.body.joint_positions(tracked.pose),
+        result = FrameResult(pose=tracked.pose, joints=tracked.joints,
                              log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
                              outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m,
                              doubtful=doubtful, observations=observations,
@@ -358,7 +358,7 @@ class Tracker:
                             frames_without_fit=0, lost=False, since_initialisation=0, segment_shares=None,
                             recheck=doubtful, search_misses=None, search_wait=None,
                             exchange_misses=None, exchange_wait=None)
-        result = FrameResult(pose=fitted.pose, joints=fitted.body.joint_positions(fitted.pose),
+        result = FrameResult(pose=fitted.pose, joints=fitted.joints,
                              log_likelihood=fitted.log_likelihood[-1], iterations=fitted.iterations,
                              outlier_fraction=fitted.outlier_fraction, status="initialised", height_m=init.height_m,
                              doubtful=doubtful, observations=len(y),

@@ -354,7 +354,7 @@ def test_a_limb_a_search_moved_carries_no_velocity_into_the_next_frame(body, mon
             return result
         moved = result.pose.copy()
         moved[arm.dofs] += 0.5
-        return replace(result, pose=result.body.clip(moved))
+        return _moved_fit(result, result.body.clip(moved))
 
     monkeypatch.setattr(tracker, "misplaced_limbs", lambda limbs, *args: [arm])
     monkeypatch.setattr(tracker, "reinitialise_limb", search)
@@ -399,7 +399,7 @@ def test_a_limb_the_search_keeps_in_place_is_searched_at_doubling_intervals(body
         if limb is not arm or now[0] == 0:
             return result
         searched.append(now[0])
-        return replace(result, pose=result.pose + 1e-3) if now[0] in moving else result
+        return _moved_fit(result, result.pose + 1e-3) if now[0] in moving else result
 
     monkeypatch.setattr(tracker, "misplaced_limbs", lambda limbs, *args: [limb for limb in limbs if limb is arm])
     monkeypatch.setattr(tracker, "reinitialise_limb", search)
@@ -426,3 +426,8 @@ def test_an_exchange_of_the_legs_that_gains_nothing_is_tried_at_doubling_interva
             state = replace(state, likelihood_level=state.likelihood_level + 1.0)
         _, state = the_tracker.track(state, _obs(body, pose, rng))
     assert tried == [2, 3, 5, 9]
+
+
+def _moved_fit(result, pose):
+    """A fit `result` moved to `pose`, as a limb search that found it would return it."""
+    return replace(result, pose=pose, kin=result.body.fk(pose), joints=result.body.joint_positions(pose))
