@@ -298,8 +298,9 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     I = levels.astype(np.float32)
     B = model.sample_B
     if model.tone_curve:
-        tone = _tone_curve(levels, model, median=True)
-        tone = _tone_curve(levels, model, np.flatnonzero(_closest_half(I, _toned(tone, model.sample_levels))),
+        keys = model.sample_keys + levels  # (3, m) each pixel's bin and frame level, as one index of the histogram
+        tone = _tone_curve(keys, model, median=True)
+        tone = _tone_curve(keys, model, np.flatnonzero(_closest_half(I, _toned(tone, model.sample_levels))),
                            median=False)
     else:
         tone = _ratio_tone(I, model)
@@ -335,24 +336,24 @@ def _bin_levels(levels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return count, (background * _BINNED_LEVELS).sum(axis=1) / np.maximum(count, 1.0)
 
 
-def _tone_curve(I: np.ndarray, model: BackgroundModel, chosen: np.ndarray | None = None, *,
+def _tone_curve(keys: np.ndarray, model: BackgroundModel, chosen: np.ndarray | None = None, *,
                 median: bool) -> np.ndarray:
     """(3, 256) float32 each channel's tone curve T_k(b): the frame's median (``median``) or mean level I_k
     over the ``chosen`` pixels (indices into the sample; None: all) whose background level B_k falls in each
     bin, joined linearly between the bins' mean background levels and made non-decreasing.
 
-    ``I`` (3, m) uint8 holds the sample's 8-bit levels, ``model`` the background's at the same pixels. Both
-    are counted into histograms of integer levels per bin, from which the medians, means and counts follow
-    exactly (sums of 8-bit levels are exact in floating point). Beyond the first and last bins with
-    ``MIN_TONE_SAMPLES``, T_k(b) is b times the ratio there; a channel with no such bin keeps T_k(b) = b.
-    T_k(b) stays within ``EXPOSURE_RATIO_RANGE`` of b widened by ``TONE_SHIFT_MAX`` levels either way.
+    ``keys`` (3, m) intp holds the sample's 8-bit levels plus ``model.sample_keys`` (made once for both fits
+    of a frame), ``model`` the background's levels at the same pixels. Both are counted into histograms of
+    integer levels per bin, from which the medians, means and counts follow exactly (sums of 8-bit levels
+    are exact in floating point). Beyond the first and last bins with ``MIN_TONE_SAMPLES``, T_k(b) is b
+    times the ratio there; a channel with no such bin keeps T_k(b) = b. T_k(b) stays within
+    ``EXPOSURE_RATIO_RANGE`` of b widened by ``TONE_SHIFT_MAX`` levels either way.
     """
-    keys = model.sample_keys + I  # (3, m) each pixel's bin and frame level, as one index of the histogram
     if chosen is None:
         count, level = model.sample_bins
     else:
         # Flat gathers of the three channels at once (faster than takes along an axis).
-        at = chosen + (np.arange(3) * I.shape[1])[:, None]
+        at = chosen + (np.arange(3) * keys.shape[1])[:, None]
         keys = keys.ravel().take(at)
         count, level = _bin_levels(model.sample_levels.ravel().take(at))
     histogram = np.bincount(keys.ravel(), minlength=len(count) * 256)  # the frame's levels, bin after bin
@@ -401,7 +402,7 @@ def _ratio_tone(I: np.ndarray, model: BackgroundModel) -> np.ndarray:
     products = I * B  # (3, m) I_k B_k
     alpha = (products[0] + products[1] + products[2]) / model.sample_divisor
     g = np.float32(np.clip(_quantile(alpha, 0.5), *EXPOSURE_RATIO_RANGE))
-    background = _closest_half(I, g * B)
+    background = _closest_half(I, g * B).astype(np.float32)
     # Sums over the background half as products with its 0/1 indicator: a fraction of boolean indexing's cost.
     IB, BB = products @ background, model.sample_B2 @ background
     gains = np.where(BB > 0, np.clip(IB / np.maximum(BB, 1e-12), *EXPOSURE_RATIO_RANGE), g)
@@ -409,11 +410,11 @@ def _ratio_tone(I: np.ndarray, model: BackgroundModel) -> np.ndarray:
 
 
 def _closest_half(I: np.ndarray, expected: np.ndarray) -> np.ndarray:
-    """(m,) float32 1 for the half of the sample ``I`` (3, m) closest to its ``expected`` background colours (3, m),
-    0 for the others: the person covers less than half of the image, so that half is surely background."""
+    """(m,) bool True for the half of the sample ``I`` (3, m) closest to its ``expected`` background colours (3, m):
+    the person covers less than half of the image, so that half is surely background."""
     D = I - expected
     distance2 = _dot(D, D)
-    return (distance2 <= np.float32(_quantile(distance2, 0.5))).astype(np.float32)
+    return distance2 <= np.float32(_quantile(distance2, 0.5))
 
 
 def _look_up(tone: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -469,8 +470,12 @@ def _evidence(
     ‖I − αT(B)‖² = I·I − α I·T(B) (the remainder orthogonal to T(B)) and ‖I − T(B)‖² = I·I − 2 I·T(B) + T(B)·T(B).
     """
     exposed = noise.expose_image(model.B[region])  # (h', w', 3) float32 T(B)
-    II = cv2.transform(cv2.multiply(I, I, dtype=cv2.CV_32F), CHANNEL_SUM)  # (h', w') I·I
-    IB = cv2.transform(cv2.multiply(I, exposed, dtype=cv2.CV_32F), CHANNEL_SUM)  # (h', w') I·T(B)
+    # Converted once: OpenCV's products of uint8 and float32 convert on every call, at three times the
+    # cost of float32 products. The products are the same to the bit: an 8-bit level times a float32 is
+    # exact in double precision, so either way it is rounded to float32 once.
+    I = I.astype(np.float32)
+    II = cv2.transform(cv2.multiply(I, I), CHANNEL_SUM)  # (h', w') I·I
+    IB = cv2.transform(cv2.multiply(I, exposed), CHANNEL_SUM)  # (h', w') I·T(B)
     BB = cv2.transform(cv2.multiply(exposed, exposed), CHANNEL_SUM)  # (h', w') T(B)·T(B)
     alpha = cv2.divide(IB, BB + np.float32(BACKGROUND_ENERGY_FLOOR))  # (h', w') α
     chroma2 = cv2.subtract(II, cv2.multiply(IB, alpha))  # (h', w') ‖I − αT(B)‖² (≥ 0 up to rounding)

@@ -127,7 +127,9 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, noise: _Noise, alpha:
                          normalize=False)  # (h, w, 5)
     sums = sums.ravel().take(_channel_index(index, 5))  # (5, n)
     n_core, n_outside = sums[3:] / 255.0  # (n,) pixels nearby
-    alpha_sum = cv2.boxFilter(cv2.bitwise_and(alpha, alpha, mask=outside), -1, size, normalize=False)
+    # α outside, 0 elsewhere (the box of α is a strided view: a contiguous copy is faster to mask).
+    alpha_outside = cv2.copyTo(np.ascontiguousarray(alpha), outside, np.zeros(alpha.shape, np.float32))
+    alpha_sum = cv2.boxFilter(alpha_outside, -1, size, normalize=False)
     lam = np.where(n_outside > 0, alpha_sum.ravel().take(index) / np.maximum(n_outside, 1.0), np.float32(1.0))  # λ
     F = sums[:3] / np.maximum(n_core, 1.0)  # (3, n)
     at = _channel_index(index, 3)
@@ -194,7 +196,9 @@ def _full_resolution_score(
     index = (np.minimum(rows + origin[0], image.shape[0] - 1) * image.shape[1]
              + np.minimum(cols + origin[1], image.shape[1] - 1))  # (m, ds²) flat indices in the image
     at = _channel_index(index, 3)
-    lam_B = noise.expose(background.ravel().take(at)) * matte.lam[:, None]  # (3, m, ds²) λT(B)
+    # Each λ repeated for its ds² pixels: broadcast along the last axis, numpy's loops would run ds² at a time.
+    lam = np.repeat(matte.lam, ds * ds).reshape(-1, ds * ds)  # (m, ds²)
+    lam_B = noise.expose(background.ravel().take(at)) * lam  # (3, m, ds²) λT(B)
     phi, _ = _share(image.ravel().take(at), matte.F[:, :, None], lam_B)
     score.ravel()[rows * (width * ds) + cols] = phi - 0.5
     return score
