@@ -89,8 +89,10 @@ def start_workers_early(argv: Sequence[str]) -> None:
     are ready when the first frames are. This look at the command line only decides when the server starts:
     the parser proper reads it, and a server started for nothing costs its imports' CPU.
     """
+    from pipeline.engine.executors import usable_cpus
+
     look = argparse.ArgumentParser(add_help=False, exit_on_error=False)
-    look.add_argument("--workers", type=int, default=1)
+    look.add_argument("--workers", type=int, default=usable_cpus())
     look.add_argument("--scheduler")
     try:
         known, _ = look.parse_known_args(argv)

@@ -19,7 +19,7 @@ from typing import Any
 from calib.errors import InputError
 from pipeline import graph
 from pipeline.engine import run_warnings
-from pipeline.engine.executors import Workers, make_executor
+from pipeline.engine.executors import Workers, make_executor, usable_cpus
 from pipeline.engine.output_folder import output_lock, storage_error
 from pipeline.engine.params import apply_all, default_params, read_overrides
 from pipeline.engine.runner import Runner, StageOutcome, format_summary
@@ -45,7 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, help="YAML file of parameters: {stage: {param: value}}")
     parser.add_argument("--set", dest="assignments", action="append", default=[], metavar="STAGE.PARAM=VALUE",
                         help="set one parameter (repeatable; applied after --config)")
-    parser.add_argument("--workers", type=int, default=1, help="local worker processes (1 = in this process)")
+    parser.add_argument("--workers", type=int, default=usable_cpus(),
+                        help=f"local worker processes (1 = in this process; default: the CPUs this process may use, "
+                             f"{usable_cpus()} here)")
     parser.add_argument("--scheduler", metavar="ADDRESS",
                         help="run per-frame work on Dask: a scheduler address, or local:N "
                              "for a local cluster of N processes")

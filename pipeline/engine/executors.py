@@ -5,8 +5,9 @@ way whatever runs them (see :func:`pipeline.engine.context.StageContext.map_fram
 (:func:`call_logged`) returns the warnings it logged, and :func:`relog` logs them again here, so that they
 are shown and collected (:mod:`pipeline.engine.run_warnings`) like this process's own:
 
-- ``workers=1`` (default): :class:`InProcessExecutor`, calls run immediately in this process. No
-  pickling, easiest to debug, and exceptions carry their full traceback.
+- ``workers=1``: :class:`InProcessExecutor`, calls run immediately in this process. No
+  pickling, easiest to debug, and exceptions carry their full traceback. (``run``'s ``--workers`` defaults to
+  :func:`usable_cpus` instead: a user's first run should keep every core busy.)
 - ``workers=N > 1``: ``ProcessPoolExecutor`` whose processes are forks of multiprocessing's fork server
   (:func:`start_worker_server`), at a lower scheduling priority than this one, which runs the sequential
   tracker. The server is a clean process that imports the tasks' modules once, so every worker starts
@@ -99,6 +100,15 @@ class Workers:
     def in_process(self) -> bool:
         """Whether calls run in this process (their log records need no :func:`relog`)."""
         return isinstance(self.executor, InProcessExecutor)
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity, which a container or ``taskset`` narrows), at least 1:
+    the default of ``--workers``, as the per-frame stages keep every core busy."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # no affinity on this platform (macOS, Windows)
+        return max(1, os.cpu_count() or 1)
 
 
 @contextlib.contextmanager

@@ -11,7 +11,7 @@ import pytest
 
 from calib.errors import InputError
 from pipeline.engine.context import StageContext
-from pipeline.engine.executors import WORKER_NICENESS, InProcessExecutor, make_executor
+from pipeline.engine.executors import WORKER_NICENESS, InProcessExecutor, make_executor, usable_cpus
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
 
@@ -116,7 +116,8 @@ def test_pool_processes_yield_to_the_parent():
 @pytest.mark.parametrize(("argv", "started"), [
     (["run", "capture", "--out", "o", "--workers", "2"], True),
     (["run", "capture", "--out", "o", "--workers=3", "-q"], True),
-    (["run", "capture", "--out", "o"], False),  # one worker: in this process
+    (["run", "capture", "--out", "o", "--workers", "1"], False),  # one worker: in this process
+    (["run", "capture", "--out", "o"], usable_cpus() > 1),  # by default one worker per CPU this process may use
     (["run", "capture", "--out", "o", "--workers", "2", "--scheduler", "local:2"], False),  # Dask's workers
     (["run", "capture", "--out", "o", "--workers", "two"], False),  # the parser proper reports it
 ])
@@ -141,3 +142,13 @@ def test_without_a_fork_server_the_workers_are_spawned(monkeypatch, caplog):
     with make_executor(2) as workers:
         assert workers.executor.submit(sum, [1, 2]).result() == 3
     assert "spawned instead" in caplog.text and "No space left" in caplog.text
+
+
+def test_the_cpus_a_run_may_use_are_its_affinity(monkeypatch):
+    """A container or `taskset` narrows the CPUs a process may use below the machine's count; the default number of
+    workers follows the narrower figure."""
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 3}, raising=False)
+    assert usable_cpus() == 2
+    monkeypatch.delattr(os, "sched_getaffinity", raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: None)
+    assert usable_cpus() == 1
