@@ -331,24 +331,6 @@ def residuals(y, n, i, p, t, M):
 
 
 @njit(cache=True, error_model="numpy")
-def whitened_residuals(y, n, i, p, W, t, M):
-    """`residuals` e (K, 3) of the pairs and Σ_k |W_kᵀ e_k|² (summed as `whitened_norm2` sums it, the same bits) in
-    one pass: what a Gauss-Newton step needs of a candidate pose."""
-    K = i.shape[0]
-    e = np.empty((K, 3))
-    norm2 = 0.0
-    for k in range(K):
-        _, _, _, _, x0, x1, x2 = _normal_point(n, i[k], M, t, p[k])
-        e[k, 0], e[k, 1], e[k, 2] = y[i[k], 0] - x0, y[i[k], 1] - x1, y[i[k], 2] - x2
-        for b in range(3):  # (Wᵀ e)_b = Σ_{a ≥ b} W_ab e_a (W lower-triangular)
-            acc = 0.0
-            for a in range(b, 3):
-                acc += W[k, a, b] * e[k, a]
-            norm2 += acc * acc
-    return e, norm2
-
-
-@njit(cache=True, error_model="numpy")
 def normal_equations(y, n, i, p, W, t, M, root):
     """Whitened residuals and rigid derivatives of the pairs, and their normal equations per ellipsoid.
 

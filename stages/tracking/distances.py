@@ -198,13 +198,6 @@ class Distance:
         """The M-step's residuals e (K, k) of the pairs (i, p) at the posed `ellipsoids`."""
         return self.residuals(y, n, i, p, kin, ellipsoids).e
 
-    def whitened_residuals(self, y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, W: np.ndarray,
-                           kin: Kinematics, ellipsoids: Ellipsoids) -> tuple[np.ndarray, float]:
-        """`pair_residuals` e and Σ |Wᵀ e|² (twice eq. 14's data term, summed as `compiled.whitened_norm2` sums it):
-        what the M-step's Gauss-Newton step asks of a candidate pose."""
-        e = self.pair_residuals(y, n, i, p, kin, ellipsoids)
-        return e, compiled.whitened_norm2(W, e)
-
     def normal_equations(self, y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, W: np.ndarray,
                          kin: Kinematics, ellipsoids: Ellipsoids, scale: bool):
         """The pairs' residuals e and, whitened, r = Wᵀ e and Bw = Wᵀ B (B = de/d(ω, v)); per ellipsoid
@@ -345,9 +338,6 @@ class CompiledNormals(NormalsDistance):
 
     def pair_residuals(self, y, n, i, p, kin, ellipsoids):
         return compiled.residuals(y, n, i, p, ellipsoids.t, ellipsoids.shapes[0])
-
-    def whitened_residuals(self, y, n, i, p, W, kin, ellipsoids):
-        return compiled.whitened_residuals(y, n, i, p, W, ellipsoids.t, ellipsoids.shapes[0])
 
     def normal_equations(self, y, n, i, p, W, kin, ellipsoids, scale):
         e, r, Bw, H6, g6, J_scale, norm2 = compiled.normal_equations(

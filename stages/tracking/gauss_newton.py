@@ -65,13 +65,9 @@ class LeastSquares:
         """The pairs' residuals e (K, k) on `body` posed by the kinematics `kin`."""
         return self.distance.pair_residuals(self.y, self.n, self.i, self.p, kin, body.ellipsoids(kin))
 
-    def whitened_residuals(self, body: BodyModel, kin: Kinematics) -> tuple[np.ndarray, float]:
-        """`residuals` and Σ |Wᵀ e|², the data term of `cost` (`distances.Distance.whitened_residuals`)."""
-        return self.distance.whitened_residuals(self.y, self.n, self.i, self.p, self.W, kin, body.ellipsoids(kin))
-
     def cost(self, body, pose, norm2):
         """Eq. (14) for fixed t_ip plus the priors on the weakly observed DOFs and the segment lengths, from its
-        data term Σ |Wᵀ e|² (`norm2`), which the normal equations and `whitened_residuals` sum on the way."""
+        data term Σ |Wᵀ e|² (`norm2`: `compiled.whitened_norm2`, which the normal equations also sum on the way)."""
         total = norm2 + (self.prior * (pose - self.prior_pose) ** 2).sum()
         if self.estimate_lengths:
             total += ((np.log(body.length_factors) / body.length_prior_sd) ** 2).sum()
@@ -94,8 +90,8 @@ def gauss_newton_step(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
         candidate = body.clip(pose + step[:D])
         body_c = _updated_body(problem, body, step[D:])
         kin_c = body_c.fk(candidate)
-        e_c, norm2_c = problem.whitened_residuals(body_c, kin_c)
-        if problem.cost(body_c, candidate, norm2_c) <= cost:
+        e_c = problem.residuals(body_c, kin_c)
+        if problem.cost(body_c, candidate, compiled.whitened_norm2(problem.W, e_c)) <= cost:
             return candidate, body_c, kin_c, e_c
         damping *= LM_GROWTH
     return pose, body, kin, e

@@ -212,8 +212,7 @@ def _starved(limbs: list[Limb], own: np.ndarray, reference: np.ndarray, compared
     references = reference[np.concatenate(compared)]
     short = (references >= params.min_observations) & (
         own[np.concatenate([limb.segments for limb in limbs])] < params.share_ratio * references)
-    owner = np.repeat(np.arange(len(limbs)), [len(limb.segments) for limb in limbs])
-    starved = np.bincount(owner, weights=short, minlength=len(limbs)) > 0
+    starved = _any_of_each(short, [len(limb.segments) for limb in limbs])
     return [limb for limb, hit in zip(limbs, starved, strict=True) if hit]
 
 
@@ -313,8 +312,14 @@ def _folded_each(ellipsoids: Ellipsoids, limbs: list[Limb]) -> np.ndarray:
     # centre offsets in the parent ellipsoids' axes, over their semi-axes: inside when of norm < 1
     scaled = np.einsum("ka,kab->kb", ellipsoids.t[outer] - ellipsoids.t[inner], ellipsoids.R[inner])
     inside = ((scaled / ellipsoids.semi_axes[inner]) ** 2).sum(axis=-1) < 1.0
-    owner = np.repeat(np.arange(len(limbs)), [limb.nested.shape[1] for limb in limbs])
-    return np.bincount(owner, weights=inside, minlength=len(limbs)) > 0
+    return _any_of_each(inside, [limb.nested.shape[1] for limb in limbs])
+
+
+def _any_of_each(flags: np.ndarray, sizes: list[int]) -> np.ndarray:
+    """(L,) bool whether any of each limb's `flags` is set, the flags (N,) of the L limbs one after the other,
+    `sizes[l]` of them for limb l."""
+    owner = np.repeat(np.arange(len(sizes)), sizes)
+    return np.bincount(owner, weights=flags, minlength=len(sizes)) > 0
 
 
 def _nested_ellipsoids(body: BodyModel, segments: list[int]) -> np.ndarray:

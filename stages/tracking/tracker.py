@@ -179,8 +179,7 @@ class Tracker:
         far worse (`restart_drop`), is weighed against a fit from the last pose without velocity."""
         params = self.params
         tracked = fit(y, n, sized, prediction, self.volume, em, mixture=mixture)
-        per_obs = tracked.log_likelihood[-1] / len(y)
-        if not (np.isfinite(state.likelihood_level) and per_obs < state.likelihood_level - params.refit_drop):
+        if not _worse_than_usual(tracked, len(y), state, params):
             return tracked
         # Worse than usual: fast motion, which the quick stopping rule can leave half-way. EM goes on.
         more = fit(y, n, tracked.body, tracked.pose, self.volume,
@@ -208,7 +207,7 @@ class Tracker:
         the wait did not foresee (a kick starting from a leg the search had kept in place).
         """
         misses, wait = _search_counts(state.search_misses, state.search_wait, len(self.limbs))
-        usual = tracked.log_likelihood[-1] / len(y) >= state.likelihood_level - self.params.refit_drop
+        usual = not _worse_than_usual(tracked, len(y), state, self.params)
         tracked, searched, kept = self._recover_limbs(y, n, tracked, em, state.segment_shares, state.pose,
                                                       (wait > 0) & usual)
         moved = [limb.dofs for limb, still in zip(self.limbs, kept, strict=True) if not still]
@@ -220,8 +219,7 @@ class Tracker:
         usual (`refit_drop`) and the pair is not waiting, the DOFs of the exchanges kept, and the pairs' tries in
         a row that kept the fit and their waits after this frame (`limbs.search_backoff`)."""
         misses, wait = _search_counts(state.exchange_misses, state.exchange_wait, len(self.legs))
-        worse = tracked.log_likelihood[-1] / len(y) < state.likelihood_level - self.params.refit_drop
-        tried = worse & (wait == 0)
+        tried = _worse_than_usual(tracked, len(y), state, self.params) & (wait == 0)
         kept = np.ones(len(self.legs), dtype=bool)
         moved = []
         for index in np.flatnonzero(tried):
@@ -403,6 +401,13 @@ def joint_support(body: BodyModel, mixture: Mixture, n_observations: int) -> np.
     at_centre = np.all(np.abs(body.joint_offset) < _AT_JOINT_CENTRE_M, axis=1) & (body.parent[segment] >= 0)
     placing = np.where(at_centre, body.parent[segment], segment)
     return n_observations * segment_shares(body, mixture)[placing]
+
+
+def _worse_than_usual(result: FitResult, observations: int, state: TrackerState, params: TrackerParams) -> bool:
+    """Whether a fit's log-likelihood per observation is `refit_drop` below the track's level (never while the
+    level is unknown): what gets more EM iterations, the legs' exchange, and the limbs' searches at once."""
+    level = state.likelihood_level
+    return bool(np.isfinite(level) and result.log_likelihood[-1] / observations < level - params.refit_drop)
 
 
 def _search_counts(misses: np.ndarray | None, wait: np.ndarray | None, count: int) -> tuple[np.ndarray, np.ndarray]:

@@ -26,15 +26,6 @@ def test_residuals_match_the_reference(pairs):
     np.testing.assert_allclose(compiled.residuals(y, n, i, p, ell.t, shape_matrices(ell, 2.0)), expected, atol=1e-14)
 
 
-def test_whitened_residuals_are_the_residuals_and_their_whitened_norm(pairs):
-    y, n, i, p, _, ell, rng = pairs
-    L = np.tril(rng.normal(size=(len(i), 3, 3))) + 3.0 * np.eye(3)
-    M = shape_matrices(ell, 2.0)
-    e, norm2 = compiled.whitened_residuals(y, n, i, p, L, ell.t, M)
-    assert np.array_equal(e, compiled.residuals(y, n, i, p, ell.t, M))
-    assert norm2 == compiled.whitened_norm2(L, e)  # the same bits: a candidate's cost is unchanged
-
-
 def test_normal_equations_match_the_reference(pairs):
     y, n, i, p, kin, ell, rng = pairs
     L = np.tril(rng.normal(size=(len(i), 3, 3))) + 3.0 * np.eye(3)  # any lower-triangular weights
