@@ -386,3 +386,22 @@ def test_cpu_model_is_read_from_cpuinfo_and_shown_beside_the_core_count(tmp_path
     assert suite.cpu_model(tmp_path / "absent") == "unknown"
     section = results["speed"] | {"made": results["speed"]["made"] | {"cpus": 2, "machine": "AMD EPYC 7B13"}}
     assert "(2 CPUs, AMD EPYC 7B13)" in tables.provenance(section)
+
+
+def test_the_reference_workload_is_timed_and_shown_beside_the_load(results, monkeypatch):
+    assert 0 < suite.reference_seconds(repeats=1) < 60
+    section = results["speed"] | {"made": results["speed"]["made"] | {"reference_s": [0.213, 0.251]}}
+    assert "reference workload 0.21 s before / 0.25 s after" in tables.provenance(section)
+    old = results["speed"] | {"made": {k: v for k, v in results["speed"]["made"].items() if k != "reference_s"}}
+    assert "reference workload" not in tables.provenance(old)  # results.json written before it was measured
+
+
+def test_a_suite_records_the_reference_workload_before_and_after_it(tmp_path, monkeypatch):
+    times = iter([0.2, 0.3])
+    monkeypatch.setattr(suite, "reference_seconds", lambda: next(times))
+    monkeypatch.setattr(suite, "ensure_compiled", lambda: 0)
+    monkeypatch.setattr(suite, "suite_runners", lambda: {"speed": lambda *args, **kwargs: {}})
+    monkeypatch.setattr(suite, "write_outputs", lambda results, options: None)
+    options = suite.BenchOptions(out=tmp_path / "bench", captures=tmp_path / "captures", quick=True, workers=1)
+    results = suite.run_bench(["speed"], options, log=lambda line: None)
+    assert results["speed"]["made"]["reference_s"] == [0.2, 0.3]

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
+import numpy as np
+
 from pipeline.commands.warmup import ensure_compiled
 from pipeline.io import atomic
 from pipeline.lab.bench import figures
@@ -87,7 +89,10 @@ def format_results(results: dict, figure_links: dict[str, str] | None = None, *,
              "`make bench` runs every suite (`ARGS=\"--suite NAME\"` for one of "
              f"{', '.join(SUITES)}, `--quick` for a smoke run); `python -m pipeline bench --report-only --docs "
              "docs` redraws docs/results.md and docs/figures/ from the stored results without measuring again. "
-             "Comparisons measured by hand, each with its command, are in docs/results_by_hand.md (not redrawn).",
+             "Comparisons measured by hand, each with its command, are in docs/results_by_hand.md (not redrawn). "
+             "Each section's first line gives the time this machine took, before and after the suite, for a fixed "
+             "workload of interpreted Python and small numpy operations (`suite.reference_seconds`): the machine's "
+             "speed drifts, and speed figures from different runs compare after scaling by it.",
              "", "## Targets", "", format_targets(results)]
     from pipeline.lab.bench.calibration import CALIBRATION_NOTES, format_calibration
 
@@ -140,6 +145,29 @@ def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
         lines = []
     names = [line.split(":", 1)[1].strip() for line in lines if line.startswith("model name") and ":" in line]
     return next((name for name in names if name), None) or platform.processor() or platform.machine() or "unknown"
+
+
+def reference_seconds(repeats: int = 5) -> float:
+    """Seconds this process takes for a fixed mix of interpreted Python and small numpy operations (the
+    fastest of ``repeats``).
+
+    The per-frame code spends most of its time in such small operations, and this machine's speed drifts by
+    tens of percent within an hour and by twice that between days at the same load average (docs/results_by_hand.md),
+    so a speed figure is read beside the time of this workload measured with it: two figures compare after
+    scaling by their reference times. The fastest repeat is kept, a momentary stall of the machine being noise.
+    """
+    best = math.inf
+    for _ in range(repeats):
+        started = time.perf_counter()
+        total = 0
+        for i in range(300_000):
+            total += i * i % 7
+        a = np.linspace(0.0, 1.0, 64)
+        b = a[::-1].copy()
+        for _ in range(20_000):
+            a = np.sqrt(a * b + 1.0) - 0.5
+        best = min(best, time.perf_counter() - started)
+    return best
 
 
 def load_results(path: Path) -> dict:
@@ -226,7 +254,8 @@ def run_bench(suites: Sequence[str], options: BenchOptions, *, log: Callable[[st
     results = load_results(options.out / RESULTS_JSON)
     for suite in suites:
         log(f"bench: {suite} suite{' (quick)' if options.quick else ''} ...")
-        commit, load_before, started = git_commit(), os.getloadavg()[0], time.perf_counter()
+        commit, load_before, reference_before = git_commit(), os.getloadavg()[0], reference_seconds()
+        started = time.perf_counter()
         try:
             section = runners[suite](options.out, options.captures, quick=options.quick, workers=options.workers)
         except SuiteSkipped as skipped:
@@ -236,6 +265,7 @@ def run_bench(suites: Sequence[str], options: BenchOptions, *, log: Callable[[st
                     "made": {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "commit": commit,
                              "seconds": time.perf_counter() - started, "load_before": load_before,
                              "load_after": os.getloadavg()[0], "cpus": os.cpu_count(),
+                             "reference_s": [reference_before, reference_seconds()],
                              "machine": cpu_model(),
                              "bench_memory": peak_memory_mb()}}
         results[suite] = json_safe(section)

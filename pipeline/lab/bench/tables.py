@@ -43,8 +43,11 @@ def provenance(section: dict) -> str:
     made = section["made"]
     size = "quick (smoke-test size)" if section["quick"] else "full"
     machine = f"{made['cpus']} CPUs" + (f", {made['machine']}" if made.get("machine") else "")
+    reference = made.get("reference_s")
+    speed = ("" if not reference else
+             f", reference workload {reference[0]:.2f} s before / {reference[1]:.2f} s after")
     return (f"{size}; {made['date']}, commit {made['commit']}, {made['seconds']:.0f} s, "
-            f"load average {made['load_before']:.1f} before / {made['load_after']:.1f} after "
+            f"load average {made['load_before']:.1f} before / {made['load_after']:.1f} after{speed} "
             f"({machine})\n\n```\n{section['command']}\n```")
 
 
