@@ -29,7 +29,7 @@ import sys
 from collections.abc import Sequence
 
 from calib.errors import InputError
-from pipeline.terminal import PrintableFormatter, printable
+from pipeline.terminal import FoldingStreamHandler, PrintableFormatter, printable
 
 #: Subcommand name -> import path of its module (see the module docstring). Add yours here.
 SUBCOMMANDS: dict[str, str] = {
@@ -113,7 +113,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         start_workers_early(argv)
     parser = build_parser(chosen if chosen in SUBCOMMANDS else None)
     args = parser.parse_args(argv)
-    handler = logging.StreamHandler(sys.stderr)
+    handler = FoldingStreamHandler(sys.stderr)
     handler.setFormatter(PrintableFormatter("%(levelname)s %(name)s: %(message)s"))
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, handlers=[handler], force=True)
     try:

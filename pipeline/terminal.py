@@ -5,11 +5,23 @@ of a capture. A terminal acts on some characters instead of showing them: ESC st
 retitle the window, clear it, move the cursor or rewrite what was printed; a line break splits a one-line
 error; a bidirectional override reverses the text after it. :func:`printable` writes each such character
 as its Python escape (``\\x1b``, ``\\n``, ``\\u202e``), so the user sees what the file holds.
+
+Per-frame warnings that repeat (a recording that starts before the subject walks in has no silhouette, no
+observations and no pose on each of its first frames) are written once per run of frames rather than once a
+frame (:class:`FoldingStreamHandler`); ``warnings.json`` and the report keep every one.
 """
 
 from __future__ import annotations
 
 import logging
+import re
+import time
+from collections.abc import Sequence
+
+#: A per-frame message: ``frame <number>: <what happened>``.
+_FRAME_MESSAGE = re.compile(r"frame (\d+): (.+)", re.DOTALL)
+#: Longest time a per-frame message is held back, waiting for the same message on other frames (seconds).
+FOLD_WINDOW_S = 5.0
 
 
 def printable(text: str) -> str:
@@ -26,3 +38,61 @@ class PrintableFormatter(logging.Formatter):
 
     def formatMessage(self, record: logging.LogRecord) -> str:
         return printable(super().formatMessage(record))
+
+
+def frame_ranges(frames: Sequence[int]) -> str:
+    """Increasing frame numbers as runs of consecutive ones: ``[0, 1, 2, 5, 7, 8]`` -> ``"0-2, 5, 7-8"``."""
+    runs: list[list[int]] = []
+    for frame in frames:
+        if runs and frame == runs[-1][1] + 1:
+            runs[-1][1] = frame
+        else:
+            runs.append([frame, frame])
+    return ", ".join(str(first) if first == last else f"{first}-{last}" for first, last in runs)
+
+
+class FoldingStreamHandler(logging.StreamHandler):
+    """A stream handler that writes the same per-frame message of several frames as one line naming them.
+
+    A record whose message is ``frame N: <text>`` is held, with the frames of the records of the same logger,
+    level and text, until a record of another kind is written, :meth:`flush` is called (the runner does at the
+    end of every stage) or the first held one is :data:`FOLD_WINDOW_S` old; then each held text is written once,
+    in the order they first came: ``frames 0-19 (20 frames): <text>``. Every other record is written at once,
+    after the held ones, so that the order of events is kept.
+    """
+
+    def __init__(self, stream=None) -> None:
+        super().__init__(stream)
+        self._held: dict[tuple[str, int, str], tuple[logging.LogRecord, list[int]]] = {}
+        self._held_since = 0.0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            match = _FRAME_MESSAGE.fullmatch(record.getMessage())
+        except Exception:  # a malformed call: logging reports it as usual
+            self.handleError(record)
+            return
+        if match is None:
+            self._release()
+            super().emit(record)
+            return
+        if not self._held:
+            self._held_since = time.monotonic()
+        _, frames = self._held.setdefault((record.name, record.levelno, match[2]), (record, []))
+        frames.append(int(match[1]))
+        if time.monotonic() - self._held_since >= FOLD_WINDOW_S:
+            self._release()
+
+    def flush(self) -> None:
+        with self.lock:
+            self._release()
+        super().flush()
+
+    def _release(self) -> None:
+        """Write the held messages, one line each."""
+        held, self._held = self._held, {}
+        for (_, _, text), (first, frames) in held.items():
+            frames = sorted(set(frames))
+            message = (f"frame {frames[0]}: {text}" if len(frames) == 1
+                       else f"frames {frame_ranges(frames)} ({len(frames)} frames): {text}")
+            super().emit(logging.makeLogRecord({**vars(first), "msg": message, "args": None}))

@@ -97,7 +97,8 @@ def closing_lines(out: Path, frames: Sequence[int], outcomes: Sequence[StageOutc
         lines.append(summary_line(statuses))
     if warned:
         lines.append(f"{warned} warning{'s' if warned > 1 else ''} in this run "
-                     f"(above; every warning behind the results: {layout.warnings} and the report)")
+                     f"(above, a message repeated on consecutive frames once; every warning behind the results: "
+                     f"{layout.warnings} and the report)")
     report = layout.report
     if "export" in selected and report.is_file():
         lines.append(f"report: {report}")

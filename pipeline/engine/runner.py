@@ -47,6 +47,7 @@ A lock (``fcntl.flock`` on ``<out>/.lock``) refuses a second concurrent run on t
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import logging
 import time
 from collections.abc import Collection, Mapping, Sequence
@@ -324,8 +325,13 @@ class Runner:
         context = StageContext(stage.name, self.capture, self.params[stage.name], self.output_root / stage.name,
                                self.output_root, self.workers, self.show_progress, upstream)
         started = time.perf_counter()
-        with run_warnings.stage_scope(stage.name):
-            frames = stage.run(context)
+        try:
+            with run_warnings.stage_scope(stage.name):
+                frames = stage.run(context)
+        finally:  # what the stage logged is shown before what comes after it (`terminal.FoldingStreamHandler`)
+            for handler in logging.getLogger().handlers:
+                with contextlib.suppress(OSError, ValueError):  # a stream closed under it, as logging.shutdown allows
+                    handler.flush()
         return frames, time.perf_counter() - started
 
     def _finish(self, stage: Stage, expected: Expected, frames: int | None, seconds: float) -> StageOutcome:

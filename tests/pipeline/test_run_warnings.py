@@ -93,7 +93,8 @@ def test_a_run_with_worker_processes_lists_their_warnings_and_says_what_happened
     assert ("reconstruction", "frame 2: empty silhouette in camera(s) cam0, cam1, cam2") in by_stage
     assert ("tracking", "frame 2: pose predicted, not exported (0 observations)") in by_stage
     assert "1 predicted (fewer than 30 observations)" in printed.splitlines()[-3]
-    assert f"in this run (above; every warning behind the results: {out / WARNINGS_FILE} and the report)" in printed
+    assert (f"in this run (above, a message repeated on consecutive frames once; every warning behind the results: "
+            f"{out / WARNINGS_FILE} and the report)") in printed
     assert printed.splitlines()[-1] == f"report: {out / 'export' / 'report.html'}"
     report = (out / "export" / "report.html").read_text()
     assert "frame 2: empty silhouette in camera(s) cam0, cam1, cam2" in report
