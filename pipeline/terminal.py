@@ -51,6 +51,32 @@ def frame_ranges(frames: Sequence[int]) -> str:
     return ", ".join(str(first) if first == last else f"{first}-{last}" for first, last in runs)
 
 
+def frame_message(frames: Sequence[int], text: str) -> str:
+    """``frame 3: <text>`` for one frame, ``frames 0-19, 25 (21 frames): <text>`` for several (increasing)."""
+    if len(frames) == 1:
+        return f"frame {frames[0]}: {text}"
+    return f"frames {frame_ranges(frames)} ({len(frames)} frames): {text}"
+
+
+def fold_frame_messages(messages: Sequence[str]) -> list[str]:
+    """``messages`` with those that differ only in their frame (``frame N: <text>``) made one
+    (:func:`frame_message`), at the place of the first of them; the others as they are."""
+    folded: list[str | list[int]] = []  # a message, or the frames of a text
+    texts: dict[str, tuple[int, list[int]]] = {}  # text -> its place in `folded`, its frames
+    for message in messages:
+        match = _FRAME_MESSAGE.fullmatch(message)
+        if match is None:
+            folded.append(message)
+            continue
+        if match[2] not in texts:
+            texts[match[2]] = (len(folded), [])
+            folded.append([])
+        texts[match[2]][1].append(int(match[1]))
+    for text, (place, frames) in texts.items():
+        folded[place] = frame_message(sorted(set(frames)), text)
+    return folded
+
+
 class FoldingStreamHandler(logging.StreamHandler):
     """A stream handler that writes the same per-frame message of several frames as one line naming them.
 
@@ -92,7 +118,5 @@ class FoldingStreamHandler(logging.StreamHandler):
         """Write the held messages, one line each."""
         held, self._held = self._held, {}
         for (_, _, text), (first, frames) in held.items():
-            frames = sorted(set(frames))
-            message = (f"frame {frames[0]}: {text}" if len(frames) == 1
-                       else f"frames {frame_ranges(frames)} ({len(frames)} frames): {text}")
+            message = frame_message(sorted(set(frames)), text)
             super().emit(logging.makeLogRecord({**vars(first), "msg": message, "args": None}))

@@ -54,6 +54,7 @@ from pipeline.report.tracking_summary import (
     category_counts,
     category_totals,
 )
+from pipeline.terminal import fold_frame_messages
 from stages.export.angles import joint_angles
 
 ASSETS = Path(__file__).with_name("assets")
@@ -123,6 +124,7 @@ def _warnings_section(run: LoadedRun) -> str:
     items = []
     for stage, messages in warning_groups(run.warnings):
         where = html.escape(stage) if stage else "run"
+        messages = fold_frame_messages(messages)  # the same text on many frames: one line naming them
         first = html.escape(messages[0])
         if len(messages) == 1:
             items.append(f"<li><b>{where}</b>: {first}</li>")

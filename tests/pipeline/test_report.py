@@ -216,7 +216,7 @@ def test_what_happened_counts_the_trackers_categories_with_their_causes(shared_t
 def test_warnings_are_listed_by_stage_with_repeats_folded(shared_text):
     text = shared_text
     assert "<li><b>run</b>: volume touched</li>" in text
-    assert "<li><b>tracking</b>: frame 4: pose lost <details><summary>and 1 more like it" in text
+    assert "<li><b>tracking</b>: frames 4, 9 (2 frames): pose lost</li>" in text
     assert warning_groups([{"stage": "a", "template": "x %d", "message": "x 1"},
                            {"stage": "b", "template": "x %d", "message": "x 2"},
                            {"stage": "a", "template": "x %d", "message": "x 3"}]) == [("a", ["x 1", "x 3"]),

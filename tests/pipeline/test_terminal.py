@@ -8,7 +8,7 @@ import logging
 import pytest
 
 from pipeline import terminal
-from pipeline.terminal import FoldingStreamHandler, PrintableFormatter, frame_ranges, printable
+from pipeline.terminal import FoldingStreamHandler, PrintableFormatter, fold_frame_messages, frame_ranges, printable
 
 
 def test_printable_escapes_what_a_terminal_would_act_on():
@@ -34,6 +34,14 @@ def test_log_messages_are_printable_and_tracebacks_keep_their_lines():
 def test_frame_ranges_are_runs_of_consecutive_frames():
     assert frame_ranges([0, 1, 2, 5, 7, 8]) == "0-2, 5, 7-8"
     assert frame_ranges([4]) == "4"
+
+
+def test_messages_that_differ_only_in_their_frame_are_folded_where_the_first_stood():
+    messages = ["frame 56: empty", "frame 57: empty", "frame 56: only 0 observations", "volume touched",
+                "frame 50: empty", "frame 57: only 12 observations"]
+    assert fold_frame_messages(messages) == [
+        "frames 50, 56-57 (3 frames): empty", "frame 56: only 0 observations", "volume touched",
+        "frame 57: only 12 observations"]
 
 
 def _logged(handler: FoldingStreamHandler, *messages: str, logger: str = "pipeline.graph") -> None:
