@@ -202,13 +202,20 @@ def _euler_zxy_degrees(R: np.ndarray) -> np.ndarray:
         warnings.filterwarnings("ignore", message="Gimbal lock detected")
         first = np.degrees(Rotation.from_matrix(R).as_euler("ZXY"))
     second = np.column_stack([first[:, 0] + 180.0, 180.0 - first[:, 1], first[:, 2] + 180.0])
-    angles = np.empty_like(first)
-    previous = first[0]
-    for f in range(len(first)):
-        candidates = np.stack([first[f], second[f]])
-        candidates -= 360.0 * np.round((candidates - previous) / 360.0)
-        previous = angles[f] = candidates[np.argmin(np.abs(candidates - previous).sum(axis=1))]
-    return angles
+    # Python floats: the loop is sequential, and numpy's per-call cost on three values was most of a BVH export.
+    # round() rounds halves to even as np.round does, so the angles are the same to the bit.
+    previous = first[0].tolist()
+    angles = []
+    for triples in zip(first.tolist(), second.tolist(), strict=True):
+        best, best_distance = None, 0.0
+        for triple in triples:
+            moved = [a - 360.0 * round((a - p) / 360.0) for a, p in zip(triple, previous, strict=True)]
+            distance = abs(moved[0] - previous[0]) + abs(moved[1] - previous[1]) + abs(moved[2] - previous[2])
+            if best is None or distance < best_distance:  # the first of equals, as np.argmin
+                best, best_distance = moved, distance
+        angles.append(best)
+        previous = best
+    return np.array(angles).reshape(-1, 3)
 
 
 def _positioned(joints: list[_BvhJoint]) -> set[str]:
