@@ -77,3 +77,43 @@ def test_nothing_is_overwritten_and_an_unknown_change_is_refused(capture, tmp_pa
     assert main([str(capture), "--change", "noise", "--out", str(tmp_path / "new")]) == 2
     assert "no videos/ folder with videos" in capsys.readouterr().err
     assert not (tmp_path / "new").exists()
+
+
+def test_an_absent_subject_shows_the_plates_there_and_the_truth_leaves_those_frames_out(capture, tmp_path):
+    # A subject who walks out of view for frames 1-2 and comes back: a white square on the plate elsewhere.
+    for camera in ("cam0", "cam1"):
+        plate = cv2.imread(str(capture / "background" / f"{camera}.png"))
+        person = plate.copy()
+        person[10:30, 20:40] = 255
+        writer = cv2.VideoWriter(str(capture / "videos" / f"{camera}.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 25,
+                                 (WIDTH, HEIGHT))
+        for _ in range(FRAMES):
+            writer.write(person)
+        writer.release()
+        (capture / "groundtruth" / "masks" / camera).mkdir(parents=True)
+        for frame in range(FRAMES):
+            mask = np.zeros((HEIGHT, WIDTH), np.uint8)
+            mask[10:30, 20:40] = 255
+            cv2.imwrite(str(capture / "groundtruth" / "masks" / camera / f"{frame:06d}.png"), mask)
+    rows = "".join(f"{frame},pelvis,0,0,1\n" for frame in range(FRAMES))
+    (capture / "groundtruth" / "joints.csv").write_text("frame,joint,x,y,z\n" + rows)
+    assert main([str(capture), "--change", "none", "--absent", "1:3", "--out", str(tmp_path / "away")]) == 0
+    out = tmp_path / "away"
+    plate = cv2.imread(str(capture / "background" / "cam1.png")).astype(float)
+    square = (slice(10, 30), slice(20, 40))
+    for frame, image in enumerate(_frames(out / "videos" / "cam1.mp4")):
+        away = frame in (1, 2)
+        assert bool(np.abs(image[square] - plate[square]).mean() < 6) == away  # the plate, with noise, where away
+        assert bool(cv2.imread(str(out / "groundtruth" / "masks" / "cam1" / f"{frame:06d}.png"), 0).any()) != away
+    assert (out / "groundtruth" / "joints.csv").read_text() == "frame,joint,x,y,z\n0,pelvis,0,0,1\n3,pelvis,0,0,1\n"
+    assert (capture / "groundtruth" / "joints.csv").read_text().count("pelvis") == FRAMES  # the original untouched
+
+
+def test_absent_frames_need_a_plate_for_every_camera_and_a_span(capture, tmp_path, capsys):
+    (capture / "background" / "cam1.png").unlink()
+    with pytest.raises(InputError, match="no readable clean plate for camera 'cam1'"):
+        perturb_capture(capture, tmp_path / "away", "none", absent=range(0, 2))
+    assert not (tmp_path / "away").exists() and not (tmp_path / "away.partial").exists()
+    with pytest.raises(SystemExit):
+        main([str(capture), "--change", "none", "--absent", "5:2", "--out", str(tmp_path / "away")])
+    assert "expected 0 <= FIRST < STOP" in capsys.readouterr().err

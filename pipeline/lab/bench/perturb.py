@@ -14,11 +14,19 @@ every other change is compared with). With ``--no-plates`` the copy has no clean
 made without one: the pipeline then estimates each camera's background from the frames.
 
     python -m pipeline.lab.bench.perturb ../shared/foreign/walk --change none --no-plates --out runs/walk-noplate
+
+With ``--absent FIRST:STOP`` the subject is away on frames FIRST to STOP - 1 (a recording that starts before he
+walks in, ``0:20``, or one he leaves and comes back to, ``50:70``): each camera shows its clean plate there, with
+sensor noise, and the copy's ground truth has no joints and empty masks on those frames, so that ``eval``
+scores only the frames he is in view.
+
+    python -m pipeline.lab.bench.perturb ../shared/foreign/taekwondo --change none --absent 0:20 --out runs/late
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import shutil
 import sys
 from collections.abc import Callable
@@ -31,6 +39,10 @@ from calib.errors import InputError
 
 # What each change does to a frame (float32 8-bit levels, BGR), given a random generator and the camera's index.
 Change = Callable[[np.ndarray, np.random.Generator, int], np.ndarray]
+
+#: Sensor noise on the frames where the subject is away (8-bit levels): a plate repeated as it is would be a
+#: still image, which no camera records.
+ABSENT_NOISE = 2.0
 
 #: Cameras whose automatic white balance moved since the plates: blue and red gains, alternating by camera.
 _WHITE_BALANCE = (np.array([1.08, 1.0, 0.93], np.float32), np.array([0.92, 1.0, 1.08], np.float32))
@@ -69,19 +81,21 @@ def _to_uint8(frame: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(frame), 0, 255).astype(np.uint8)
 
 
-def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, plates: bool = True) -> Path:
+def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, plates: bool = True,
+                    absent: range = range(0)) -> Path:
     """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
-    to every frame of its videos; returns ``out``.
+    to every frame of its videos, and the subject away on the frames ``absent``; returns ``out``.
 
     capture.yaml, the calibration and the background plates (unless ``plates`` is False) are copied, the ground
-    truth (when there is one) linked.
+    truth (when there is one) linked, or rewritten without the ``absent`` frames (:func:`_truth_without`).
     The videos are written as MPEG-4 Part 2 (the codec OpenCV's wheels can write) at the originals' frame
     rate; only captures whose frames are videos (``videos/<camera>.<ext>``) can be changed.
 
     Raises
     ------
     InputError
-        An unknown change, ``out`` already there, or a capture without videos.
+        An unknown change, ``out`` already there, a capture without videos, or ``absent`` frames in a capture
+        without a clean plate for every camera.
     """
     capture, out = Path(capture), Path(out)
     if change not in CHANGES:
@@ -92,6 +106,7 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         if (capture / "videos").is_dir() else []
     if not videos:
         raise InputError(f"{capture}: no videos/ folder with videos (only captures of videos can be perturbed)")
+    empty_room = [_plate(capture, video.stem) for video in videos] if absent else [None] * len(videos)
     apply = CHANGES[change][1]
     rng = np.random.default_rng(seed)
     partial = out.with_name(out.name + ".partial")
@@ -102,18 +117,61 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         if (capture / folder).is_dir():
             shutil.copytree(capture / folder, partial / folder)
     if (capture / "groundtruth").is_dir():
-        (partial / "groundtruth").symlink_to((capture / "groundtruth").resolve(), target_is_directory=True)
-    for camera, video in enumerate(videos):
-        _rewrite(video, partial / "videos" / (video.stem + ".mp4"), lambda frame, c=camera: apply(frame, rng, c))
+        if absent:
+            _truth_without(capture / "groundtruth", partial / "groundtruth", absent)
+        else:
+            (partial / "groundtruth").symlink_to((capture / "groundtruth").resolve(), target_is_directory=True)
+    for camera, (video, plate) in enumerate(zip(videos, empty_room, strict=True)):
+        def changed(frame: np.ndarray, index: int, camera: int = camera, plate: np.ndarray | None = plate):
+            if index in absent:
+                frame = plate + rng.normal(0.0, ABSENT_NOISE, plate.shape)
+            return apply(frame, rng, camera)
+
+        _rewrite(video, partial / "videos" / (video.stem + ".mp4"), changed)
     partial.rename(out)
     return out
 
 
-def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray], np.ndarray]) -> None:
-    """Decode ``source``, change every frame (as float32) and encode the result to ``target``."""
+def _plate(capture: Path, camera: str) -> np.ndarray:
+    """The camera's clean plate (float32, BGR), from ``background/<camera>.<ext>``."""
+    paths = sorted((capture / "background").glob(f"{camera}.*")) if (capture / "background").is_dir() else []
+    plate = cv2.imread(str(paths[0]), cv2.IMREAD_COLOR) if paths else None
+    if plate is None:
+        raise InputError(f"{capture / 'background'}: no readable clean plate for camera {camera!r} "
+                         "(--absent shows each camera's plate where the subject is away)")
+    return plate.astype(np.float32)
+
+
+def _truth_without(truth: Path, target: Path, absent: range) -> None:
+    """``target``, the ground truth at ``truth`` without the ``absent`` frames: their joints.csv rows left out
+    and their masks empty (the other masks and files linked)."""
+    target.mkdir()
+    for path in sorted(truth.iterdir()):
+        if path.name == "joints.csv":
+            with path.open(newline="") as source, (target / path.name).open("w", newline="") as copy:
+                rows = csv.reader(source)
+                writer = csv.writer(copy)
+                writer.writerow(next(rows))
+                writer.writerows(row for row in rows if int(row[0]) not in absent)
+        elif path.name == "masks" and path.is_dir():
+            for camera in sorted(p for p in path.iterdir() if p.is_dir()):
+                (target / "masks" / camera.name).mkdir(parents=True)
+                for mask in sorted(camera.iterdir()):
+                    if mask.stem.isdigit() and int(mask.stem) in absent:
+                        image = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
+                        cv2.imwrite(str(target / "masks" / camera.name / mask.name), np.zeros_like(image))
+                    else:
+                        (target / "masks" / camera.name / mask.name).symlink_to(mask.resolve())
+        else:
+            (target / path.name).symlink_to(path.resolve(), target_is_directory=path.is_dir())
+
+
+def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray, int], np.ndarray]) -> None:
+    """Decode ``source``, change every frame (as float32, with its index) and encode the result to ``target``."""
     reader = cv2.VideoCapture(str(source))
     fps = reader.get(cv2.CAP_PROP_FPS)
     writer = None
+    index = 0
     try:
         while True:
             ok, frame = reader.read()
@@ -124,13 +182,26 @@ def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray], np.ndarr
                                          (frame.shape[1], frame.shape[0]))
                 if not writer.isOpened():
                     raise InputError(f"{target}: OpenCV cannot write an MPEG-4 video here")
-            writer.write(_to_uint8(change(frame.astype(np.float32))))
+            writer.write(_to_uint8(change(frame.astype(np.float32), index)))
+            index += 1
     finally:
         reader.release()
         if writer is not None:
             writer.release()
     if writer is None:
         raise InputError(f"{source}: no frame could be decoded")
+
+
+def _frame_span(text: str) -> range:
+    """``FIRST:STOP`` (0 <= FIRST < STOP) as the frames it names."""
+    first, _, stop = text.partition(":")
+    try:
+        span = range(int(first), int(stop))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected FIRST:STOP, two frame numbers, got {text!r}") from None
+    if span.start < 0 or not span:
+        raise argparse.ArgumentTypeError(f"expected 0 <= FIRST < STOP, got {text!r}")
+    return span
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -144,9 +215,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="random draws of flicker and noise")
     parser.add_argument("--no-plates", action="store_true",
                         help="leave the clean plates out (the background is then estimated from the frames)")
+    parser.add_argument("--absent", type=_frame_span, default=range(0), metavar="FIRST:STOP",
+                        help="the subject away on frames FIRST to STOP - 1: the clean plates shown there")
     args = parser.parse_args(argv)
     try:
-        perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates)
+        perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates,
+                        absent=args.absent)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
