@@ -72,6 +72,8 @@ _LEVEL_RATE = 0.1
 # (1e-3 nats per observation, joints still by half a millimetre), since such frames are few.
 _REFIT_TOLERANCE = 1e-3
 _REFIT_DISPLACEMENT_M = 5e-4
+# How many times as many library poses a failed initialisation refines when it searches again.
+_WIDER_SEARCH = 5
 # Normals shorter than this are not directions; such rows are dropped.
 _MIN_NORMAL = 1e-6
 # A joint this close to its segment's joint centre (metres) sits on it (`joint_support`).
@@ -132,7 +134,7 @@ class Tracker:
         if len(y) < params.min_observations:
             return _predict(state, sized, params, len(y))
         if state.lost:
-            return self._initialise(state, y, n, sized)
+            return self._initialise(state, y, n, sized, alone=True)
         learning = state.height_weight < params.scale_frames
         em = replace(params.em, estimate_lengths=learning and bool(params.estimate_lengths))
         prediction = sized.clip(state.pose + velocity_gain(state) * state.velocity)
@@ -307,8 +309,15 @@ class Tracker:
             result = recovered
         return result, searched, kept
 
-    def _initialise(self, state: TrackerState, y, n, body: BodyModel) -> tuple[FrameResult, TrackerState]:
+    def _initialise(self, state: TrackerState, y, n, body: BodyModel, *,
+                    alone: bool = False) -> tuple[FrameResult, TrackerState]:
         """Initialise from the data alone (`init.initialise`) and start a fresh track.
+
+        `alone`: there is no track to weigh the result against (the first frame, data back after a gap). Then a
+        search whose fit fails the checks is made again refining `_WIDER_SEARCH` times as many library poses,
+        and the likelier kept: a subject walking into view mid-kick was otherwise exported 17-23 cm off until the
+        next frame's re-check (docs/results_by_hand.md). A re-check is not widened: it has the tracked fit to
+        fall back on, and widened there it traded captures against each other.
 
         A doubtful initialisation is still the best pose the data gave: the next frame tracks from it (at
         rest) and tries a fresh initialisation against that fit, keeping the likelier (`recheck`). Starting
@@ -332,6 +341,12 @@ class Tracker:
         search_size = measure and not stated
         init = initialise(y, n, body, self.volume, self.library, estimate_height=search_size, em=params.em,
                           params=params.init, rng=np.random.default_rng(params.seed))
+        if alone and _failed(init.fit, params):  # the coarse ranking can leave the pose that fits unrefined
+            wider = initialise(y, n, body, self.volume, self.library, estimate_height=search_size, em=params.em,
+                               params=replace(params.init, refine=params.init.refine * _WIDER_SEARCH),
+                               rng=np.random.default_rng(params.seed))
+            if wider.fit.log_likelihood[-1] > init.fit.log_likelihood[-1]:
+                init = wider
         fitted = init.fit
         em = replace(params.em, estimate_scale=search_size)
         for limb in self.limbs:

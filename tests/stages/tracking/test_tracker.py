@@ -431,3 +431,28 @@ def test_an_exchange_of_the_legs_that_gains_nothing_is_tried_at_doubling_interva
 def _moved_fit(result, pose):
     """A fit `result` moved to `pose`, as a limb search that found it would return it."""
     return replace(result, pose=pose, kin=result.body.fk(pose), joints=result.body.joint_positions(pose))
+
+
+def test_a_failed_initialisation_searches_again_refining_more_library_poses(body, monkeypatch):
+    """The coarse ranking can leave the library pose that fits out of the few refined: a search whose fit fails
+    the checks is made again, wider, and the likelier of the two kept; a search that passes is not repeated."""
+    refined = []
+    original = tracker.initialise
+
+    def recorded(*args, **kwargs):
+        refined.append(kwargs["params"].refine)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(tracker, "initialise", recorded)
+    rng = np.random.default_rng(26)
+    the_tracker = Tracker(PARAMS, VOLUME)
+    result, state = the_tracker.track(None, _obs(body, _walk(body.scaled(1.75), 1)[0], rng))
+    assert refined == [PARAMS.init_refine] and not result.doubtful
+    clutter = SimpleNamespace(points=rng.uniform(VOLUME[0], VOLUME[1], (600, 3)),
+                              normals=rng.normal(size=(600, 3)))  # no body in it: every fit fails the checks
+    refined.clear()
+    result, _ = the_tracker.track(state, clutter)  # a re-check of a failing tracked fit: not widened
+    assert refined == [PARAMS.init_refine] and result.doubtful
+    refined.clear()
+    result, _ = Tracker(PARAMS, VOLUME).track(None, clutter)  # alone: widened
+    assert refined == [PARAMS.init_refine, PARAMS.init_refine * tracker._WIDER_SEARCH] and result.doubtful
