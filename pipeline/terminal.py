@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import re
 import time
-from collections.abc import Sequence
+from collections.abc import Hashable, Iterable, Sequence
 
 #: A per-frame message: ``frame <number>: <what happened>``.
 _FRAME_MESSAGE = re.compile(r"frame (\d+): (.+)", re.DOTALL)
@@ -61,20 +61,25 @@ def frame_message(frames: Sequence[int], text: str) -> str:
 def fold_frame_messages(messages: Sequence[str]) -> list[str]:
     """``messages`` with those that differ only in their frame (``frame N: <text>``) made one
     (:func:`frame_message`), at the place of the first of them; the others as they are."""
-    folded: list[str | list[int]] = []  # a message, or the frames of a text
-    texts: dict[str, tuple[int, list[int]]] = {}  # text -> its place in `folded`, its frames
-    for message in messages:
+    return [message for _, message in _folded((None, message) for message in messages)]
+
+
+def _folded(items: Iterable[tuple[Hashable, str]]) -> list[tuple[int, str]]:
+    """``(key, message)`` items folded as :func:`fold_frame_messages` folds messages, per-frame ones only with
+    others of the same key: ``(index of the item the line stands for, line)``, in the order of those items."""
+    lines: list[tuple[int, str | list[int], str]] = []  # (item, message or the frames of a text, text)
+    texts: dict[tuple[Hashable, str], list[int]] = {}  # (key, text) -> its frames, filled in place
+    for index, (key, message) in enumerate(items):
         match = _FRAME_MESSAGE.fullmatch(message)
         if match is None:
-            folded.append(message)
-            continue
-        if match[2] not in texts:
-            texts[match[2]] = (len(folded), [])
-            folded.append([])
-        texts[match[2]][1].append(int(match[1]))
-    for text, (place, frames) in texts.items():
-        folded[place] = frame_message(sorted(set(frames)), text)
-    return folded
+            lines.append((index, message, ""))
+        else:
+            if (key, match[2]) not in texts:
+                texts[key, match[2]] = []
+                lines.append((index, texts[key, match[2]], match[2]))
+            texts[key, match[2]].append(int(match[1]))
+    return [(index, line if isinstance(line, str) else frame_message(sorted(set(line)), text))
+            for index, line, text in lines]
 
 
 class FoldingStreamHandler(logging.StreamHandler):
@@ -89,7 +94,7 @@ class FoldingStreamHandler(logging.StreamHandler):
 
     def __init__(self, stream=None) -> None:
         super().__init__(stream)
-        self._held: dict[tuple[str, int, str], tuple[logging.LogRecord, list[int]]] = {}
+        self._held: list[logging.LogRecord] = []  # per-frame records not written yet
         self._held_since = 0.0
 
     def emit(self, record: logging.LogRecord) -> None:
@@ -104,8 +109,7 @@ class FoldingStreamHandler(logging.StreamHandler):
             return
         if not self._held:
             self._held_since = time.monotonic()
-        _, frames = self._held.setdefault((record.name, record.levelno, match[2]), (record, []))
-        frames.append(int(match[1]))
+        self._held.append(record)
         if time.monotonic() - self._held_since >= FOLD_WINDOW_S:
             self._release()
 
@@ -116,7 +120,6 @@ class FoldingStreamHandler(logging.StreamHandler):
 
     def _release(self) -> None:
         """Write the held messages, one line each."""
-        held, self._held = self._held, {}
-        for (_, _, text), (first, frames) in held.items():
-            message = frame_message(sorted(set(frames)), text)
-            super().emit(logging.makeLogRecord({**vars(first), "msg": message, "args": None}))
+        held, self._held = self._held, []
+        for index, message in _folded(((r.name, r.levelno), r.getMessage()) for r in held):
+            super().emit(logging.makeLogRecord({**vars(held[index]), "msg": message, "args": None}))

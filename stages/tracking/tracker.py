@@ -315,9 +315,9 @@ class Tracker:
 
         `alone`: there is no track to weigh the result against (the first frame, data back after a gap). Then a
         search whose fit fails the checks is made again refining `_WIDER_SEARCH` times as many library poses,
-        and the likelier kept: a subject walking into view mid-kick was otherwise exported 17-23 cm off until the
-        next frame's re-check (docs/results_by_hand.md). A re-check is not widened: it has the tracked fit to
-        fall back on, and widened there it traded captures against each other.
+        and the likelier kept: a subject walking into view mid-kick was otherwise exported far off until the next
+        frame's re-check. A re-check is not widened: it has the tracked fit to fall back on, and widened there it
+        traded captures against each other (both measured in docs/results_by_hand.md).
 
         A doubtful initialisation is still the best pose the data gave: the next frame tracks from it (at
         rest) and tries a fresh initialisation against that fit, keeping the likelier (`recheck`). Starting

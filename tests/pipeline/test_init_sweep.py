@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.lab.bench.init_sweep import FAILED_MM, Initialisation, summary, sweep
+from stages.joints import JOINT_NAMES, SCORED_JOINTS
 from stages.reconstruction import Observations
 from stages.tracking.body import sample_surface
 from stages.tracking.body_file import load_body
@@ -23,7 +24,7 @@ def test_each_frame_is_initialised_afresh_and_scored_against_its_truth():
         pose[0], pose[3] = x, 0.4
         poses.append(pose)
     observations = [Observations(*sample_surface(body, pose, 600, rng)) for pose in poses]
-    truth = np.stack([body.joint_positions(pose) for pose in poses])
+    truth = np.stack([body.joint_positions(pose) for pose in poses])[:, [JOINT_NAMES.index(j) for j in SCORED_JOINTS]]
     tracker = Tracker(TrackerParams(height_m=1.75, init_headings=6, init_refine=2), VOLUME)
     results = sweep(tracker, [10, 20], observations, truth)
     assert [r.frame for r in results] == [10, 20]

@@ -26,6 +26,8 @@ from pipeline.io import frames_io
 from pipeline.io.capture import Capture
 from pipeline.io.export_io import read_joints_csv
 from pipeline.io.run_layout import RunLayout
+from stages.export.joints_table import select_joints
+from stages.export.metrics import joint_errors
 from stages.joints import JOINT_NAMES, SCORED_JOINTS
 from stages.reconstruction import Observations
 from stages.tracking.params import TrackerParams
@@ -46,13 +48,13 @@ class Initialisation:
 
 def sweep(tracker: Tracker, frames: Sequence[int], observations: Sequence[Observations],
           truth: np.ndarray) -> list[Initialisation]:
-    """Initialise ``tracker`` from scratch on each of ``observations`` and score it against ``truth`` (F, 17, 3),
-    metres, in the order of ``JOINT_NAMES``, one row per frame."""
-    scored = [JOINT_NAMES.index(name) for name in SCORED_JOINTS]
+    """Initialise ``tracker`` from scratch on each of ``observations`` and score it against ``truth`` (F, 15, 3),
+    metres, the ``SCORED_JOINTS`` in that order, one row per frame."""
     results = []
     for frame, frame_observations, joints in zip(frames, observations, truth, strict=True):
         result, _ = tracker.track(None, frame_observations)
-        error = np.linalg.norm(result.joints[scored] - joints[scored], axis=1).mean()
+        estimate = select_joints(JOINT_NAMES, result.joints[None], SCORED_JOINTS, source="the tracker's joints")
+        error = joint_errors(estimate[0], joints).mean()
         results.append(Initialisation(frame, float(1000.0 * error), bool(result.doubtful)))
     return results
 
@@ -79,14 +81,12 @@ def main(argv: list[str] | None = None) -> int:
         truth_path = default_truth(args.run)
         capture = Capture.open(truth_path.parents[1])
         truth_frames, names, truth = read_joints_csv(truth_path)
-        frames = [f for f in capture.frame_numbers[:: args.step] if f in set(truth_frames.tolist())]
-        ordered = np.full((len(frames), len(JOINT_NAMES), 3), np.nan)  # the toes are optional in a truth
-        for column, name in enumerate(JOINT_NAMES):
-            if name in names:
-                ordered[:, column] = truth[np.searchsorted(truth_frames, frames), list(names).index(name)]
+        frames = np.intersect1d(capture.frame_numbers[:: args.step], truth_frames).tolist()
+        truth = select_joints(names, truth[np.searchsorted(truth_frames, frames)], SCORED_JOINTS,
+                              source=str(truth_path))
         observations = [Observations(*frames_io.read_ply(RunLayout(args.run).observations(frame))) for frame in frames]
         tracker = Tracker(TrackerParams(height_m=capture.height_m), capture.volume)
-        results = sweep(tracker, frames, observations, ordered)
+        results = sweep(tracker, frames, observations, truth)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
