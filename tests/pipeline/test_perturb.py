@@ -8,7 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
+from calib.camera import Camera, Rig
 from calib.errors import InputError
+from calib.formats import load_rig, save_rig
 from pipeline.lab.bench.perturb import main, perturb_capture
 
 FRAMES, HEIGHT, WIDTH = 4, 48, 64
@@ -117,3 +119,28 @@ def test_absent_frames_need_a_plate_for_every_camera_and_a_span(capture, tmp_pat
     with pytest.raises(SystemExit):
         main([str(capture), "--change", "none", "--absent", "5:2", "--out", str(tmp_path / "away")])
     assert "expected 0 <= FIRST < STOP" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("fmt", ["opencv", "anipose"])
+def test_a_smaller_rig_keeps_the_named_cameras_in_the_calibrations_own_format_and_units(capture, tmp_path, fmt):
+    (capture / "videos" / "cam0.mp4").rename(capture / "videos" / "cam2.mp4")  # cam1 and cam2: not the first ones
+    (capture / "background" / "cam0.png").rename(capture / "background" / "cam2.png")
+    for camera in ("cam1", "cam2"):
+        (capture / "groundtruth" / "masks" / camera).mkdir(parents=True)
+        cv2.imwrite(str(capture / "groundtruth" / "masks" / camera / "000000.png"), np.zeros((HEIGHT, WIDTH), np.uint8))
+    cameras = [Camera.look_at(f"cam{index}", (4000.0 * np.cos(index), 4000.0 * np.sin(index), 1500.0),
+                              (0.0, 0.0, 1000.0), f_px=60.0, size=(WIDTH, HEIGHT)) for index in (1, 2)]
+    save_rig(Rig(tuple(cameras)), fmt, capture / "calibration" / fmt)  # in millimetres, as the file states them
+    (capture / "capture.yaml").write_text(f"fps: 25\ncalibration: {{format: {fmt}, path: calibration/{fmt}, "
+                                          "units: mm, up: +z}\n")
+    assert main([str(capture), "--change", "none", "--cameras", "cam2", "--out", str(tmp_path / "one")]) == 0
+    out = tmp_path / "one"
+    kept = load_rig(fmt, out / "calibration" / fmt, image_sizes={"cam2": (WIDTH, HEIGHT)})
+    assert kept.names == ("cam2",)
+    np.testing.assert_allclose(kept["cam2"].t, cameras[1].t)
+    assert [path.name for path in (out / "videos").iterdir()] == ["cam2.mp4"]
+    assert [path.name for path in (out / "background").iterdir()] == ["cam2.png"]
+    assert [path.name for path in (out / "groundtruth" / "masks").iterdir()] == ["cam2"]
+    assert (out / "groundtruth" / "joints.csv").is_file()
+    with pytest.raises(InputError, match="no video of camera\\(s\\) cam7"):
+        perturb_capture(capture, tmp_path / "other", "none", cameras=("cam2", "cam7"))

@@ -21,6 +21,12 @@ sensor noise, and the copy's ground truth has no joints and empty masks on those
 scores only the frames he is in view.
 
     python -m pipeline.lab.bench.perturb ../shared/foreign/taekwondo --change none --absent 0:20 --out runs/late
+
+With ``--cameras NAME,NAME,...`` the copy keeps only those cameras (a smaller rig: the calibration rewritten in
+its own format, units and up axis with the others left out; their videos, plates and true masks left out too).
+
+    python -m pipeline.lab.bench.perturb ../shared/foreign/frontkick --change none --cameras cam00,cam02,cam04,cam05 \
+        --out runs/frontkick-4cams
 """
 
 from __future__ import annotations
@@ -34,8 +40,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import yaml
 
+from calib.camera import Rig
 from calib.errors import InputError
+from calib.formats import load_rig, save_rig
 
 # What each change does to a frame (float32 8-bit levels, BGR), given a random generator and the camera's index.
 Change = Callable[[np.ndarray, np.random.Generator, int], np.ndarray]
@@ -82,20 +91,22 @@ def _to_uint8(frame: np.ndarray) -> np.ndarray:
 
 
 def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, plates: bool = True,
-                    absent: range = range(0)) -> Path:
+                    absent: range = range(0), cameras: tuple[str, ...] = ()) -> Path:
     """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
-    to every frame of its videos, and the subject away on the frames ``absent``; returns ``out``.
+    to every frame of its videos, and the subject away on the frames ``absent``, seen by the ``cameras`` named
+    (default: all); returns ``out``.
 
     capture.yaml, the calibration and the background plates (unless ``plates`` is False) are copied, the ground
-    truth (when there is one) linked, or rewritten without the ``absent`` frames (:func:`_truth_without`).
+    truth (when there is one) linked, or rewritten without the ``absent`` frames and the cameras left out
+    (:func:`_truth_without`).
     The videos are written as MPEG-4 Part 2 (the codec OpenCV's wheels can write) at the originals' frame
     rate; only captures whose frames are videos (``videos/<camera>.<ext>``) can be changed.
 
     Raises
     ------
     InputError
-        An unknown change, ``out`` already there, a capture without videos, or ``absent`` frames in a capture
-        without a clean plate for every camera.
+        An unknown change, ``out`` already there, a capture without videos, ``absent`` frames in a capture
+        without a clean plate for every camera, or a camera named that has no video.
     """
     capture, out = Path(capture), Path(out)
     if change not in CHANGES:
@@ -106,6 +117,12 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         if (capture / "videos").is_dir() else []
     if not videos:
         raise InputError(f"{capture}: no videos/ folder with videos (only captures of videos can be perturbed)")
+    everyone = videos
+    if cameras:
+        unknown = sorted(set(cameras) - {video.stem for video in videos})
+        if unknown:
+            raise InputError(f"{capture / 'videos'}: no video of camera(s) {', '.join(unknown)}")
+        videos = [video for video in videos if video.stem in cameras]
     empty_room = [_plate(capture, video.stem) for video in videos] if absent else [None] * len(videos)
     apply = CHANGES[change][1]
     rng = np.random.default_rng(seed)
@@ -113,12 +130,18 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     shutil.rmtree(partial, ignore_errors=True)
     (partial / "videos").mkdir(parents=True)
     shutil.copy2(capture / "capture.yaml", partial / "capture.yaml")
-    for folder in ("calibration", "background") if plates else ("calibration",):
-        if (capture / folder).is_dir():
-            shutil.copytree(capture / folder, partial / folder)
+    if cameras:
+        _keep_cameras(capture, partial, everyone, set(cameras))
+    elif (capture / "calibration").is_dir():
+        shutil.copytree(capture / "calibration", partial / "calibration")
+    if plates and (capture / "background").is_dir():
+        (partial / "background").mkdir()
+        for plate in (capture / "background").iterdir():
+            if plate.stem in {video.stem for video in videos}:
+                shutil.copy2(plate, partial / "background" / plate.name)
     if (capture / "groundtruth").is_dir():
-        if absent:
-            _truth_without(capture / "groundtruth", partial / "groundtruth", absent)
+        if absent or cameras:
+            _truth_without(capture / "groundtruth", partial / "groundtruth", absent, {video.stem for video in videos})
         else:
             (partial / "groundtruth").symlink_to((capture / "groundtruth").resolve(), target_is_directory=True)
     for camera, (video, plate) in enumerate(zip(videos, empty_room, strict=True)):
@@ -132,6 +155,21 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     return out
 
 
+def _keep_cameras(capture: Path, copy: Path, videos: list[Path], kept: set[str]) -> None:
+    """The capture's calibration written into ``copy`` with only the ``kept`` cameras: read as the file states it
+    (image sizes from all the ``videos``) and saved in the same format at the same place, so that its units and
+    up axis stay as capture.yaml says."""
+    calibration = yaml.safe_load((capture / "capture.yaml").read_text())["calibration"]
+    sizes = {}
+    for video in videos:
+        reader = cv2.VideoCapture(str(video))
+        sizes[video.stem] = (int(reader.get(cv2.CAP_PROP_FRAME_WIDTH)), int(reader.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+        reader.release()
+    rig = load_rig(calibration["format"], capture / calibration["path"], image_sizes=sizes)
+    save_rig(Rig(tuple(camera for camera in rig if camera.name in kept)), calibration["format"],
+             copy / calibration["path"])
+
+
 def _plate(capture: Path, camera: str) -> np.ndarray:
     """The camera's clean plate (float32, BGR), from ``background/<camera>.<ext>``."""
     paths = sorted((capture / "background").glob(f"{camera}.*")) if (capture / "background").is_dir() else []
@@ -142,9 +180,10 @@ def _plate(capture: Path, camera: str) -> np.ndarray:
     return plate.astype(np.float32)
 
 
-def _truth_without(truth: Path, target: Path, absent: range) -> None:
-    """``target``, the ground truth at ``truth`` without the ``absent`` frames: their joints.csv rows left out
-    and their masks empty (the other masks and files linked)."""
+def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str]) -> None:
+    """``target``, the ground truth at ``truth`` without the ``absent`` frames, seen by ``cameras``: the absent
+    frames' joints.csv rows left out and their masks empty, the other cameras' masks left out (the other masks
+    and files linked)."""
     target.mkdir()
     for path in sorted(truth.iterdir()):
         if path.name == "joints.csv":
@@ -154,7 +193,7 @@ def _truth_without(truth: Path, target: Path, absent: range) -> None:
                 writer.writerow(next(rows))
                 writer.writerows(row for row in rows if int(row[0]) not in absent)
         elif path.name == "masks" and path.is_dir():
-            for camera in sorted(p for p in path.iterdir() if p.is_dir()):
+            for camera in sorted(p for p in path.iterdir() if p.is_dir() and p.name in cameras):
                 (target / "masks" / camera.name).mkdir(parents=True)
                 for mask in sorted(camera.iterdir()):
                     if mask.stem.isdigit() and int(mask.stem) in absent:
@@ -217,10 +256,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="leave the clean plates out (the background is then estimated from the frames)")
     parser.add_argument("--absent", type=_frame_span, default=range(0), metavar="FIRST:STOP",
                         help="the subject away on frames FIRST to STOP - 1: the clean plates shown there")
+    parser.add_argument("--cameras", type=lambda text: tuple(name for name in text.split(",") if name), default=(),
+                        metavar="NAME,NAME,...", help="keep only these cameras (a smaller rig)")
     args = parser.parse_args(argv)
     try:
         perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates,
-                        absent=args.absent)
+                        absent=args.absent, cameras=args.cameras)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
