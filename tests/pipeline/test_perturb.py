@@ -144,3 +144,20 @@ def test_a_smaller_rig_keeps_the_named_cameras_in_the_calibrations_own_format_an
     assert (out / "groundtruth" / "joints.csv").is_file()
     with pytest.raises(InputError, match="no video of camera\\(s\\) cam7"):
         perturb_capture(capture, tmp_path / "other", "none", cameras=("cam2", "cam7"))
+
+
+def test_a_calibration_error_turns_each_camera_about_its_centre_by_the_angle_asked(capture, tmp_path):
+    cameras = [Camera.look_at(f"cam{index}", (4.0 * np.cos(index), 4.0 * np.sin(index), 1.5), (0.0, 0.0, 1.0),
+                              f_px=60.0, size=(WIDTH, HEIGHT)) for index in (0, 1)]
+    save_rig(Rig(tuple(cameras)), "colmap", capture / "calibration" / "colmap")
+    (capture / "capture.yaml").write_text("fps: 25\ncalibration: {format: colmap, path: calibration/colmap, units: m, "
+                                          "up: +z}\n")
+    out = perturb_capture(capture, tmp_path / "off", "none", calibration_error_deg=0.2)
+    turned = load_rig("colmap", out / "calibration" / "colmap")
+    for before, after in zip(cameras, turned, strict=True):
+        np.testing.assert_allclose(after.centre, before.centre, atol=1e-9)
+        angle = np.degrees(np.arccos(np.clip((np.trace(after.R @ before.R.T) - 1.0) / 2.0, -1.0, 1.0)))
+        assert angle == pytest.approx(0.2, abs=1e-6)
+    assert not np.allclose(turned[0].R @ cameras[0].R.T, turned[1].R @ cameras[1].R.T)  # an axis of its own
+    with pytest.raises(InputError, match="expected a finite angle"):
+        perturb_capture(capture, tmp_path / "nan", "none", calibration_error_deg=float("nan"))

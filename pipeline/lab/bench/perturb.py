@@ -27,6 +27,14 @@ its own format, units and up axis with the others left out; their videos, plates
 
     python -m pipeline.lab.bench.perturb ../shared/foreign/frontkick --change none --cameras cam00,cam02,cam04,cam05 \
         --out runs/frontkick-4cams
+
+With ``--calibration-error DEGREES`` the copy's calibration is off the way a real one is: each camera turned by
+that angle about an axis of its own (drawn with ``--seed``) about its centre, the images unchanged. At a focal
+length of f pixels the angle moves the image of the subject by up to f tan(angle) pixels: 0.1° is about 1.7
+pixels at f = 1000, the reprojection error of a mediocre calibration.
+
+    python -m pipeline.lab.bench.perturb ../shared/foreign/walk --change none --calibration-error 0.1 \
+        --out runs/walk-off
 """
 
 from __future__ import annotations
@@ -36,13 +44,14 @@ import csv
 import shutil
 import sys
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 import yaml
 
-from calib.camera import Rig
+from calib.camera import Camera, Rig
 from calib.errors import InputError
 from calib.formats import load_rig, save_rig
 
@@ -91,10 +100,12 @@ def _to_uint8(frame: np.ndarray) -> np.ndarray:
 
 
 def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, plates: bool = True,
-                    absent: range = range(0), cameras: tuple[str, ...] = ()) -> Path:
+                    absent: range = range(0), cameras: tuple[str, ...] = (),
+                    calibration_error_deg: float = 0.0) -> Path:
     """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
     to every frame of its videos, and the subject away on the frames ``absent``, seen by the ``cameras`` named
-    (default: all); returns ``out``.
+    (default: all) through a calibration whose cameras are each turned by ``calibration_error_deg``; returns
+    ``out``.
 
     capture.yaml, the calibration and the background plates (unless ``plates`` is False) are copied, the ground
     truth (when there is one) linked, or rewritten without the ``absent`` frames and the cameras left out
@@ -106,13 +117,15 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     ------
     InputError
         An unknown change, ``out`` already there, a capture without videos, ``absent`` frames in a capture
-        without a clean plate for every camera, or a camera named that has no video.
+        without a clean plate for every camera, a camera named that has no video, or an angle that is not finite.
     """
     capture, out = Path(capture), Path(out)
     if change not in CHANGES:
         raise InputError(f"unknown change {change!r} (expected one of {', '.join(CHANGES)})")
     if out.exists():
         raise InputError(f"{out}: already exists (give a new folder; nothing is overwritten)")
+    if not np.isfinite(calibration_error_deg):
+        raise InputError(f"calibration error {calibration_error_deg}: expected a finite angle in degrees")
     videos = sorted(path for path in (capture / "videos").glob("*") if path.is_file()) \
         if (capture / "videos").is_dir() else []
     if not videos:
@@ -130,8 +143,9 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     shutil.rmtree(partial, ignore_errors=True)
     (partial / "videos").mkdir(parents=True)
     shutil.copy2(capture / "capture.yaml", partial / "capture.yaml")
-    if cameras:
-        _keep_cameras(capture, partial, everyone, set(cameras))
+    if cameras or calibration_error_deg:
+        _rewrite_calibration(capture, partial, everyone, {video.stem for video in videos}, calibration_error_deg,
+                             np.random.default_rng([seed, 1]))  # its own draws: the frames' stay as without it
     elif (capture / "calibration").is_dir():
         shutil.copytree(capture / "calibration", partial / "calibration")
     if plates and (capture / "background").is_dir():
@@ -155,10 +169,11 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     return out
 
 
-def _keep_cameras(capture: Path, copy: Path, videos: list[Path], kept: set[str]) -> None:
-    """The capture's calibration written into ``copy`` with only the ``kept`` cameras: read as the file states it
-    (image sizes from all the ``videos``) and saved in the same format at the same place, so that its units and
-    up axis stay as capture.yaml says."""
+def _rewrite_calibration(capture: Path, copy: Path, videos: list[Path], kept: set[str], error_deg: float,
+                         rng: np.random.Generator) -> None:
+    """The capture's calibration written into ``copy`` with only the ``kept`` cameras, each turned by ``error_deg``
+    (:func:`_turned`): read as the file states it (image sizes from all the ``videos``) and saved in the same format
+    at the same place, so that its units and up axis stay as capture.yaml says."""
     calibration = yaml.safe_load((capture / "capture.yaml").read_text())["calibration"]
     sizes = {}
     for video in videos:
@@ -166,8 +181,18 @@ def _keep_cameras(capture: Path, copy: Path, videos: list[Path], kept: set[str])
         sizes[video.stem] = (int(reader.get(cv2.CAP_PROP_FRAME_WIDTH)), int(reader.get(cv2.CAP_PROP_FRAME_HEIGHT)))
         reader.release()
     rig = load_rig(calibration["format"], capture / calibration["path"], image_sizes=sizes)
-    save_rig(Rig(tuple(camera for camera in rig if camera.name in kept)), calibration["format"],
-             copy / calibration["path"])
+    save_rig(Rig(tuple(_turned(camera, error_deg, rng) for camera in rig if camera.name in kept)),
+             calibration["format"], copy / calibration["path"])
+
+
+def _turned(camera: Camera, angle_deg: float, rng: np.random.Generator) -> Camera:
+    """``camera`` turned by ``angle_deg`` about a random axis through its centre (the centre kept)."""
+    if not angle_deg:
+        return camera
+    axis = rng.normal(size=3)
+    turn, _ = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(angle_deg))
+    R = turn @ camera.R
+    return replace(camera, R=R, t=-R @ camera.centre)
 
 
 def _plate(capture: Path, camera: str) -> np.ndarray:
@@ -258,10 +283,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="the subject away on frames FIRST to STOP - 1: the clean plates shown there")
     parser.add_argument("--cameras", type=lambda text: tuple(name for name in text.split(",") if name), default=(),
                         metavar="NAME,NAME,...", help="keep only these cameras (a smaller rig)")
+    parser.add_argument("--calibration-error", type=float, default=0.0, metavar="DEGREES",
+                        help="each camera of the calibration turned by this angle about an axis of its own")
     args = parser.parse_args(argv)
     try:
         perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates,
-                        absent=args.absent, cameras=args.cameras)
+                        absent=args.absent, cameras=args.cameras, calibration_error_deg=args.calibration_error)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
