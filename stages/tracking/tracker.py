@@ -12,7 +12,8 @@ is handled here:
   EM measures the size from its result (`measured_height`), weighed against the stated one
   (`stated_height_weight`, `subject_height`); the segment-length and girth factors named by
   `estimate_lengths` (groups of the body file's `lengths`) are estimated with the pose over those frames
-  (prior towards the body file's proportions), then frozen. The tracked frames do not refine the
+  (prior towards the body file's proportions; each frame's EM from the mean so far and from those
+  proportions, the likelier kept) and averaged, then frozen. The tracked frames do not refine the
   height: their EM, with the girth and lengths free as well, drifted it upward on stout bodies;
 - a frame far worse than usual even after more EM iterations is also fitted from the last pose
   without velocity (`restart_drop`), the better fit kept;
@@ -117,7 +118,7 @@ class Tracker:
         legs = [limb for limb in self.limbs
                 if self.body.parent[limb.segments[0]] in root and limb.segments[0] < limb.mirror_segments[0]]
         self.legs = legs if params.distance == "normals" else []
-        self._sized: tuple = (None, None)
+        self._sized: dict = {}
 
     def track(self, state: TrackerState | None, obs) -> tuple[FrameResult, TrackerState]:
         """Estimate one frame's pose from its observations and the tracker's state (None on the first frame).
@@ -140,6 +141,8 @@ class Tracker:
         prediction = sized.clip(state.pose + velocity_gain(state) * state.velocity)
         mixture = Mixture(Sigma=state.Sigma + params.sigma_m**2 * np.eye(len(state.Sigma)), pi=state.pi)
         tracked = self._fit_from(prediction, state, y, n, sized, mixture, em)
+        if em.estimate_lengths and np.any(state.length_factors != self.body.length_factors):
+            tracked = self._likelier_fresh_lengths(prediction, state, y, n, mixture, em, tracked)
         tracked, moved, searches = self._search_limbs(y, n, tracked, state, em)
         tracked, exchanged, exchanges = self._exchange_legs(y, n, tracked, state, em)
         moved += exchanged
@@ -154,16 +157,32 @@ class Tracker:
                 return result, new_state
         return self._tracked(state, tracked, len(y), learning, doubtful, tried, moved, searches, exchanges)
 
-    def _sized_body(self, state: TrackerState) -> BodyModel:
-        """The body at the state's height and length factors, remembered for the last ones asked.
+    def _likelier_fresh_lengths(self, prediction, state, y, n, mixture, em, tracked: FitResult) -> FitResult:
+        """The likelier of `tracked` (a learning frame's fit whose lengths started from their running mean) and
+        the same fit with the lengths started from the body file's proportions.
+
+        Started from the running mean, a frame's EM settles near it, so an early wrong estimate confirms itself
+        frame after frame (a forearm whose hand the data leave ambiguous comes out long or short by a mere
+        re-encoding of the videos); started afresh, a frame whose pose misleads the lengths loses a good
+        estimate the frames before had made. The data decide between the two starts.
+        """
+        fresh = self._fit_from(prediction, state, y, n, self._sized_body(state, self.body.length_factors), mixture,
+                               em)
+        return fresh if fresh.log_likelihood[-1] > tracked.log_likelihood[-1] else tracked
+
+    def _sized_body(self, state: TrackerState, lengths: np.ndarray | None = None) -> BodyModel:
+        """The body at the state's height and length factors (or `lengths`), remembered for the last two asked.
 
         They stop changing after `scale_frames` frames; remembering the body saves an eigen-decomposition
         per ellipsoid at every frame.
         """
-        key = (state.height_m, state.length_factors.tobytes())
-        if self._sized[0] != key:
-            self._sized = (key, self.body.scaled(state.height_m).with_lengths(state.length_factors))
-        return self._sized[1]
+        lengths = state.length_factors if lengths is None else lengths
+        key = (state.height_m, lengths.tobytes())
+        if key not in self._sized:
+            if len(self._sized) > 1:  # the learning frames' two starts, then the learnt lengths alone
+                self._sized.clear()
+            self._sized[key] = self.body.scaled(state.height_m).with_lengths(lengths)
+        return self._sized[key]
 
     def _first_state(self) -> TrackerState:
         """The state before any data: lost, standing at the volume's centre, the body's proportions."""

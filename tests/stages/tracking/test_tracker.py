@@ -155,6 +155,34 @@ def test_only_the_named_length_groups_are_estimated(body):
     assert none.length_factors.shape == (0,)
 
 
+def test_a_learning_frame_fits_from_the_mean_so_far_and_from_the_files_proportions(body, monkeypatch):
+    # Shanks 12 % longer than the file's. Each learning frame's EM runs from the mean of the frames before and
+    # afresh from the file's proportions (the likelier kept); the frames after it track with the learnt mean.
+    rng = np.random.default_rng(25)
+    long_shanks = body.with_length_groups(("shank",)).with_lengths(np.array([1.12]))
+    truth = _walk(long_shanks.scaled(1.75), 5)
+    params = TrackerParams(height_m=1.75, init_headings=6, init_refine=2, estimate_lengths=("shank",), scale_frames=4)
+    started = []
+    fit_from = Tracker._fit_from
+
+    def spy(self, prediction, state, y, n, sized, mixture, em):
+        started.append((len(frames), sized.length_factors[0], state.length_factors[0]))
+        return fit_from(self, prediction, state, y, n, sized, mixture, em)
+
+    monkeypatch.setattr(Tracker, "_fit_from", spy)
+    tracker, state, frames = Tracker(params, VOLUME), None, []
+    for pose in truth:
+        result, state = tracker.track(state, _obs(long_shanks, pose, rng))
+        frames.append(result)
+    for frame in (2, 3):  # learning, the mean so far moved off the file's proportions by frame 1's estimate
+        starts = sorted(start for index, start, _ in started if index == frame)
+        mean = next(mean for index, _, mean in started if index == frame)
+        assert abs(mean - 1.0) > 0.03
+        np.testing.assert_allclose(starts, sorted([1.0, mean]))
+    assert [start for index, start, _ in started if index == 4] == [state.length_factors[0]]  # learnt: one fit
+    assert abs(np.log(state.length_factors[0] / 1.12)) < 0.05
+
+
 def test_unknown_height_comes_from_the_initialisation_and_tracked_frames_keep_it(body):
     rng = np.random.default_rng(24)
     truth = _walk(body.scaled(1.62), 4)
