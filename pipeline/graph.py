@@ -73,6 +73,7 @@ from stages.joints import JOINT_NAMES
 from stages.reconstruction import Observations, ReconstructionParams
 from stages.reconstruction.views import VOLUME_FACES, faces_reached
 from stages.silhouettes import SilhouetteParams
+from stages.tangency import camera_disagreement, cameras_at_fault, pair_disagreement, pair_medians
 from stages.tracking.params import TrackerParams
 from stages.tracking.results import BodyHeight, FrameResult, frame_record
 from stages.tracking.tracker import Tracker
@@ -188,7 +189,51 @@ def run_silhouettes(ctx: StageContext) -> int:
     chunk_size = None
     if ctx.capture.media == "videos" and not ctx.capture.silhouettes_given:
         chunk_size = video_chunk_size(len(ctx.pending_frames(outputs_of)), ctx.workers.count)
-    return ctx.map_frames(task, outputs_of, chunk_size=chunk_size)
+    count = ctx.map_frames(task, outputs_of, chunk_size=chunk_size)
+    _check_calibration(ctx.capture, ctx.out_dir)
+    return count
+
+
+#: Frames, spread over the capture, on which the silhouettes are checked against the calibration.
+CALIBRATION_CHECK_FRAMES = 10
+#: A camera whose silhouettes disagree with the other cameras' by more than this (metres at the subject,
+#: `stages.tangency`) is named in a warning: a sound calibration gives millimetres, cameras turned by 0.2° one to
+#: three centimetres, two cameras' names swapped decimetres.
+CALIBRATION_DISAGREEMENT_M = 0.05
+
+
+def _check_calibration(capture: Capture, masks_dir: Path) -> None:
+    """Log how far each camera's silhouettes agree with the other cameras' through the calibration (epipolar
+    tangency, `stages.tangency`), warning about the cameras beyond `CALIBRATION_DISAGREEMENT_M`.
+
+    A calibration that does not fit the videos (two cameras' names swapped, a camera moved since it was
+    calibrated) loads and runs like a sound one; the reconstruction then has little to carve and the track is
+    lost, with nothing to say which camera is at fault.
+    """
+    cameras = list(capture.rig)
+    if len(cameras) < 2:
+        return
+    frames = spread_frames(capture.frame_numbers, CALIBRATION_CHECK_FRAMES)
+    per_frame = [pair_disagreement([frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame))
+                                    for camera in cameras], cameras, capture.volume.mean(axis=0))
+                 for frame in frames]
+    pairs = pair_medians(np.array(per_frame))
+    off = cameras_at_fault(pairs, CALIBRATION_DISAGREEMENT_M)
+    per_camera = camera_disagreement(pairs, ~off)
+    if np.all(np.isnan(per_camera)):
+        log.info("calibration check: no camera pair sees the whole subject on the %d frames checked", len(frames))
+        return
+    if not off.any():
+        log.info("calibration check: every camera's silhouettes agree with the others' within %.1f cm at the subject "
+                 "(epipolar tangency, median over %d frames)", 100 * np.nanmax(per_camera), len(frames))
+        return
+    named = ", ".join(camera.name + (f" ({100 * value:.0f} cm)" if np.isfinite(value) else "")
+                      for camera, value, bad in zip(cameras, per_camera, off, strict=True) if bad)
+    others = per_camera[~off & ~np.isnan(per_camera)]
+    agree = f"; the others agree within {100 * others.max():.1f} cm" if len(others) else ""
+    log.warning("calibration check: the silhouettes of %s disagree with the other cameras' at the subject "
+                "(epipolar tangency, median over %d frames%s): check their calibration (two cameras' names "
+                "swapped, a camera moved since it was calibrated)", named, len(frames), agree)
 
 
 def video_chunk_size(pending: int, workers: int) -> int:
@@ -338,7 +383,8 @@ STAGES: tuple[Stage, ...] = (
     Stage("silhouettes", run_silhouettes, inputs=("calibration",), params_type=SilhouetteParams,
           capture_parts=("frames", "images", "background", "silhouettes"),
           code=("stages.silhouettes", "stages.background", "stages.consistency", "stages.rays", "stages.checks",
-                "pipeline.frame_tasks", "pipeline.io.backgrounds", "pipeline.io.capture", "calib", *FILES_CODE)),
+                "stages.tangency", "pipeline.frame_tasks", "pipeline.io.backgrounds", "pipeline.io.capture", "calib",
+                *FILES_CODE)),
     Stage("reconstruction", run_reconstruction, inputs=("calibration", "silhouettes"),
           params_type=ReconstructionParams, capture_parts=("config", "frames"),
           code=("stages.reconstruction", "stages.rays", "stages.checks", "pipeline.frame_tasks", "pipeline.io.capture",

@@ -1,0 +1,130 @@
+"""Whether the silhouettes agree with the calibration: epipolar tangency, camera pair by camera pair.
+
+A plane through the centres of two cameras (an epipolar plane) either cuts the person or misses him, whichever
+of the two cameras looks. So the planes that meet one view's silhouette are the planes that meet the other's, and
+the two extreme ones, tangent to the person, are the same from both views: they touch him at the frontier points
+(Cipolla & Giblin; Boyer, "On using silhouettes for camera calibration", ACCV 2006, calibrates cameras from them).
+Where the calibration is wrong the two views disagree about those planes. Two cameras' names swapped, or a camera
+moved after it was calibrated, leave the reconstruction nothing to carve but fragments, and nothing else says which
+camera is at fault.
+
+The disagreement of a pair is the angle between the extreme planes each view gives, averaged over the two
+extremes, times the subject's distance from the baseline: a length at the subject, a few millimetres with a sound
+calibration (segmentation noise included), centimetres with cameras turned by a fraction of a degree,
+decimetres with two names swapped. A camera's disagreement is the median over its pairs, so that one bad camera
+does not implicate the others, and cameras are set aside worst first until the rest agree
+(:func:`cameras_at_fault`). A view whose silhouette is empty or touches the image's border gives no extreme
+(the border cuts the person there), and a pair whose baseline passes through the person has no extreme planes
+(its planes cut him all round).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from calib.camera import Camera
+
+#: A pair whose planes through the silhouette span more than this has its baseline through the person.
+MAX_SPAN_RAD = np.radians(150.0)
+
+
+def pair_disagreement(masks: Sequence[np.ndarray], cameras: Sequence[Camera], centre: np.ndarray) -> np.ndarray:
+    """(C, C) float: each camera pair's disagreement (metres at the subject) on one frame, NaN where not measured.
+
+    Parameters
+    ----------
+    masks : sequence of (H, W) uint8
+        One silhouette per camera (0 = background), the cameras' image sizes.
+    cameras : sequence of Camera
+        World frame, metres.
+    centre : (3,) float
+        Where the subject is, roughly (the working volume's centre): it sets the side of each baseline the
+        angles are measured from and the distance that turns them into lengths.
+    """
+    outlines = [_outline(mask) for mask in masks]
+    rays = [camera.pixel_rays(points) if points is not None else None
+            for camera, points in zip(cameras, outlines, strict=True)]
+    count = len(cameras)
+    disagreement = np.full((count, count), np.nan)
+    for i in range(count):
+        for j in range(i + 1, count):
+            if rays[i] is None or rays[j] is None:
+                continue
+            baseline = cameras[j].centre - cameras[i].centre
+            baseline /= np.linalg.norm(baseline)
+            towards = centre - cameras[i].centre
+            towards = towards - (towards @ baseline) * baseline
+            distance = float(np.linalg.norm(towards))
+            if distance == 0.0:
+                continue
+            towards /= distance
+            extremes = [_plane_angles(baseline, towards, directions) for directions in (rays[i], rays[j])]
+            if max(high - low for low, high in extremes) > MAX_SPAN_RAD:
+                continue
+            (low_i, high_i), (low_j, high_j) = extremes
+            disagreement[i, j] = disagreement[j, i] = 0.5 * (abs(low_i - low_j) + abs(high_i - high_j)) * distance
+    return disagreement
+
+
+def pair_medians(per_frame: np.ndarray) -> np.ndarray:
+    """(C, C) float: each pair's median disagreement over the frames (``per_frame`` (F, C, C) from
+    :func:`pair_disagreement`), NaN for a pair never measured."""
+    return np.apply_along_axis(_median_measured, 0, np.asarray(per_frame, dtype=float))
+
+
+def camera_disagreement(pairs: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
+    """(C,) float: each camera's disagreement, the median over its pairs with the cameras ``among`` (a (C,) bool
+    mask, default all) of :func:`pair_medians`; NaN for a camera with no such pair measured."""
+    among = np.ones(len(pairs), dtype=bool) if among is None else np.asarray(among, dtype=bool)
+    return np.array([_median_measured(row[among & (np.arange(len(row)) != camera)])
+                     for camera, row in enumerate(pairs)])
+
+
+def cameras_at_fault(pairs: np.ndarray, limit: float) -> np.ndarray:
+    """(C,) bool: the cameras whose calibration disagrees with the others' by more than ``limit`` (metres).
+
+    While some camera's disagreement with the cameras still trusted exceeds ``limit``, the camera that disagrees
+    most on average with them is set aside, and the others are judged again without it. A median over each
+    camera's pairs alone would blame every camera of a four-camera rig with two cameras swapped: each sound
+    camera disagrees with two of its three partners, while a swapped one disagrees with all three.
+    """
+    trusted = np.ones(len(pairs), dtype=bool)
+    while trusted.sum() > 2:
+        disagreement = np.where(trusted, camera_disagreement(pairs, trusted), np.nan)
+        if np.all(np.isnan(disagreement)) or np.nanmax(disagreement) <= limit:
+            break
+        others = trusted[None, :] & ~np.eye(len(pairs), dtype=bool)
+        mean = np.array([np.nanmean(row[keep]) if trusted[camera] and np.any(~np.isnan(row[keep])) else -np.inf
+                         for camera, (row, keep) in enumerate(zip(pairs, others, strict=True))])
+        trusted[np.argmax(mean)] = False
+    return ~trusted
+
+
+def _median_measured(values: np.ndarray) -> float:
+    """The median of the values that are not NaN; NaN when there are none."""
+    measured = values[~np.isnan(values)]
+    return float(np.median(measured)) if len(measured) else np.nan
+
+
+def _outline(mask: np.ndarray) -> np.ndarray | None:
+    """(N, 2) float pixels of the silhouette's outer outlines, or None when it is empty or touches the border."""
+    contours, _ = cv2.findContours(np.ascontiguousarray(mask, dtype=np.uint8), cv2.RETR_EXTERNAL,
+                                   cv2.CHAIN_APPROX_SIMPLE)
+    if not contours:
+        return None
+    points = np.concatenate(contours).reshape(-1, 2)
+    height, width = mask.shape
+    if points.min() <= 0 or np.any(points[:, 0] >= width - 1) or np.any(points[:, 1] >= height - 1):
+        return None
+    return points.astype(float)
+
+
+def _plane_angles(baseline: np.ndarray, towards: np.ndarray, directions: np.ndarray) -> tuple[float, float]:
+    """The smallest and largest angle, about the ``baseline``, of the planes through it and the rays
+    ``directions`` (N, 3), measured from the half-plane ``towards`` the subject (so the subject's lie near 0)."""
+    normals = np.cross(baseline, directions)
+    angles = np.arctan2(normals @ np.cross(baseline, towards), normals @ towards)
+    return float(angles.min()), float(angles.max())
