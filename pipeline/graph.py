@@ -223,9 +223,13 @@ def _check_calibration(capture: Capture, masks_dir: Path) -> None:
     if np.all(np.isnan(per_camera)):
         log.info("calibration check: no camera pair sees the whole subject on the %d frames checked", len(frames))
         return
+    figures = ", ".join(f"{camera.name} {100 * value:.1f}" for camera, value in zip(cameras, per_camera, strict=True)
+                        if np.isfinite(value))
+    off |= per_camera > CALIBRATION_DISAGREEMENT_M  # too few cameras left to tell which of them is at fault
     if not off.any():
-        log.info("calibration check: every camera's silhouettes agree with the others' within %.1f cm at the subject "
-                 "(epipolar tangency, median over %d frames)", 100 * np.nanmax(per_camera), len(frames))
+        log.info("calibration check: every camera's silhouettes agree with the others' at the subject within "
+                 "%.1f cm (epipolar tangency, median over %d frames; cm per camera: %s)",
+                 100 * np.nanmax(per_camera), len(frames), figures)
         return
     named = ", ".join(camera.name + (f" ({100 * value:.0f} cm)" if np.isfinite(value) else "")
                       for camera, value, bad in zip(cameras, per_camera, off, strict=True) if bad)

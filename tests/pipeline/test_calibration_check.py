@@ -32,5 +32,6 @@ def test_two_cameras_with_their_names_swapped_are_named(tmp_path, capfd):
 def test_a_sound_calibration_passes_the_check_quietly(tmp_path, capfd):
     assert main(["run", str(TINY), "--out", str(tmp_path / "out"), "--to", "silhouettes"]) == 0
     err = capfd.readouterr().err
-    assert "calibration check: every camera's silhouettes agree with the others' within" in err
+    assert "calibration check: every camera's silhouettes agree with the others' at the subject within" in err
+    assert "cm per camera: cam1 " in err
     assert "disagree" not in err
