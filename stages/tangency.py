@@ -125,6 +125,7 @@ def _outline(mask: np.ndarray) -> np.ndarray | None:
 def _plane_angles(baseline: np.ndarray, towards: np.ndarray, directions: np.ndarray) -> tuple[float, float]:
     """The smallest and largest angle, about the ``baseline``, of the planes through it and the rays
     ``directions`` (N, 3), measured from the half-plane ``towards`` the subject (so the subject's lie near 0)."""
-    normals = np.cross(baseline, directions)
-    angles = np.arctan2(normals @ np.cross(baseline, towards), normals @ towards)
+    # The plane's normal n = b × d, with b the baseline and t towards the subject (t ⟂ b): n · (b × t) = d · t
+    # and n · t = −d · (b × t), so each angle takes two dot products.
+    angles = np.arctan2(directions @ towards, -(directions @ np.cross(baseline, towards)))
     return float(angles.min()), float(angles.max())
