@@ -59,6 +59,7 @@ from pipeline.io.run_layout import (
     QUALITY_FILE,
     RIG_FILE,
     background_path,
+    calibration_check_path,
     noise_floors_path,
     observations_path,
     overlay_video_name,
@@ -204,7 +205,8 @@ CALIBRATION_DISAGREEMENT_M = 0.05
 
 def _check_calibration(capture: Capture, masks_dir: Path) -> None:
     """Log how far each camera's silhouettes agree with the other cameras' through the calibration (epipolar
-    tangency, `stages.tangency`), warning about the cameras beyond `CALIBRATION_DISAGREEMENT_M`.
+    tangency, `stages.tangency`), warning about the cameras beyond `CALIBRATION_DISAGREEMENT_M`, and write the
+    figures for the report (`calibration_check.json` in the stage's folder).
 
     A calibration that does not fit the videos (two cameras' names swapped, a camera moved since it was
     calibrated) loads and runs like a sound one; the reconstruction then has little to carve and the track is
@@ -220,12 +222,17 @@ def _check_calibration(capture: Capture, masks_dir: Path) -> None:
     pairs = pair_medians(np.array(per_frame))
     off = cameras_at_fault(pairs, CALIBRATION_DISAGREEMENT_M)
     per_camera = camera_disagreement(pairs, ~off)
+    off |= per_camera > CALIBRATION_DISAGREEMENT_M  # too few cameras left to tell which of them is at fault
+    frames_io.write_json(calibration_check_path(masks_dir), {
+        "method": "epipolar tangency", "frames": frames, "limit_m": CALIBRATION_DISAGREEMENT_M,
+        "disagreement_m": {camera.name: float(value) if np.isfinite(value) else None
+                           for camera, value in zip(cameras, per_camera, strict=True)},
+        "at_fault": [camera.name for camera, bad in zip(cameras, off, strict=True) if bad]})
     if np.all(np.isnan(per_camera)):
         log.info("calibration check: no camera pair sees the whole subject on the %d frames checked", len(frames))
         return
     figures = ", ".join(f"{camera.name} {100 * value:.1f}" for camera, value in zip(cameras, per_camera, strict=True)
                         if np.isfinite(value))
-    off |= per_camera > CALIBRATION_DISAGREEMENT_M  # too few cameras left to tell which of them is at fault
     if not off.any():
         log.info("calibration check: every camera's silhouettes agree with the others' at the subject within "
                  "%.1f cm (epipolar tangency, median over %d frames; cm per camera: %s)",

@@ -11,6 +11,7 @@
     <out>/calibration/capture.json           fps, frames, volume, world transform, ... (the report and eval read it)
     <out>/silhouettes/<camera>/<frame>.png   masks
     <out>/silhouettes/background/<camera>.png, noise_floors.json
+    <out>/silhouettes/calibration_check.json the calibration checked against the silhouettes (per camera)
     <out>/reconstruction/<frame>.ply         points and normals
     <out>/tracking/frames/<frame>.json       estimate and tracker state
     <out>/export/joints.csv, quality.csv, joints.trc, motion.bvh, joints.c3d, angles.csv, overlay_<camera>.webm,
@@ -82,6 +83,11 @@ def noise_floors_path(stage_dir: Path) -> Path:
     return stage_dir / "background" / "noise_floors.json"
 
 
+def calibration_check_path(stage_dir: Path) -> Path:
+    """The silhouette stage's check of the calibration (JSON, `pipeline.graph._check_calibration`)."""
+    return stage_dir / "calibration_check.json"
+
+
 def observations_path(stage_dir: Path, frame: int) -> Path:
     """A frame's points and normals in the reconstruction stage's folder."""
     return stage_dir / frame_name(frame, ".ply")
@@ -133,6 +139,10 @@ class RunLayout:
 
     def background(self, camera: str) -> Path:
         return background_path(self.silhouettes_dir, camera)
+
+    @property
+    def calibration_check(self) -> Path:
+        return calibration_check_path(self.silhouettes_dir)
 
     def observations(self, frame: int) -> Path:
         return observations_path(self.stage_dir("reconstruction"), frame)

@@ -199,6 +199,7 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
               (overlay_stills(images, rig, run.estimate, run.truth) if rig is not None and images else [])}
     cameras = list(stills) or [str(name) for name in run.capture.get("cameras", []) or []]
     layout = RunLayout(run.out_dir)
+    check = _calibration_check(layout.calibration_check)
     rows = []
     for camera in cameras:
         frame = stills[camera][0] if camera in stills else None
@@ -216,7 +217,7 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
             figures += (f"<figure><video controls muted loop preload='metadata' src='{html.escape(video)}'></video>"
                         f"<figcaption><a href='{html.escape(video)}'>{html.escape(video)}</a></figcaption></figure>")
         if figures:
-            rows.append(f"<h3>{html.escape(camera)}</h3><div class='stills'>{figures}</div>")
+            rows.append(f"<h3>{html.escape(camera)}</h3>{_agreement(check, camera)}<div class='stills'>{figures}</div>")
     if not rows:
         return ""
     drawn = [what for what, sequence in (("estimate in colour (subject's left blue, right red)", run.estimate),
@@ -224,6 +225,29 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
              if sequence is not None and any(sequence.at(frame) is not None for frame, _ in stills.values())]
     legend = (", ".join(drawn) + ". ").capitalize() if drawn else ""
     return f"<h2>Cameras</h2><p class='note'>{legend}Silhouettes white on black.</p>" + "".join(rows)
+
+
+def _calibration_check(path: Path) -> dict | None:
+    """The silhouette stage's check of the calibration (`pipeline.graph._check_calibration`), or None when
+    absent or unreadable (a report never fails on it)."""
+    try:
+        check = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return check if isinstance(check, dict) and isinstance(check.get("disagreement_m"), dict) else None
+
+
+def _agreement(check: dict | None, camera: str) -> str:
+    """A note on how far the camera's silhouettes agree with the other cameras' through the calibration."""
+    value = check["disagreement_m"].get(camera) if check else None
+    if not isinstance(value, (int, float)):
+        return ""
+    if camera in (check.get("at_fault") or []):
+        return (f"<p class='note'>Calibration check: its silhouettes <strong>disagree</strong> with the other "
+                f"cameras' by {100 * value:.0f} cm at the subject: check this camera's calibration (names swapped "
+                "with another camera's, moved since it was calibrated).</p>")
+    return (f"<p class='note'>Calibration check: its silhouettes agree with the other cameras' within "
+            f"{100 * value:.1f} cm at the subject (epipolar tangency).</p>")
 
 
 def _timings_section(rows: list[dict]) -> str:
