@@ -36,10 +36,8 @@ def pair_disagreement(masks: Sequence[np.ndarray], cameras: Sequence[Camera], ce
 
     Parameters
     ----------
-    masks : sequence of (H, W) uint8
-        One silhouette per camera (0 = background), the cameras' image sizes.
-    cameras : sequence of Camera
-        World frame, metres.
+    masks, cameras : sequences of (H, W) uint8 and of Camera
+        As in `stages.consistency.consistent_silhouettes`: a silhouette per camera, cameras in metres.
     centre : (3,) float
         Where the subject is, roughly (the working volume's centre): it sets the side of each baseline the
         angles are measured from and the distance that turns them into lengths.
