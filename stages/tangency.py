@@ -39,9 +39,12 @@ def pair_disagreement(masks: Sequence[np.ndarray], cameras: Sequence[Camera], ce
     masks, cameras : sequences of (H, W) uint8 and of Camera
         As in `stages.consistency.consistent_silhouettes`: a silhouette per camera, cameras in metres.
     centre : (3,) float
-        Where the subject is, roughly (the working volume's centre): it sets the side of each baseline the
-        angles are measured from and the distance that turns them into lengths.
+        Where the subject is when the silhouettes cannot say (fewer than two views see him): the working
+        volume's centre. It sets the side of each baseline the angles are measured from and the distance that
+        turns them into lengths; the point nearest to the rays through the silhouettes' centroids is used
+        instead when there is one, since a subject far from the volume's centre would scale the lengths wrong.
     """
+    centre = _nearest_point(masks, cameras, centre)
     outlines = [_outline(mask) for mask in masks]
     rays = [camera.pixel_rays(points) if points is not None else None
             for camera, points in zip(cameras, outlines, strict=True)]
@@ -105,6 +108,23 @@ def _median_measured(values: np.ndarray) -> float:
     """The median of the values that are not NaN; NaN when there are none."""
     measured = values[~np.isnan(values)]
     return float(np.median(measured)) if len(measured) else np.nan
+
+
+def _nearest_point(masks: Sequence[np.ndarray], cameras: Sequence[Camera], fallback: np.ndarray) -> np.ndarray:
+    """(3,) the point nearest (least squares) to the rays through the centroids of the silhouettes that are
+    not empty, or ``fallback`` when fewer than two are."""
+    projector, target = np.zeros((3, 3)), np.zeros(3)
+    seen = 0
+    for camera, mask in zip(cameras, masks, strict=True):
+        moments = cv2.moments(np.ascontiguousarray(mask, dtype=np.uint8), binaryImage=True)
+        if moments["m00"] == 0:
+            continue
+        direction = camera.pixel_rays([[moments["m10"] / moments["m00"], moments["m01"] / moments["m00"]]])[0]
+        across = np.eye(3) - np.outer(direction, direction)  # distance to the ray: |(I − d dᵀ)(x − o)|
+        projector += across
+        target += across @ camera.centre
+        seen += 1
+    return np.linalg.lstsq(projector, target, rcond=None)[0] if seen >= 2 else np.asarray(fallback, dtype=float)
 
 
 def _outline(mask: np.ndarray) -> np.ndarray | None:
