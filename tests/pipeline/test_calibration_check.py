@@ -4,9 +4,17 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
+import cv2
+import numpy as np
+
+from calib.camera import Rig
 from pipeline.cli import main
+from pipeline.graph import _check_calibration
+from pipeline.io.capture import Capture
 
 TINY = Path(__file__).resolve().parents[2] / "data_samples" / "tiny"
 
@@ -43,3 +51,18 @@ def test_a_sound_calibration_passes_the_check_quietly(tmp_path, capfd):
     assert "disagree" not in err
     check = json.loads((tmp_path / "out" / "silhouettes" / "calibration_check.json").read_text())
     assert check["at_fault"] == [] and all(value < 0.05 for value in check["disagreement_m"].values())
+
+
+def test_with_two_cameras_a_disagreement_names_both(tmp_path, capfd):
+    # Two cameras cannot say which of them is off: a disagreement names both, rather than passing.
+    out = tmp_path / "out"
+    assert main(["run", str(TINY), "--out", str(out), "--to", "silhouettes", "-q"]) == 0
+    capture = Capture.open(TINY)
+    first, second = capture.rig["cam1"], capture.rig["cam3"]
+    turn, _ = cv2.Rodrigues(np.radians(3.0) * np.array([0.0, 0.6, 0.8]))
+    turned = replace(second, R=turn @ second.R, t=-(turn @ second.R) @ second.centre)
+    pair = SimpleNamespace(rig=Rig((first, turned)), frame_numbers=capture.frame_numbers, volume=capture.volume)
+    capfd.readouterr()
+    _check_calibration(pair, out / "silhouettes")  # the run's terminal handler prints the log
+    err = capfd.readouterr().err
+    assert "WARNING pipeline.graph: calibration check: the silhouettes of cam1 (" in err and "), cam3 (" in err
