@@ -244,7 +244,8 @@ def _check_calibration(capture: Capture, masks_dir: Path) -> None:
     agree = f"; the others agree within {100 * others.max():.1f} cm" if len(others) else ""
     log.warning("calibration check: the silhouettes of %s disagree with the other cameras' at the subject "
                 "(epipolar tangency, median over %d frames%s): check their calibration (two cameras' names "
-                "swapped, a camera moved since it was calibrated)", named, len(frames), agree)
+                "swapped, a camera moved since it was calibrated), then their silhouettes (something that only "
+                "they see, in every frame)", named, len(frames), agree)
 
 
 def video_chunk_size(pending: int, workers: int) -> int:

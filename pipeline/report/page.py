@@ -245,7 +245,8 @@ def _agreement(check: dict | None, camera: str) -> str:
     if camera in (check.get("at_fault") or []):
         return (f"<p class='note'>Calibration check: its silhouettes <strong>disagree</strong> with the other "
                 f"cameras' by {100 * value:.0f} cm at the subject: check this camera's calibration (names swapped "
-                "with another camera's, moved since it was calibrated).</p>")
+                "with another camera's, moved since it was calibrated), then its silhouettes (something only it "
+                "sees, in every frame).</p>")
     return (f"<p class='note'>Calibration check: its silhouettes agree with the other cameras' within "
             f"{100 * value:.1f} cm at the subject (epipolar tangency).</p>")
 
