@@ -221,8 +221,7 @@ def _check_calibration(capture: Capture, masks_dir: Path) -> None:
                  for frame in frames]
     pairs = pair_medians(np.array(per_frame))
     off = cameras_at_fault(pairs, CALIBRATION_DISAGREEMENT_M)
-    per_camera = camera_disagreement(pairs, ~off)
-    off |= per_camera > CALIBRATION_DISAGREEMENT_M  # too few cameras left to tell which of them is at fault
+    per_camera = camera_disagreement(pairs, ~off if (~off).any() else None)  # all at fault: against each other
     frames_io.write_json(calibration_check_path(masks_dir), {
         "method": "epipolar tangency", "frames": frames, "limit_m": CALIBRATION_DISAGREEMENT_M,
         "disagreement_m": {camera.name: float(value) if np.isfinite(value) else None

@@ -1,4 +1,5 @@
-"""Where rays cross the working volume: geometry that both the silhouette and the reconstruction stages use.
+"""Where rays cross the working volume, and the point nearest to a set of rays: geometry that the silhouette and
+the reconstruction stages and the pipeline's reading of a capture share.
 
 It has a module of its own, outside :mod:`stages.reconstruction`, because the silhouette workers' multi-view
 check (:mod:`stages.consistency`) needs it too, and importing the reconstruction package brings scipy along.
@@ -30,3 +31,18 @@ def box_interval(
     # The three slabs column by column: max/min over rows of three are slow reductions, same result.
     return (np.maximum(np.maximum(np.maximum(t_near[:, 0], t_near[:, 1]), t_near[:, 2]), 0.0),
             np.minimum(np.minimum(t_far[:, 0], t_far[:, 1]), t_far[:, 2]))
+
+
+def nearest_point(origins: np.ndarray, directions: np.ndarray) -> np.ndarray | None:
+    """(3,) the point nearest to the lines ``origins + t directions`` (N, 3) in least squares, or None when the
+    lines are (nearly) parallel and no one point is nearest.
+
+    Minimises ``sum_i |(I - d_i d_i^T)(p - o_i)|^2`` over p, with ``d_i`` the unit directions.
+    """
+    directions = np.asarray(directions, dtype=float)
+    directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]  # (N, 3, 3)
+    normal = projectors.sum(axis=0)
+    if np.linalg.cond(normal) > 1e8:
+        return None
+    return np.linalg.solve(normal, np.einsum("nij,nj->i", projectors, np.asarray(origins, dtype=float)))

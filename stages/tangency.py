@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from calib.camera import Camera
+from stages.rays import nearest_point
 
 #: A pair whose planes through the silhouette span more than this has its baseline through the person.
 MAX_SPAN_RAD = np.radians(150.0)
@@ -90,18 +91,20 @@ def cameras_at_fault(pairs: np.ndarray, limit: float) -> np.ndarray:
     While some camera's disagreement with the cameras still trusted exceeds ``limit``, the camera that disagrees
     most on average with them is set aside, and the others are judged again without it. A median over each
     camera's pairs alone would blame every camera of a four-camera rig with two cameras swapped: each sound
-    camera disagrees with two of its three partners, while a swapped one disagrees with all three.
+    camera disagrees with two of its three partners, while a swapped one disagrees with all three. Two cameras
+    that disagree cannot say which of them is off: both are at fault.
     """
     trusted = np.ones(len(pairs), dtype=bool)
-    while trusted.sum() > 2:
-        disagreement = np.where(trusted, camera_disagreement(pairs, trusted), np.nan)
-        if np.all(np.isnan(disagreement)) or np.nanmax(disagreement) <= limit:
-            break
+    while True:
+        beyond = trusted & (camera_disagreement(pairs, trusted) > limit)  # NaN (not measured) is not beyond
+        if not beyond.any():
+            return ~trusted
+        if trusted.sum() <= 2:
+            return ~trusted | beyond
         others = trusted[None, :] & ~np.eye(len(pairs), dtype=bool)
-        mean = np.array([np.nanmean(row[keep]) if trusted[camera] and np.any(~np.isnan(row[keep])) else -np.inf
-                         for camera, (row, keep) in enumerate(zip(pairs, others, strict=True))])
-        trusted[np.argmax(mean)] = False
-    return ~trusted
+        mean = [np.nanmean(row[keep]) if trusted[camera] and np.any(~np.isnan(row[keep])) else -np.inf
+                for camera, (row, keep) in enumerate(zip(pairs, others, strict=True))]
+        trusted[int(np.argmax(mean))] = False
 
 
 def _median_measured(values: np.ndarray) -> float:
@@ -111,20 +114,17 @@ def _median_measured(values: np.ndarray) -> float:
 
 
 def _nearest_point(masks: Sequence[np.ndarray], cameras: Sequence[Camera], fallback: np.ndarray) -> np.ndarray:
-    """(3,) the point nearest (least squares) to the rays through the centroids of the silhouettes that are
-    not empty, or ``fallback`` when fewer than two are."""
-    projector, target = np.zeros((3, 3)), np.zeros(3)
-    seen = 0
+    """(3,) the point nearest to the rays through the centroids of the silhouettes that are not empty, or
+    ``fallback`` when fewer than two are (or their rays are parallel)."""
+    origins, directions = [], []
     for camera, mask in zip(cameras, masks, strict=True):
         moments = cv2.moments(np.ascontiguousarray(mask, dtype=np.uint8), binaryImage=True)
-        if moments["m00"] == 0:
-            continue
-        direction = camera.pixel_rays([[moments["m10"] / moments["m00"], moments["m01"] / moments["m00"]]])[0]
-        across = np.eye(3) - np.outer(direction, direction)  # distance to the ray: |(I − d dᵀ)(x − o)|
-        projector += across
-        target += across @ camera.centre
-        seen += 1
-    return np.linalg.lstsq(projector, target, rcond=None)[0] if seen >= 2 else np.asarray(fallback, dtype=float)
+        if moments["m00"] > 0:
+            centroid = [moments["m10"] / moments["m00"], moments["m01"] / moments["m00"]]
+            origins.append(camera.centre)
+            directions.append(camera.pixel_rays([centroid])[0])
+    nearest = nearest_point(np.array(origins), np.array(directions)) if len(origins) >= 2 else None
+    return np.asarray(fallback, dtype=float) if nearest is None else nearest
 
 
 def _outline(mask: np.ndarray) -> np.ndarray | None:

@@ -33,6 +33,7 @@ from calib.camera import Rig
 from calib.errors import InputError
 from calib.world import WorldTransform, level_rotation, rig_vertical
 from pipeline.io.backgrounds import background_image, spread_frames
+from stages.rays import nearest_point
 from stages.silhouettes import SilhouetteParams, extract_silhouette
 
 if TYPE_CHECKING:
@@ -112,17 +113,10 @@ class AutoFrame:
 
 
 def aim_point(rig: Rig) -> np.ndarray:
-    """(3,) the point nearest to all the cameras' optical axes (least squares): where they look.
-
-    Minimises ``sum_i |(I - d_i d_i^T)(p - c_i)|^2`` over p, with ``c_i`` the centre and ``d_i`` the
-    axis (row 2 of R) of camera i. With one camera, or axes all parallel, the point 3 m in front of
-    the first camera.
-    """
-    projectors = np.array([np.eye(3) - np.outer(camera.R[2], camera.R[2]) for camera in rig])  # (C, 3, 3)
-    normal = projectors.sum(axis=0)
-    if np.linalg.cond(normal) > 1e8:
-        return rig[0].centre + 3.0 * rig[0].R[2]
-    return np.linalg.solve(normal, np.einsum("cij,cj->i", projectors, rig.centres))
+    """(3,) the point nearest to all the cameras' optical axes (`stages.rays.nearest_point`): where they look.
+    With one camera, or axes all parallel, the point 3 m in front of the first camera."""
+    aim = nearest_point(rig.centres, np.array([camera.R[2] for camera in rig]))
+    return rig[0].centre + 3.0 * rig[0].R[2] if aim is None else aim
 
 
 def view_indices(rig: Rig, X: np.ndarray) -> np.ndarray:

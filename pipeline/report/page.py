@@ -32,9 +32,10 @@ import cv2
 import numpy as np
 
 from calib.camera import Rig
+from calib.errors import InputError
 from pipeline.engine.run_warnings import WARNINGS_FILE
 from pipeline.evaluate import format_metrics
-from pipeline.io import atomic
+from pipeline.io import atomic, frames_io
 from pipeline.io.run_layout import ANGLES_FILE, RunLayout, overlay_video_name
 from pipeline.report.figures import (
     THUMB_WIDTH,
@@ -231,8 +232,8 @@ def _calibration_check(path: Path) -> dict | None:
     """The silhouette stage's check of the calibration (`pipeline.graph._check_calibration`), or None when
     absent or unreadable (a report never fails on it)."""
     try:
-        check = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        check = frames_io.read_json(path)
+    except (OSError, InputError):
         return None
     return check if isinstance(check, dict) and isinstance(check.get("disagreement_m"), dict) else None
 

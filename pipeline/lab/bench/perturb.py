@@ -49,11 +49,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
 from calib.camera import Camera, Rig
 from calib.errors import InputError
 from calib.formats import load_rig, save_rig
+from pipeline.io.capture import Capture
 
 # What each change does to a frame (float32 8-bit levels, BGR), given a random generator and the camera's index.
 Change = Callable[[np.ndarray, np.random.Generator, int], np.ndarray]
@@ -130,7 +130,6 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         if (capture / "videos").is_dir() else []
     if not videos:
         raise InputError(f"{capture}: no videos/ folder with videos (only captures of videos can be perturbed)")
-    everyone = videos
     if cameras:
         unknown = sorted(set(cameras) - {video.stem for video in videos})
         if unknown:
@@ -144,7 +143,7 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     (partial / "videos").mkdir(parents=True)
     shutil.copy2(capture / "capture.yaml", partial / "capture.yaml")
     if cameras or calibration_error_deg:
-        _rewrite_calibration(capture, partial, everyone, {video.stem for video in videos}, calibration_error_deg,
+        _rewrite_calibration(Capture.open(capture), partial, {video.stem for video in videos}, calibration_error_deg,
                              np.random.default_rng([seed, 1]))  # its own draws: the frames' stay as without it
     elif (capture / "calibration").is_dir():
         shutil.copytree(capture / "calibration", partial / "calibration")
@@ -169,18 +168,14 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     return out
 
 
-def _rewrite_calibration(capture: Path, copy: Path, videos: list[Path], kept: set[str], error_deg: float,
+def _rewrite_calibration(source: Capture, copy: Path, kept: set[str], error_deg: float,
                          rng: np.random.Generator) -> None:
-    """The capture's calibration written into ``copy`` with only the ``kept`` cameras, each turned by ``error_deg``
-    (:func:`_turned`): read as the file states it (image sizes from all the ``videos``) and saved in the same format
-    at the same place, so that its units and up axis stay as capture.yaml says."""
-    calibration = yaml.safe_load((capture / "capture.yaml").read_text())["calibration"]
-    sizes = {}
-    for video in videos:
-        reader = cv2.VideoCapture(str(video))
-        sizes[video.stem] = (int(reader.get(cv2.CAP_PROP_FRAME_WIDTH)), int(reader.get(cv2.CAP_PROP_FRAME_HEIGHT)))
-        reader.release()
-    rig = load_rig(calibration["format"], capture / calibration["path"], image_sizes=sizes)
+    """The ``source`` capture's calibration written into ``copy`` with only the ``kept`` cameras, each turned by
+    ``error_deg`` (:func:`_turned`): read as the file states it (image sizes from the media) and saved in the same
+    format at the same place, so that its units and up axis stay as capture.yaml says."""
+    calibration = source.config["calibration"]
+    rig = load_rig(calibration["format"], source.root / calibration["path"],
+                   image_sizes={camera.name: camera.size for camera in source.rig})
     save_rig(Rig(tuple(_turned(camera, error_deg, rng) for camera in rig if camera.name in kept)),
              calibration["format"], copy / calibration["path"])
 

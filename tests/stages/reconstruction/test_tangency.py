@@ -48,9 +48,7 @@ def test_a_camera_turned_since_its_calibration_is_the_one_at_fault(scene):
 def test_a_view_cut_by_its_border_or_empty_is_not_measured(scene):
     cameras, masks = scene
     cut, empty = masks[0].copy(), np.zeros_like(masks[1])
-    cut[:, : np.flatnonzero(cut.any(axis=0))[0] + 5] = 0
-    cut[:, : np.flatnonzero(cut.any(axis=0))[0] + 1] = 255  # the silhouette reaches the image's left border
-    cut[:, 0] = 255
+    cut[cut.any(axis=1), : cut.any(axis=0).argmax() + 1] = 255  # the silhouette stretched to the left border
     disagreement = pair_disagreement([cut, empty, *masks[2:]], cameras, VOLUME.mean(axis=0))
     assert np.all(np.isnan(disagreement[:2])) and np.all(np.isnan(disagreement[:, :2]))
     assert not np.isnan(disagreement[2:, 2:][~np.eye(4, dtype=bool)]).any()
@@ -65,3 +63,7 @@ def test_the_worst_cameras_are_set_aside_until_the_others_agree():
     np.fill_diagonal(pairs, np.nan)
     assert np.all(camera_disagreement(pairs)[[0, 2]] > 0.05)  # the plain median blames every camera
     assert cameras_at_fault(pairs, 0.05).tolist() == [False, True, False, True]
+    # Two cameras that disagree cannot say which of them is off; two that agree are both sound.
+    two = np.array([[np.nan, 0.2], [0.2, np.nan]])
+    assert cameras_at_fault(two, 0.05).tolist() == [True, True]
+    assert cameras_at_fault(two / 100, 0.05).tolist() == [False, False]
