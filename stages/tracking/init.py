@@ -88,7 +88,8 @@ class InitResult:
 
 def initialise(y: np.ndarray, n: np.ndarray, body: BodyModel, volume: np.ndarray, candidates: np.ndarray,
                *, estimate_height: bool, params: InitParams = InitParams(),
-               em: EMParams | None = None, rng: np.random.Generator | None = None) -> InitResult:
+               em: EMParams | None = None, rng: np.random.Generator | None = None,
+               facing: float | None = None) -> InitResult:
     """Find the pose (and height) from one frame's points y (I, 3) and normals n (I, 3).
 
     Parameters
@@ -101,6 +102,9 @@ def initialise(y: np.ndarray, n: np.ndarray, body: BodyModel, volume: np.ndarray
         Library poses for this body (`load_pose_library`).
     estimate_height : bool
         Also estimate the body's height (from the cloud's top, then by EM).
+    facing : float, optional
+        A heading (yaw, radians) the subject is known to face roughly: the headings tried are then spread
+        over the half-turn centred on it instead of the whole turn.
     """
     rng = np.random.default_rng(0) if rng is None else rng
     em = EMParams() if em is None else em
@@ -118,7 +122,8 @@ def initialise(y: np.ndarray, n: np.ndarray, body: BodyModel, volume: np.ndarray
         pose[2] *= height
         bodies.append(body.scaled(height))
         poses.append(pose)
-    yaws = np.linspace(0.0, 2 * np.pi, params.headings, endpoint=False)
+    yaws = np.linspace(0.0, 2 * np.pi, params.headings, endpoint=False) if facing is None else \
+        facing + np.linspace(-np.pi / 2, np.pi / 2, params.headings // 2 + 1)
     mixture = Mixture.initial(body.n_ellipsoids, SCORE_SIGMA_M, distance_named(em.distance).size)
     scored = sample[: params.score_points]
     scores = _screened_scores(y[scored], n[scored], centre, bodies, poses, yaws, mixture, V, em.distance,

@@ -22,6 +22,9 @@ is handled here:
   and the better of the two fits (by likelihood) is kept; a frame that was fitted is never dropped:
   when both fail the checks, the better one is the estimate, flagged `doubtful`; after a doubtful
   initialisation the next frame tracks from it and weighs a fresh initialisation against that fit;
+  a re-initialisation that turns the subject around (more than a quarter-turn from the track) must beat a
+  search over the track's half-turn clearly: the data alone cannot tell which way a pose symmetric front
+  to back faces;
 - a limb that explains far fewer data than its mirror limb (an arm put on the wrong side of the
   body), or than it did over the recent tracked frames (a forearm folded onto its upper arm or
   turned away from its data, which may still explain as many data as its mirror), or that has folded
@@ -338,6 +341,12 @@ class Tracker:
         frame's re-check. A re-check is not widened: it has the tracked fit to fall back on, and widened there it
         traded captures against each other (both measured in docs/results_by_hand.md).
 
+        A re-check whose search faces the subject more than a quarter-turn away from the track (`turned_around`)
+        is weighed against a search over the track's half-turn (`init.initialise`'s `facing`), which is kept
+        unless the turned one is likelier by `InitParams.finalist_margin` per observation: a body turned around
+        with left and right exchanged covers the same space as one facing the right way whenever the pose is
+        close to symmetric front to back, and a tracked fit gone astray for a few frames scored below it.
+
         A doubtful initialisation is still the best pose the data gave: the next frame tracks from it (at
         rest) and tries a fresh initialisation against that fit, keeping the likelier (`recheck`). Starting
         every such frame from scratch threw the track away: on imperfect data the initialisations of
@@ -366,6 +375,11 @@ class Tracker:
                                rng=np.random.default_rng(params.seed))
             if wider.fit.log_likelihood[-1] > init.fit.log_likelihood[-1]:
                 init = wider
+        if not alone and turned_around(init.pose, state.pose):
+            facing = initialise(y, n, body, self.volume, self.library, estimate_height=search_size, em=params.em,
+                                params=params.init, rng=np.random.default_rng(params.seed), facing=state.pose[3])
+            if init.fit.log_likelihood[-1] < facing.fit.log_likelihood[-1] + params.init.finalist_margin * len(y):
+                init = facing
         fitted = init.fit
         em = replace(params.em, estimate_scale=search_size)
         for limb in self.limbs:
@@ -435,6 +449,17 @@ def joint_support(body: BodyModel, mixture: Mixture, n_observations: int) -> np.
     at_centre = np.all(np.abs(body.joint_offset) < _AT_JOINT_CENTRE_M, axis=1) & (body.parent[segment] >= 0)
     placing = np.where(at_centre, body.parent[segment], segment)
     return n_observations * segment_shares(body, mixture)[placing]
+
+
+def turned_around(pose: np.ndarray, previous: np.ndarray) -> bool:
+    """Whether `pose` faces more than a quarter-turn away from `previous` (their yaws, `pose[3]`).
+
+    A subject does not turn that far between two frames, while a body turned around with left and right
+    exchanged covers much the same space as the body facing the right way whenever the pose is close to
+    symmetric front to back (a wide stance, arms by the sides): its fit can then score as well, or better
+    than a tracked fit gone slightly astray.
+    """
+    return bool(abs(np.angle(np.exp(1j * (pose[3] - previous[3])))) > np.pi / 2)
 
 
 def _worse_than_usual(result: FitResult, observations: int, state: TrackerState, params: TrackerParams) -> bool:

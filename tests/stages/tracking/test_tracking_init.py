@@ -265,3 +265,23 @@ def test_legs_that_took_each_other_s_data_are_exchanged_back():
     back = swap_limbs(y, n, crossed, legs, VOLUME, EMParams())
     assert error(back) < 0.01
     assert swap_limbs(y, n, back, legs, VOLUME, EMParams()) is back
+
+
+def test_a_pose_symmetric_front_to_back_is_found_turned_around_as_well_and_a_facing_keeps_it_the_right_way():
+    """Arms and legs spread sideways: the body turned around with left and right exchanged covers the same space,
+    so the data alone cannot say which way the subject faces; told a facing, the search keeps within its
+    half-turn."""
+    body = load_body("default")
+    rng = np.random.default_rng(31)
+    truth = _pose(body, 2.0, {"l_upperarm.abduct": 80, "r_upperarm.abduct": 80, "l_thigh.abduct": 20,
+                              "r_thigh.abduct": 20})
+    y, n = sample_ellipsoids(body, truth, 1000, rng, outlier_fraction=0.2)
+    joints = body.joint_positions(truth)
+    exchanged_sides = joints[[JOINT_NAMES.index(name.replace("l_", "#").replace("r_", "l_").replace("#", "r_"))
+                              for name in JOINT_NAMES]]
+    for facing, expected in ((2.0, joints), (2.0 + np.pi, exchanged_sides)):
+        result = initialise(y, n, body, VOLUME, load_pose_library(body), estimate_height=False,
+                            params=InitParams(headings=8), facing=facing)
+        assert abs(np.angle(np.exp(1j * (result.pose[3] - facing)))) < np.pi / 2
+        error = np.linalg.norm(body.joint_positions(result.pose) - expected, axis=1)
+        assert np.median(error) < 0.04  # metres
