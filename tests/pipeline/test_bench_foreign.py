@@ -126,3 +126,10 @@ def test_rows_without_a_timing_keep_their_error_and_get_no_tracker_time(monkeypa
     rows = foreign.with_tracking([{"capture": "ok"}, {"capture": "broken", "error": "boom"}],
                                  [foreign.TrackerTiming(tmp_path, None, (0,)), None])
     assert rows == [{"capture": "ok", "tracker_ms_per_frame": 12.0}, {"capture": "broken", "error": "boom"}]
+
+
+def test_without_true_masks_there_is_no_second_look_with_them(tmp_path):
+    _evaluated_run(tmp_path)  # a run with no silhouettes, a capture with no masks
+    (tmp_path / "out" / "silhouettes" / "cam_a").mkdir(parents=True)
+    row = foreign.true_masks_row(tmp_path / "capture", tmp_path / "out", tmp_path / "copy", workers=1)
+    assert row == {"mpjpe_true_masks_mm": None, "worst_true_masks_mm": None} and not (tmp_path / "copy").exists()

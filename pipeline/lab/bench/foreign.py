@@ -13,6 +13,11 @@ track went, not only how far off it ended: the count of each frame status and th
 re-initialised after the first (a track that keeps restarting can still score a fair MPJPE). Every run is
 fresh, so its wall time gives the end-to-end frame rate, video decoding included.
 
+Each scored run is also reconstructed and tracked again with the capture's true masks in place of its silhouettes
+(:func:`true_masks_row`, in ``<out>/foreign/<name>-true-masks/``): the tracker's error on perfect silhouettes, apart
+from what the silhouette stage costs. A tracker that degrades gracefully does no worse there; a capture that does
+shows a weakness of the tracker itself (it showed a re-initialisation facing the subject backwards).
+
 The tracker's own time is measured apart, after every run (:func:`~pipeline.lab.bench.speed.tracker_speed` over
 each run's observations, in this process, in passes that take the runs in turn: :func:`tracker_ms`): the tracking
 stage streams alongside the reconstruction, so its manifest time is mostly waiting. It is judged relative to
@@ -23,6 +28,8 @@ run through the same path into ``<out>/foreign-reference/taekwondo/``.
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +39,7 @@ from pipeline.evaluate import evaluate_run
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
 from pipeline.io.run_layout import RunLayout
-from pipeline.lab.bench.runs import REPO, run_pipeline
+from pipeline.lab.bench.runs import REPO, run_command, run_pipeline
 from pipeline.lab.bench.speed import prefix_view, tracker_speed
 from pipeline.lab.bench.suite import SuiteSkipped
 from pipeline.lab.bench.unseen import score_row
@@ -150,9 +157,36 @@ def run_capture(name: str, capture: Path, run_dir: Path, *, workers: int) -> tup
         return row, None
     try:
         row |= foreign_scores(evaluate_run(run_dir, truth=capture / "groundtruth" / "joints.csv"))
+        row |= true_masks_row(capture, run_dir, run_dir.parent / f"{run_dir.name}-true-masks", workers=workers)
     except (InputError, OSError) as error:
         return row | {"error": str(error)}, None
     return row, TrackerTiming(run_dir, opened, tuple(frames))
+
+
+def true_masks_row(capture: Path, run_dir: Path, copy_dir: Path, *, workers: int) -> dict:
+    """``mpjpe_true_masks_mm`` and ``worst_true_masks_mm`` of the run ``run_dir`` reconstructed and tracked again
+    in ``copy_dir`` (made afresh) with ``<capture>/groundtruth/masks/<camera>/`` copied over its silhouettes; None
+    each when the capture has no true masks for every silhouette, or the run fails (its log: ``<copy_dir>.log``).
+    """
+    masks = capture / "groundtruth" / "masks"
+    silhouettes = RunLayout(run_dir).silhouettes_dir
+    cameras = sorted(path for path in silhouettes.iterdir() if path.is_dir() and path.name != "background")
+    pairs = [(masks / camera.name / image.name, image.relative_to(run_dir))
+             for camera in cameras for image in sorted(camera.glob("*.png"))]
+    none = {"mpjpe_true_masks_mm": None, "worst_true_masks_mm": None}
+    if not pairs or not all(source.is_file() for source, _ in pairs):
+        return none
+    shutil.rmtree(copy_dir, ignore_errors=True)
+    shutil.copytree(run_dir, copy_dir)
+    for source, target in pairs:
+        shutil.copyfile(source, copy_dir / target)
+    with open(copy_dir.parent / f"{copy_dir.name}.log", "w") as log:
+        done = subprocess.run([*run_command(capture, copy_dir, workers), "--from", "reconstruction", "--force"],
+                              cwd=REPO, stdout=log, stderr=subprocess.STDOUT, check=False)
+    if done.returncode != 0:
+        return none
+    scores = score_row(evaluate_run(copy_dir, truth=capture / "groundtruth" / "joints.csv"))
+    return {"mpjpe_true_masks_mm": scores["mpjpe_mm"], "worst_true_masks_mm": scores["worst_frame_mm"]}
 
 
 def with_tracking(rows: Sequence[dict], timings: Sequence[TrackerTiming | None]) -> list[dict]:

@@ -116,7 +116,8 @@ def format_unseen(unseen: dict) -> str:
 
 FOREIGN_COLUMNS = (("capture", "capture"), ("cams", "cameras"), ("size", "size"), ("frames", "frames"),
                    ("estimated", "fraction_estimated"), ("MPJPE mm", "mpjpe_mm"), ("worst mm", "worst_frame_mm"),
-                   ("sil. IoU median", "silhouette_iou_median"), ("end to end fps", "fps_end_to_end"),
+                   ("sil. IoU median", "silhouette_iou_median"), ("MPJPE true masks mm", "mpjpe_true_masks_mm"),
+                   ("worst true masks mm", "worst_true_masks_mm"), ("end to end fps", "fps_end_to_end"),
                    ("tracker ms/frame", "tracker_ms_per_frame"),
                    ("× ref.", "tracker_vs_reference"), ("tracked", "tracked"), ("initialised", "initialised"),
                    ("predicted", "predicted"), ("lost", "lost"), ("doubtful", "doubtful"),
@@ -235,7 +236,9 @@ FOREIGN_NOTES = (
     "captures owes to familiarity. Each is processed by `python -m pipeline run` (2 workers) and scored by "
     "`pipeline.evaluate.evaluate_run` against its `groundtruth/joints.csv`: frames estimated / frames, MPJPE over "
     "the 15 scored joints, the worst frame's MPJPE, and the median IoU of the silhouette stage's masks with "
-    "`groundtruth/masks/` over all frames and cameras. Every run is fresh: fps is frames over the run's wall time, "
+    "`groundtruth/masks/` over all frames and cameras; then MPJPE and worst frame again with those true masks "
+    "copied over the run's silhouettes and the run redone from the reconstruction (`--from reconstruction`): "
+    "what the tracker makes of perfect silhouettes. Every run is fresh: fps is frames over the run's wall time, "
     "video decoding included. The tracker's milliseconds per frame are its own, every frame included, timed "
     "again in the bench's process on the run's observations after every run (in CPU time, the fastest of three "
     "passes, each taking every capture and the reference in turn, so that a slow spell of the machine falls on "
