@@ -1,9 +1,10 @@
 """Inside-the-silhouette tests and ray geometry shared by the visual hull and the visual shape.
 
 A world point is *inside* a view when it lies in front of the camera, projects into the image and
-lands on a foreground pixel. A point outside the image counts as outside the silhouette: the working
-volume is meant to be seen by every camera, and a camera that misses part of the person is one of the
-``tolerated_views`` that may disagree.
+lands on a foreground pixel. A point in front of the camera that projects outside the image counts as
+outside the silhouette, unless the image's border cuts the silhouette (:func:`cut_by_border`): a camera
+that frames the whole person says where he is not, also beyond its image, while one that cuts him off (his
+feet below its image, a raised arm beside it) cannot veto what it does not see.
 """
 
 from __future__ import annotations
@@ -15,11 +16,23 @@ import numpy as np
 from calib.camera import MIN_VIEW_DEPTH_M, Camera
 
 
-def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[int, int] = (0, 0)) -> np.ndarray:
+def cut_by_border(mask: np.ndarray) -> bool:
+    """Whether the silhouette ``mask`` (H, W) reaches the image's border: the person goes on beyond it.
+
+    A body is one piece, so a silhouette that does not reach the border shows all of it: a view cuts the
+    person off exactly when his silhouette meets the border.
+    """
+    return bool(mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
+
+
+def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[int, int] = (0, 0),
+                off_image: bool = False) -> np.ndarray:
     """(N,) bool: which world points ``X`` (3, N) float32 are inside the view of ``camera`` with ``mask``.
 
     ``mask`` (h, w) may be a box of the image starting at pixel ``corner`` (column, row), outside which the
-    silhouette is background: a box around the person keeps the pixel lookups in cache.
+    silhouette is background: a box around the person keeps the pixel lookups in cache. ``off_image`` is the
+    answer for points in front of the camera that project outside its image: True for a view whose
+    silhouette the border cuts (:func:`cut_by_border`).
 
     Points are stored by coordinate (3, N) so that picking a subset gathers three contiguous rows, and
     in float32, which keeps millimetre precision at these distances while halving the memory traffic.
@@ -30,12 +43,13 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[i
     if X.shape[1] == 1:
         # BLAS multiplies a single column differently (gemv, not gemm), last bits included: tested as a pair,
         # a point gets the same answer whichever points it is tested with.
-        return inside_view(camera, mask, np.repeat(X, 2, axis=1), corner)[:1]
+        return inside_view(camera, mask, np.repeat(X, 2, axis=1), corner, off_image)[:1]
     R, t, dist, focal, centre, skew = _float32_camera(camera)
     xyz = R @ X
     xyz += t[:, None]
     z, xy = xyz[2], xyz[:2]
-    seen = z > MIN_VIEW_DEPTH_M
+    front = z > MIN_VIEW_DEPTH_M
+    seen = front.copy()
     inverse_z = np.where(seen, z, np.float32(1.0))
     xy *= np.divide(np.float32(1.0), inverse_z, out=inverse_z)
     if dist is not None:
@@ -71,7 +85,11 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[i
     row += column
     row -= left
     # Unseen points' indices are meaningless: clipped into the mask, their pixels are read and ignored.
-    return seen & (mask.ravel().take(row, mode="clip") > 0)
+    inside = seen & (mask.ravel().take(row, mode="clip") > 0)
+    if off_image:
+        in_image = (xy >= 0.0) & (xy < np.array([[camera.size[0]], [camera.size[1]]], np.float32))
+        inside |= front & ~(in_image[0] & in_image[1])
+    return inside
 
 
 @functools.lru_cache(maxsize=64)

@@ -4,10 +4,11 @@ Rather than a binary occupancy, every voxel centre X gets a signed distance to t
 
     φ(X) = the (k+1)-th smallest over views c of  s_c(π_c(X)) · depth_c(X) / f_c,
 
-where s_c is the signed distance (pixels, positive inside) of the projection to silhouette c's outline,
-scaled to metres at the point's depth, and k is the number of tolerated disagreeing views (k = 0 gives
-the plain hull, the minimum over views). Marching cubes on φ then places the surface between voxel
-centres, and the gradient of φ gives outward normals.
+where s_c is the signed distance (pixels, positive inside) of the projection to silhouette c's outline
+(off the image: far outside, or far inside for a view whose silhouette the image's border cuts, which cannot
+veto what it does not see: `views.cut_by_border`), scaled to metres at the point's depth, and k is the number
+of tolerated disagreeing views (k = 0 gives the plain hull, the minimum over views). Marching cubes on φ then
+places the surface between voxel centres, and the gradient of φ gives outward normals.
 
 Coarse to fine: φ is first evaluated on coarse voxels; a voxel whose |φ| exceeds twice its half
 diagonal cannot contain the surface (φ changes by little more than the distance moved), so only the
@@ -23,13 +24,15 @@ import numpy as np
 from skimage.measure import marching_cubes
 
 from calib.camera import MIN_VIEW_DEPTH_M, Camera, Rig
+from stages.reconstruction.views import cut_by_border
 
 # A voxel is refined when |φ| at its centre is below this many half diagonals: φ measures distance in
 # the image plane at the point's depth, which grows a little faster than 3-D distance off the optical axis.
 BAND_FACTOR = 2.0
 # φ (metres) of points outside an image or behind a camera: far outside any silhouette.
 FAR_OUTSIDE_M = 10.0
-# Signed distance (pixels) reported off the image: further outside than any real outline distance.
+# Signed distance (pixels) reported off the image: further than any real outline distance (outside, or inside
+# for a view cut by the image's border).
 OFF_IMAGE_PX = 1e5
 REMAP_ROW = 1024
 
@@ -47,12 +50,13 @@ def hull_surface_points(
     """Points (N, 3) on the visual hull's surface and unit outward normals (N, 3), N <= ``n_observations``."""
     cameras = list(rig)
     distance_maps = [_signed_distance_px(mask) for mask in masks]
+    off_image_px = [OFF_IMAGE_PX if cut_by_border(mask) else -OFF_IMAGE_PX for mask in masks]
     levels = max(0, int(np.ceil(np.log2(coarse_voxel_size_m / voxel_size_m))))
     block = 2**levels
     cells = np.ceil((volume[1] - volume[0]) / (voxel_size_m * block)).astype(int)  # coarse cells per axis
 
     def phi(X: np.ndarray) -> np.ndarray:
-        return _hull_distance(cameras, distance_maps, X, tolerated_views)
+        return _hull_distance(cameras, distance_maps, X, tolerated_views, off_image_px)
 
     size = voxel_size_m * block
     centres = _grid_centres(volume[0], size, (0, 0, 0), cells)
@@ -100,11 +104,12 @@ def _signed_distance_px(mask: np.ndarray) -> np.ndarray:
 
 
 def _hull_distance(cameras: list[Camera], distance_maps: list[np.ndarray], X: np.ndarray,
-                   tolerated_views: int) -> np.ndarray:
-    """(N,) φ(X) for world points ``X`` (N, 3): the (k+1)-th smallest per-view signed distance (metres)."""
+                   tolerated_views: int, off_image_px: list[float]) -> np.ndarray:
+    """(N,) φ(X) for world points ``X`` (N, 3): the (k+1)-th smallest per-view signed distance (metres), each
+    view's ``off_image_px`` off its image."""
     per_view = np.empty((len(cameras), len(X)), np.float32)
     for index, (camera, distance) in enumerate(zip(cameras, distance_maps, strict=True)):
-        sampled = _bilinear(distance, camera.project(X))
+        sampled = _bilinear(distance, camera.project(X), off_image_px[index])
         depth = camera.depth(X)
         focal = 0.5 * (camera.K[0, 0] + camera.K[1, 1])
         metres = sampled * np.maximum(depth, MIN_VIEW_DEPTH_M) / focal
@@ -113,8 +118,8 @@ def _hull_distance(cameras: list[Camera], distance_maps: list[np.ndarray], X: np
     return np.partition(per_view, order, axis=0)[order]
 
 
-def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """(N,) float32 ``image`` (H, W) float32 interpolated at pixels ``uv`` (N, 2); far outside off the image.
+def _bilinear(image: np.ndarray, uv: np.ndarray, off_image: float) -> np.ndarray:
+    """(N,) float32 ``image`` (H, W) float32 interpolated at pixels ``uv`` (N, 2); ``off_image`` off the image.
 
     cv2.remap wants maps with fewer than 32767 columns, so the points are laid out in rows of 1024.
     """
@@ -125,7 +130,7 @@ def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     maps[count:] = -1e6  # padding, off the image
     sampled = cv2.remap(
         image, maps[:, 0].reshape(rows, REMAP_ROW), maps[:, 1].reshape(rows, REMAP_ROW), cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT, borderValue=-OFF_IMAGE_PX,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=off_image,
     )
     return sampled.ravel()[:count]
 

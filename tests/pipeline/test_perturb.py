@@ -161,3 +161,33 @@ def test_a_calibration_error_turns_each_camera_about_its_centre_by_the_angle_ask
     assert not np.allclose(turned[0].R @ cameras[0].R.T, turned[1].R @ cameras[1].R.T)  # an axis of its own
     with pytest.raises(InputError, match="expected a finite angle"):
         perturb_capture(capture, tmp_path / "nan", "none", calibration_error_deg=float("nan"))
+
+
+def test_a_zoomed_camera_sees_the_middle_of_its_image_enlarged_and_its_calibration_and_truth_agree(capture, tmp_path):
+    cameras = [Camera.look_at(f"cam{index}", (4.0 * np.cos(index), 4.0 * np.sin(index), 1.5), (0.0, 0.0, 1.0),
+                              f_px=60.0, size=(WIDTH, HEIGHT)) for index in (0, 1)]
+    save_rig(Rig(tuple(cameras)), "colmap", capture / "calibration" / "colmap")
+    (capture / "capture.yaml").write_text("fps: 25\ncalibration: {format: colmap, path: calibration/colmap, units: m, "
+                                          "up: +z}\n")
+    mask = np.zeros((HEIGHT, WIDTH), np.uint8)
+    mask[20:28, 28:36] = 255  # 8 x 8 about the centre (31.5, 23.5)
+    (capture / "groundtruth" / "masks" / "cam1").mkdir(parents=True)
+    cv2.imwrite(str(capture / "groundtruth" / "masks" / "cam1" / "000000.png"), mask)
+    out = perturb_capture(capture, tmp_path / "zoomed", "none", zoom={"cam1": 2.0})
+    zoomed = load_rig("colmap", out / "calibration" / "colmap")
+    np.testing.assert_allclose(zoomed[0].K, cameras[0].K)
+    X = np.array([[0.1, -0.2, 1.2], [0.0, 0.1, 0.9]])
+    centre = np.array([(WIDTH - 1) / 2, (HEIGHT - 1) / 2])
+    np.testing.assert_allclose(zoomed[1].project(X) - centre, 2.0 * (cameras[1].project(X) - centre), atol=1e-9)
+    np.testing.assert_allclose(zoomed[1].R, cameras[1].R, atol=1e-12)
+    grown = cv2.imread(str(out / "groundtruth" / "masks" / "cam1" / "000000.png"), cv2.IMREAD_GRAYSCALE)
+    assert set(np.unique(grown)) == {0, 255} and (grown > 0).sum() == 4 * (mask > 0).sum()
+    plate, before = (cv2.imread(str(root / "background" / "cam1.png")) for root in (out, capture))
+    np.testing.assert_allclose(plate[HEIGHT // 2, WIDTH // 2], before[HEIGHT // 2, WIDTH // 2], atol=2)
+    assert (out / "background" / "cam0.png").read_bytes() == (capture / "background" / "cam0.png").read_bytes()
+    with pytest.raises(InputError, match="at least 1"):
+        perturb_capture(capture, tmp_path / "wide", "none", zoom={"cam1": 0.5})
+    with pytest.raises(InputError, match="no video of camera"):
+        perturb_capture(capture, tmp_path / "nobody", "none", zoom={"cam7": 2.0})
+    with pytest.raises(SystemExit):
+        main([str(capture), "--change", "none", "--zoom", "cam1:oops", "--out", str(tmp_path / "x")])

@@ -35,6 +35,14 @@ pixels at f = 1000, the reprojection error of a mediocre calibration.
 
     python -m pipeline.lab.bench.perturb ../shared/foreign/walk --change none --calibration-error 0.1 \
         --out runs/walk-off
+
+With ``--zoom NAME:FACTOR,...`` those cameras see the scene through a longer lens: each frame's middle 1 / FACTOR
+enlarged to the whole image about its centre, the camera's intrinsics multiplied to match (K' = Z K, distortion
+unchanged, which is exact for a zoom of the distorted image), its plate and true masks zoomed alike. The
+subject then leaves those views in part (feet, a raised arm or the head cut off by the image's border), as in a
+studio whose cameras do not all frame the whole volume.
+
+    python -m pipeline.lab.bench.perturb ../shared/foreign/taekwondo --change none --zoom cam00:1.8 --out runs/cut
 """
 
 from __future__ import annotations
@@ -101,11 +109,11 @@ def _to_uint8(frame: np.ndarray) -> np.ndarray:
 
 def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, plates: bool = True,
                     absent: range = range(0), cameras: tuple[str, ...] = (),
-                    calibration_error_deg: float = 0.0) -> Path:
+                    calibration_error_deg: float = 0.0, zoom: dict[str, float] | None = None) -> Path:
     """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
     to every frame of its videos, and the subject away on the frames ``absent``, seen by the ``cameras`` named
-    (default: all) through a calibration whose cameras are each turned by ``calibration_error_deg``; returns
-    ``out``.
+    (default: all) through a calibration whose cameras are each turned by ``calibration_error_deg``, the cameras
+    of ``zoom`` zoomed by its factors (:func:`zoomed`); returns ``out``.
 
     capture.yaml, the calibration and the background plates (unless ``plates`` is False) are copied, the ground
     truth (when there is one) linked, or rewritten without the ``absent`` frames and the cameras left out
@@ -117,7 +125,8 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     ------
     InputError
         An unknown change, ``out`` already there, a capture without videos, ``absent`` frames in a capture
-        without a clean plate for every camera, a camera named that has no video, or an angle that is not finite.
+        without a clean plate for every camera, a camera named that has no video, an angle that is not finite, or
+        a zoom factor that is not a finite number of at least 1.
     """
     capture, out = Path(capture), Path(out)
     if change not in CHANGES:
@@ -126,14 +135,18 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         raise InputError(f"{out}: already exists (give a new folder; nothing is overwritten)")
     if not np.isfinite(calibration_error_deg):
         raise InputError(f"calibration error {calibration_error_deg}: expected a finite angle in degrees")
+    zoom = dict(zoom or {})
+    for name, factor in zoom.items():
+        if not (np.isfinite(factor) and factor >= 1.0):
+            raise InputError(f"zoom of camera {name!r}: {factor} (expected a finite factor of at least 1)")
     videos = sorted(path for path in (capture / "videos").glob("*") if path.is_file()) \
         if (capture / "videos").is_dir() else []
     if not videos:
         raise InputError(f"{capture}: no videos/ folder with videos (only captures of videos can be perturbed)")
+    unknown = sorted((set(cameras) | set(zoom)) - {video.stem for video in videos})
+    if unknown:
+        raise InputError(f"{capture / 'videos'}: no video of camera(s) {', '.join(unknown)}")
     if cameras:
-        unknown = sorted(set(cameras) - {video.stem for video in videos})
-        if unknown:
-            raise InputError(f"{capture / 'videos'}: no video of camera(s) {', '.join(unknown)}")
         videos = [video for video in videos if video.stem in cameras]
     empty_room = [_plate(capture, video.stem) for video in videos] if absent else [None] * len(videos)
     apply = CHANGES[change][1]
@@ -142,26 +155,31 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     shutil.rmtree(partial, ignore_errors=True)
     (partial / "videos").mkdir(parents=True)
     shutil.copy2(capture / "capture.yaml", partial / "capture.yaml")
-    if cameras or calibration_error_deg:
+    if cameras or calibration_error_deg or zoom:
         _rewrite_calibration(Capture.open(capture), partial, {video.stem for video in videos}, calibration_error_deg,
-                             np.random.default_rng([seed, 1]))  # its own draws: the frames' stay as without it
+                             np.random.default_rng([seed, 1]), zoom)  # its own draws: the frames' stay as without it
     elif (capture / "calibration").is_dir():
         shutil.copytree(capture / "calibration", partial / "calibration")
     if plates and (capture / "background").is_dir():
         (partial / "background").mkdir()
         for plate in (capture / "background").iterdir():
-            if plate.stem in {video.stem for video in videos}:
+            if plate.stem in zoom:
+                image = cv2.imread(str(plate), cv2.IMREAD_UNCHANGED)
+                cv2.imwrite(str(partial / "background" / plate.name), zoomed(image, zoom[plate.stem]))
+            elif plate.stem in {video.stem for video in videos}:
                 shutil.copy2(plate, partial / "background" / plate.name)
     if (capture / "groundtruth").is_dir():
-        if absent or cameras:
-            _truth_without(capture / "groundtruth", partial / "groundtruth", absent, {video.stem for video in videos})
+        if absent or cameras or zoom:
+            _truth_without(capture / "groundtruth", partial / "groundtruth", absent, {video.stem for video in videos},
+                           zoom)
         else:
             (partial / "groundtruth").symlink_to((capture / "groundtruth").resolve(), target_is_directory=True)
     for camera, (video, plate) in enumerate(zip(videos, empty_room, strict=True)):
-        def changed(frame: np.ndarray, index: int, camera: int = camera, plate: np.ndarray | None = plate):
+        def changed(frame: np.ndarray, index: int, camera: int = camera, plate: np.ndarray | None = plate,
+                    factor: float = zoom.get(video.stem, 1.0)):
             if index in absent:
                 frame = plate + rng.normal(0.0, ABSENT_NOISE, plate.shape)
-            return apply(frame, rng, camera)
+            return apply(zoomed(frame, factor), rng, camera)
 
         _rewrite(video, partial / "videos" / (video.stem + ".mp4"), changed)
     partial.rename(out)
@@ -169,15 +187,37 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
 
 
 def _rewrite_calibration(source: Capture, copy: Path, kept: set[str], error_deg: float,
-                         rng: np.random.Generator) -> None:
+                         rng: np.random.Generator, zoom: dict[str, float]) -> None:
     """The ``source`` capture's calibration written into ``copy`` with only the ``kept`` cameras, each turned by
-    ``error_deg`` (:func:`_turned`): read as the file states it (image sizes from the media) and saved in the same
-    format at the same place, so that its units and up axis stay as capture.yaml says."""
+    ``error_deg`` (:func:`_turned`) and those of ``zoom`` zoomed (:func:`zoom_matrix`): read as the file states it
+    (image sizes from the media) and saved in the same format at the same place, so that its units and up axis stay
+    as capture.yaml says."""
     calibration = source.config["calibration"]
     rig = load_rig(calibration["format"], source.root / calibration["path"],
                    image_sizes={camera.name: camera.size for camera in source.rig})
-    save_rig(Rig(tuple(_turned(camera, error_deg, rng) for camera in rig if camera.name in kept)),
-             calibration["format"], copy / calibration["path"])
+    cameras = [_turned(camera, error_deg, rng) for camera in rig if camera.name in kept]
+    cameras = [replace(camera, K=zoom_matrix(camera.size, zoom[camera.name]) @ camera.K) if camera.name in zoom
+               else camera for camera in cameras]
+    save_rig(Rig(tuple(cameras)), calibration["format"], copy / calibration["path"])
+
+
+def zoom_matrix(size: tuple[int, int], factor: float) -> np.ndarray:
+    """(3, 3) Z mapping a pixel to where a zoom by ``factor`` about the centre of an image of ``size`` (width,
+    height) puts it: u' = factor (u − c) + c, with c the image's centre (pixel centres at integers)."""
+    centre = (np.asarray(size, float) - 1.0) / 2.0
+    return np.array([[factor, 0.0, (1.0 - factor) * centre[0]], [0.0, factor, (1.0 - factor) * centre[1]],
+                     [0.0, 0.0, 1.0]])
+
+
+def zoomed(image: np.ndarray, factor: float) -> np.ndarray:
+    """``image`` zoomed by ``factor`` about its centre (:func:`zoom_matrix`), the same size: linear interpolation
+    for pictures, nearest for a mask (uint8 with one channel), so that a mask stays two-valued."""
+    if factor == 1.0:
+        return image
+    height, width = image.shape[:2]
+    nearest = image.ndim == 2 and image.dtype == np.uint8
+    return cv2.warpAffine(image, zoom_matrix((width, height), factor)[:2], (width, height),
+                          flags=cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def _turned(camera: Camera, angle_deg: float, rng: np.random.Generator) -> Camera:
@@ -200,10 +240,10 @@ def _plate(capture: Path, camera: str) -> np.ndarray:
     return plate.astype(np.float32)
 
 
-def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str]) -> None:
+def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], zoom: dict[str, float]) -> None:
     """``target``, the ground truth at ``truth`` without the ``absent`` frames, seen by ``cameras``: the absent
-    frames' joints.csv rows left out and their masks empty, the other cameras' masks left out (the other masks
-    and files linked)."""
+    frames' joints.csv rows left out and their masks empty, the other cameras' masks left out, the masks of the
+    cameras of ``zoom`` zoomed (:func:`zoomed`; the other masks and files linked)."""
     target.mkdir()
     for path in sorted(truth.iterdir()):
         if path.name == "joints.csv":
@@ -219,6 +259,9 @@ def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str]) 
                     if mask.stem.isdigit() and int(mask.stem) in absent:
                         image = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
                         cv2.imwrite(str(target / "masks" / camera.name / mask.name), np.zeros_like(image))
+                    elif camera.name in zoom:
+                        image = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
+                        cv2.imwrite(str(target / "masks" / camera.name / mask.name), zoomed(image, zoom[camera.name]))
                     else:
                         (target / "masks" / camera.name / mask.name).symlink_to(mask.resolve())
         else:
@@ -263,6 +306,18 @@ def _frame_span(text: str) -> range:
     return span
 
 
+def _zooms(text: str) -> dict[str, float]:
+    """``NAME:FACTOR,...`` as {camera: factor}."""
+    zooms = {}
+    for item in (part for part in text.split(",") if part):
+        name, _, factor = item.partition(":")
+        try:
+            zooms[name] = float(factor)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected NAME:FACTOR, a camera and a number, got {item!r}") from None
+    return zooms
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m pipeline.lab.bench.perturb", formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -280,10 +335,14 @@ def main(argv: list[str] | None = None) -> int:
                         metavar="NAME,NAME,...", help="keep only these cameras (a smaller rig)")
     parser.add_argument("--calibration-error", type=float, default=0.0, metavar="DEGREES",
                         help="each camera of the calibration turned by this angle about an axis of its own")
+    parser.add_argument("--zoom", type=_zooms, default={}, metavar="NAME:FACTOR,...",
+                        help="these cameras zoomed in by these factors about their images' centres (the subject "
+                             "then partly out of their view)")
     args = parser.parse_args(argv)
     try:
         perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates,
-                        absent=args.absent, cameras=args.cameras, calibration_error_deg=args.calibration_error)
+                        absent=args.absent, cameras=args.cameras, calibration_error_deg=args.calibration_error,
+                        zoom=args.zoom)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -1,7 +1,10 @@
+import dataclasses
+
 import numpy as np
 import pytest
 from sphere_scene import CENTRE, RADIUS, VOLUME, render_spheres, ring_rig
 
+from calib.camera import Rig
 from calib.errors import InputError
 from stages.reconstruction import Observations, ReconstructionParams, reconstruct, usable_observations
 
@@ -158,6 +161,24 @@ def test_one_all_foreground_view_constrains_nothing(rig, sphere_masks):
     observations = reconstruct(masks, rig, VOLUME, ReconstructionParams(n_observations=300))
     assert len(observations) > 150
     assert np.median(np.abs(_radial_errors(observations)[0])) < 0.005
+
+
+@pytest.mark.parametrize("method", ["visual_shape", "visual_hull"])
+def test_a_view_that_cuts_the_subject_off_does_not_carve_what_it_does_not_see(rig, method):
+    """One camera's principal point moved so that the sphere's top lies above its image: its silhouette meets the
+    border, and the top is reconstructed from the other views (carved away when a view vetoed its off-image
+    part)."""
+    K = rig[0].K.copy()
+    K[1, 2] -= 150.0
+    cameras = list(rig)
+    cameras[0] = dataclasses.replace(rig[0], K=K)
+    cut_rig = Rig(tuple(cameras))
+    masks = [render_spheres(camera, CENTRE, RADIUS) for camera in cut_rig]
+    assert masks[0][0].any() and masks[0].any(axis=1).sum() < 0.8 * masks[1].any(axis=1).sum()
+    observations = reconstruct(masks, cut_rig, VOLUME, ReconstructionParams(method=method, n_observations=400))
+    assert len(observations) > 300
+    assert np.median(np.abs(_radial_errors(observations)[0])) < 0.01
+    assert observations.points[:, 2].max() > CENTRE[2] + 0.9 * RADIUS  # the top, which the cut view does not see
 
 
 def test_person_outside_the_volume_gives_no_observations(rig, sphere_masks):
