@@ -1,10 +1,10 @@
 """Inside-the-silhouette tests and ray geometry shared by the visual hull and the visual shape.
 
 A world point is *inside* a view when it lies in front of the camera, projects into the image and
-lands on a foreground pixel. A point in front of the camera that projects outside the image counts as
-outside the silhouette, unless the image's border cuts the silhouette (:func:`cut_by_border`): a camera
-that frames the whole person says where he is not, also beyond its image, while one that cuts him off (his
-feet below its image, a raised arm beside it) cannot veto what it does not see.
+lands on a foreground pixel. A point the camera does not see (behind it, or projecting outside the image)
+counts as outside the silhouette only when the view frames the whole person (:func:`blind_beyond_image`): such a view
+says where he is not, also beyond its image, while one that cuts him off (his feet below its image, a raised
+arm beside it) or does not show him at all cannot veto what it does not see.
 """
 
 from __future__ import annotations
@@ -16,13 +16,14 @@ import numpy as np
 from calib.camera import MIN_VIEW_DEPTH_M, Camera
 
 
-def cut_by_border(mask: np.ndarray) -> bool:
-    """Whether the silhouette ``mask`` (H, W) reaches the image's border: the person goes on beyond it.
+def blind_beyond_image(mask: np.ndarray) -> bool:
+    """Whether a view with the silhouette ``mask`` (H, W) cannot tell where the person is not beyond its image:
+    the silhouette reaches the image's border (he goes on beyond it) or is empty (he is wholly beyond it, or
+    away).
 
-    A body is one piece, so a silhouette that does not reach the border shows all of it: a view cuts the
-    person off exactly when his silhouette meets the border.
+    A body is one piece, so a silhouette that is not empty and does not reach the border shows all of it.
     """
-    return bool(mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
+    return bool(not mask.any() or mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
 
 
 def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[int, int] = (0, 0),
@@ -31,8 +32,8 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[i
 
     ``mask`` (h, w) may be a box of the image starting at pixel ``corner`` (column, row), outside which the
     silhouette is background: a box around the person keeps the pixel lookups in cache. ``off_image`` is the
-    answer for points in front of the camera that project outside its image: True for a view whose
-    silhouette the border cuts (:func:`cut_by_border`).
+    answer for points the camera does not see (behind it, or projecting outside its image): True for a view that
+    does not frame the whole person (:func:`blind_beyond_image`).
 
     Points are stored by coordinate (3, N) so that picking a subset gathers three contiguous rows, and
     in float32, which keeps millimetre precision at these distances while halving the memory traffic.
@@ -88,7 +89,7 @@ def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[i
     inside = seen & (mask.ravel().take(row, mode="clip") > 0)
     if off_image:
         in_image = (xy >= 0.0) & (xy < np.array([[camera.size[0]], [camera.size[1]]], np.float32))
-        inside |= front & ~(in_image[0] & in_image[1])
+        inside |= ~(front & in_image[0] & in_image[1])
     return inside
 
 

@@ -5,8 +5,8 @@ Rather than a binary occupancy, every voxel centre X gets a signed distance to t
     φ(X) = the (k+1)-th smallest over views c of  s_c(π_c(X)) · depth_c(X) / f_c,
 
 where s_c is the signed distance (pixels, positive inside) of the projection to silhouette c's outline
-(off the image: far outside, or far inside for a view whose silhouette the image's border cuts, which cannot
-veto what it does not see: `views.cut_by_border`), scaled to metres at the point's depth, and k is the number
+(off the image: far outside, or far inside for a view that does not frame the whole person, which cannot veto
+what it does not see: `views.blind_beyond_image`), scaled to metres at the point's depth, and k is the number
 of tolerated disagreeing views (k = 0 gives the plain hull, the minimum over views). Marching cubes on φ then
 places the surface between voxel centres, and the gradient of φ gives outward normals.
 
@@ -24,15 +24,16 @@ import numpy as np
 from skimage.measure import marching_cubes
 
 from calib.camera import MIN_VIEW_DEPTH_M, Camera, Rig
-from stages.reconstruction.views import cut_by_border
+from stages.reconstruction.views import blind_beyond_image
 
 # A voxel is refined when |φ| at its centre is below this many half diagonals: φ measures distance in
 # the image plane at the point's depth, which grows a little faster than 3-D distance off the optical axis.
 BAND_FACTOR = 2.0
-# φ (metres) of points outside an image or behind a camera: far outside any silhouette.
+# |φ| (metres) of points outside an image or behind a camera: far outside any silhouette (inside, for a view
+# that does not frame the whole person), and the bound of any φ.
 FAR_OUTSIDE_M = 10.0
 # Signed distance (pixels) reported off the image: further than any real outline distance (outside, or inside
-# for a view cut by the image's border).
+# for a view that does not frame the whole person).
 OFF_IMAGE_PX = 1e5
 REMAP_ROW = 1024
 
@@ -50,13 +51,13 @@ def hull_surface_points(
     """Points (N, 3) on the visual hull's surface and unit outward normals (N, 3), N <= ``n_observations``."""
     cameras = list(rig)
     distance_maps = [_signed_distance_px(mask) for mask in masks]
-    off_image_px = [OFF_IMAGE_PX if cut_by_border(mask) else -OFF_IMAGE_PX for mask in masks]
+    blind = [blind_beyond_image(mask) for mask in masks]
     levels = max(0, int(np.ceil(np.log2(coarse_voxel_size_m / voxel_size_m))))
     block = 2**levels
     cells = np.ceil((volume[1] - volume[0]) / (voxel_size_m * block)).astype(int)  # coarse cells per axis
 
     def phi(X: np.ndarray) -> np.ndarray:
-        return _hull_distance(cameras, distance_maps, X, tolerated_views, off_image_px)
+        return _hull_distance(cameras, distance_maps, X, tolerated_views, blind)
 
     size = voxel_size_m * block
     centres = _grid_centres(volume[0], size, (0, 0, 0), cells)
@@ -104,16 +105,18 @@ def _signed_distance_px(mask: np.ndarray) -> np.ndarray:
 
 
 def _hull_distance(cameras: list[Camera], distance_maps: list[np.ndarray], X: np.ndarray,
-                   tolerated_views: int, off_image_px: list[float]) -> np.ndarray:
-    """(N,) φ(X) for world points ``X`` (N, 3): the (k+1)-th smallest per-view signed distance (metres), each
-    view's ``off_image_px`` off its image."""
+                   tolerated_views: int, blind: list[bool]) -> np.ndarray:
+    """(N,) φ(X) for world points ``X`` (N, 3): the (k+1)-th smallest per-view signed distance (metres); where a
+    view does not see a point, far outside, or far inside for the views ``blind`` beyond their images."""
     per_view = np.empty((len(cameras), len(X)), np.float32)
     for index, (camera, distance) in enumerate(zip(cameras, distance_maps, strict=True)):
-        sampled = _bilinear(distance, camera.project(X), off_image_px[index])
+        sign = 1.0 if blind[index] else -1.0
+        sampled = _bilinear(distance, camera.project(X), sign * OFF_IMAGE_PX)
         depth = camera.depth(X)
         focal = 0.5 * (camera.K[0, 0] + camera.K[1, 1])
         metres = sampled * np.maximum(depth, MIN_VIEW_DEPTH_M) / focal
-        per_view[index] = np.where(depth > MIN_VIEW_DEPTH_M, np.maximum(metres, -FAR_OUTSIDE_M), -FAR_OUTSIDE_M)
+        per_view[index] = np.where(depth > MIN_VIEW_DEPTH_M, np.clip(metres, -FAR_OUTSIDE_M, FAR_OUTSIDE_M),
+                                   sign * FAR_OUTSIDE_M)
     order = min(tolerated_views, len(cameras) - 1)
     return np.partition(per_view, order, axis=0)[order]
 

@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from calib.camera import Camera, Rig
 from stages.rays import box_interval
 from stages.reconstruction.contours import Outline, cone_normals, outline, row_norms
-from stages.reconstruction.views import cut_by_border, in_volume, inside_view, ray_points
+from stages.reconstruction.views import blind_beyond_image, in_volume, inside_view, ray_points
 
 # The convex hull of a silhouette is widened by this many pixels before clipping rays, so that lens
 # distortion (which bends the hull's straight edges slightly) never cuts off a true part of the cone.
@@ -115,7 +115,8 @@ def rim_points(
 
     # Inside tests accept points up to a pixel outside a silhouette: a grazing ray that runs along another
     # view's outline would otherwise flicker in and out with the pixel grid and break into pieces.
-    tolerant = [(*_dilated(mask, ours.bounds), cut_by_border(mask)) for mask, ours in zip(masks, outlines, strict=True)]
+    tolerant = [(*_dilated(mask, ours.bounds), blind_beyond_image(mask))
+                for mask, ours in zip(masks, outlines, strict=True)]
     edges = _viewing_edges(cameras, tolerant, normalised, volume, origins, directions, camera_of,
                            tolerated_views=tolerated_views, samples_per_ray=samples_per_ray)
     o, d = origins.take(edges.ray, axis=0), directions.take(edges.ray, axis=0)
@@ -222,12 +223,12 @@ def _viewing_edges(
     samples_per_ray: int,
 ) -> ViewingEdges:
     """The viewing edges of rays ``origins + t directions`` (M, 3) cast from cameras ``camera_of`` (M,), given
-    each view's mask as ``(box, corner, cut)`` (see ``_dilated``; ``cut``: the border cuts the silhouette,
-    :func:`~stages.reconstruction.views.cut_by_border`) and outline in normalised image coordinates
+    each view's mask as ``(box, corner, blind)`` (see ``_dilated``; ``blind``: the view does not frame the whole
+    person, :func:`~stages.reconstruction.views.blind_beyond_image`) and outline in normalised image coordinates
     ``normalised``."""
     t_low, t_high = box_interval(origins, directions, volume)
     hull_low, hull_high = _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_views,
-                                       [cut for _, _, cut in masks])
+                                       [blind for _, _, blind in masks])
     t_low = np.maximum(t_low, hull_low - RANGE_MARGIN_M)
     t_high = np.minimum(t_high, hull_high + RANGE_MARGIN_M)
     alive = np.flatnonzero(t_high > t_low)
@@ -271,9 +272,9 @@ def _inside_enough(
     misses = np.zeros(X.shape[1], np.int16)
     known = np.full((len(cameras), X.shape[1]), -1, np.int8)
     running = np.arange(X.shape[1])
-    for index, (camera, (mask, corner, cut)) in enumerate(zip(cameras, masks, strict=True)):
+    for index, (camera, (mask, corner, blind)) in enumerate(zip(cameras, masks, strict=True)):
         tested = running[camera_of[running] != index]
-        inside = inside_view(camera, mask, X.take(tested, axis=1), corner, cut)  # take: X[:, tested], faster
+        inside = inside_view(camera, mask, X.take(tested, axis=1), corner, blind)  # take: X[:, tested], faster
         known[index, tested] = inside
         misses[tested] += ~inside  # tested holds each point once
         running = running[misses[running] <= tolerated_views]
@@ -288,9 +289,9 @@ def _inside_each(cameras, masks, camera_of: np.ndarray, X: np.ndarray, known: np
     """
     result = known == 1
     result[camera_of, np.arange(X.shape[1])] = True
-    for index, (camera, (mask, corner, cut)) in enumerate(zip(cameras, masks, strict=True)):
+    for index, (camera, (mask, corner, blind)) in enumerate(zip(cameras, masks, strict=True)):
         asked = np.flatnonzero((known[index] < 0) & (camera_of != index))
-        result[index, asked] = inside_view(camera, mask, X.take(asked, axis=1), corner, cut)
+        result[index, asked] = inside_view(camera, mask, X.take(asked, axis=1), corner, blind)
     return result
 
 
@@ -329,9 +330,9 @@ def _refine_ends(cameras, masks, origins, directions, camera_of, ray, t, rows, i
         mid = 0.5 * (lo + hi)
         X = ray_points(o, d, mid)
         inside = np.zeros(len(mid), bool)
-        for index, (camera_c, (mask, corner, cut)) in enumerate(zip(cameras, masks, strict=True)):
+        for index, (camera_c, (mask, corner, blind)) in enumerate(zip(cameras, masks, strict=True)):
             part = slice(groups[index], groups[index + 1])
-            inside[part] = inside_view(camera_c, mask, X[:, part], corner, cut)
+            inside[part] = inside_view(camera_c, mask, X[:, part], corner, blind)
         lo = np.where(inside, mid, lo)
         hi = np.where(inside, hi, mid)
     crossing = 0.5 * (lo + hi)
@@ -364,10 +365,11 @@ def _lexsort_mostly_distinct(key: np.ndarray, then: np.ndarray) -> np.ndarray:
     return order
 
 
-def _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_views, cut):
+def _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_views, blind):
     """Ray parameters ``(low (M,), high (M,))`` outside which a ray leaves more than ``tolerated_views``
     silhouettes' convex hulls, given each view's outline in normalised image coordinates ``normalised``; the
-    views ``cut`` (C,) bool by the image's border bound nothing (the person goes on beyond their images).
+    views ``blind`` (C,) bool beyond their images (:func:`~stages.reconstruction.views.blind_beyond_image`) bound
+    nothing.
 
     For camera j the hull is a convex polygon ``e_k · x <= c_k`` in normalised image coordinates x, and
     the ray projects to ``x(t) = (A_xy + t B_xy) / (A_z + t B_z)`` with ``A = R_j o + t_j``, ``B = R_j d``;
@@ -378,7 +380,7 @@ def _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_
     highs = np.full((len(cameras), n_rays), np.inf)
     for index, (camera, ours) in enumerate(zip(cameras, normalised, strict=True)):
         others = np.flatnonzero(camera_of != index)  # indices: used four times
-        if cut[index]:
+        if blind[index]:
             continue
         if len(ours) == 0:
             lows[index, others], highs[index, others] = np.inf, -np.inf

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from sphere_scene import CENTRE, RADIUS, VOLUME, render_spheres, ring_rig
 
-from calib.camera import Rig
+from calib.camera import Camera, Rig
 from calib.errors import InputError
 from stages.reconstruction import Observations, ReconstructionParams, reconstruct, usable_observations
 
@@ -179,6 +179,20 @@ def test_a_view_that_cuts_the_subject_off_does_not_carve_what_it_does_not_see(ri
     assert len(observations) > 300
     assert np.median(np.abs(_radial_errors(observations)[0])) < 0.01
     assert observations.points[:, 2].max() > CENTRE[2] + 0.9 * RADIUS  # the top, which the cut view does not see
+
+
+@pytest.mark.parametrize("method", ["visual_shape", "visual_hull"])
+def test_a_view_the_subject_is_wholly_beyond_does_not_carve_him(rig, method):
+    """One camera turned away from the sphere: its silhouette is empty, and the sphere, beyond its image, is
+    reconstructed from the others; a view that shows him nowhere in its image still carves there."""
+    cameras = list(rig)
+    cameras[0] = Camera.look_at(rig[0].name, rig[0].centre, rig[0].centre + [0.0, 0.0, -5.0] + [1.0, 0.0, 0.0],
+                                f_px=380.0, size=rig[0].size)
+    away_rig = Rig(tuple(cameras))
+    masks = [render_spheres(camera, CENTRE, RADIUS) for camera in away_rig]
+    assert not masks[0].any()
+    observations = reconstruct(masks, away_rig, VOLUME, ReconstructionParams(method=method, n_observations=300))
+    assert len(observations) > 200 and np.median(np.abs(_radial_errors(observations)[0])) < 0.01
 
 
 def test_person_outside_the_volume_gives_no_observations(rig, sphere_masks):

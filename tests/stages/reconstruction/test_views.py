@@ -5,7 +5,7 @@ import pytest
 from sphere_scene import ring_rig
 
 from calib.camera import MIN_VIEW_DEPTH_M
-from stages.reconstruction.views import VOLUME_FACES, cut_by_border, faces_reached, inside_view
+from stages.reconstruction.views import VOLUME_FACES, blind_beyond_image, faces_reached, inside_view
 
 
 def _inside_view_reference(camera, mask, X):
@@ -83,24 +83,28 @@ def test_faces_reached_names_the_faces_a_cut_subject_lies_on():
     assert not faces_reached(np.zeros((0, 3)), volume, 0.02).any()
 
 
-def test_a_view_cut_by_the_border_says_inside_beyond_its_image_and_nothing_else_changes(scene):
+def test_a_view_blind_beyond_its_image_says_inside_there_and_nothing_else_changes(scene):
     camera, mask, X = scene
     framed = inside_view(camera, mask, X)
-    cut = inside_view(camera, mask, X, off_image=True)
+    blind = inside_view(camera, mask, X, off_image=True)
     x, y, z = camera.R @ X.astype(float) + camera.t[:, None]
     front = z > MIN_VIEW_DEPTH_M
-    u, v = (camera.K @ np.stack([x / z, y / z, np.ones_like(z)]))[:2]
-    off = front & ((u < -0.5) | (u > camera.size[0] - 0.5) | (v < -0.5) | (v > camera.size[1] - 0.5))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = (camera.K @ np.stack([x / z, y / z, np.ones_like(z)]))[:2]
+    off = ~front | (u < -0.5) | (u > camera.size[0] - 0.5) | (v < -0.5) | (v > camera.size[1] - 0.5)
     margin = front & ((np.abs(u + 0.5) < 0.01) | (np.abs(u - camera.size[0] + 0.5) < 0.01)
                       | (np.abs(v + 0.5) < 0.01) | (np.abs(v - camera.size[1] + 0.5) < 0.01))
-    assert off.sum() > 10_000 and np.all(cut[off & ~margin]) and not np.any(framed[off])
-    assert np.array_equal(cut[~off & ~margin], framed[~off & ~margin])  # behind the camera, or in the image
-    assert np.array_equal(inside_view(camera, mask[59:201, 99:301], X, (99, 59), off_image=True), cut)
+    margin |= np.abs(z - MIN_VIEW_DEPTH_M) < 1e-3
+    assert (off & ~front).sum() > 10_000 and (off & front).sum() > 10_000
+    assert np.all(blind[off & ~margin]) and not np.any(framed[off & ~margin])
+    assert np.array_equal(blind[~off & ~margin], framed[~off & ~margin])  # in the image: as before
+    assert np.array_equal(inside_view(camera, mask[59:201, 99:301], X, (99, 59), off_image=True), blind)
 
 
-@pytest.mark.parametrize(("rows", "columns", "cut"), [((10, 20), (30, 40), False), ((0, 5), (30, 40), True),
-                                                      ((10, 20), (95, 100), True), ((95, 100), (0, 100), True)])
-def test_a_silhouette_is_cut_by_the_border_when_it_reaches_it(rows, columns, cut):
+@pytest.mark.parametrize(("rows", "columns", "blind"), [((10, 20), (30, 40), False), ((0, 5), (30, 40), True),
+                                                        ((10, 20), (95, 100), True), ((95, 100), (0, 100), True),
+                                                        ((10, 10), (30, 40), True)])
+def test_a_view_is_blind_beyond_its_image_when_its_silhouette_reaches_the_border_or_is_empty(rows, columns, blind):
     mask = np.zeros((100, 100), np.uint8)
     mask[slice(*rows), slice(*columns)] = 255
-    assert cut_by_border(mask) is cut
+    assert blind_beyond_image(mask) is blind
