@@ -123,7 +123,8 @@ def reconstruct(masks: Sequence[np.ndarray], rig: Rig, volume, params: Reconstru
     -------
     Observations
         At most ``params.n_observations`` points, unit normals, no NaN; empty when the silhouettes do
-        not agree on anything (empty views, person out of view).
+        not agree on anything (every view empty, the person outside the volume, or a view whose image shows
+        background where the others place him).
     """
     volume = np.asarray(volume, dtype=np.float64)
     if volume.shape != (2, 3) or not np.all(np.isfinite(volume)) or not np.all(volume[1] > volume[0]):
