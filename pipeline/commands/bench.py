@@ -1,4 +1,5 @@
-"""Benchmark the pipeline: speed, accuracy (unseen, paper, foreign captures), exports, calibration, batch.
+"""Benchmark the pipeline: speed, accuracy (unseen, paper, foreign captures and perturbed copies), exports, calibration,
+batch.
 
 Examples:
   python -m pipeline bench --out runs/bench                      # every suite (make bench)
@@ -18,6 +19,9 @@ when the recipe changes. Suites:
           number of observations, points+normals vs points vs the algebraic distance (20 % outliers)
   foreign the whole pipeline on the captures in <repo>/../shared/foreign (made by another renderer), scored
           against their ground truth, with the tracker's statuses and speed (skipped when the folder is absent)
+  robustness  the whole pipeline on copies of the foreign captures changed one way each (JPEG at quality 20,
+          sensor noise, flicker, no clean plates, 4 cameras, one camera zoomed 1.8x, calibration off 0.1°),
+          made once into <captures>/robustness/ (skipped when the foreign folder is absent)
   exports the foreign captures' exports read back by independent readers against joints.csv, smoothing's
           effect on wrist acceleration and MPJPE, the per-joint confidence against the error
   calibration  `python -m pipeline calibrate` on rendered board recordings (checkerboard, ChArUco, a phone),

@@ -1,9 +1,9 @@
 """The benchmark suite behind ``python -m pipeline bench``: run suites, keep results, judge targets, write tables.
 
-``<out>/results.json`` holds one section per suite (``speed``, ``unseen``, ``paper``, ``foreign``); running one
-suite replaces its own section and keeps the others (a suite skipped for want of its data keeps its old one), so
-the file always shows the latest measurement of each, and every section says how it was made (``command``,
-``quick``, and ``made``: date, commit, seconds, machine load).
+``<out>/results.json`` holds one section per suite (:data:`SUITES`: ``speed``, ``unseen``, ``paper``, ``foreign``,
+...); running one suite replaces its own section and keeps the others (a suite skipped for want of its data keeps
+its old one), so the file always shows the latest measurement of each, and every section says how it was made
+(``command``, ``quick``, and ``made``: date, commit, seconds, machine load).
 ``<out>/results.md`` is drawn from results.json by :func:`format_results` alone, with the targets the project
 is judged by (:data:`~pipeline.lab.bench.targets.TARGETS`) marked met or missed: the tables are drawn
 by :mod:`pipeline.lab.bench.tables`.
@@ -32,11 +32,13 @@ from pipeline.lab.bench.tables import (
     EXPORTS_NOTES,
     FOREIGN_NOTES,
     PAPER_NOTES,
+    ROBUSTNESS_NOTES,
     SPEED_NOTES,
     UNSEEN_NOTES,
     format_exports,
     format_foreign,
     format_paper,
+    format_robustness,
     format_speed,
     format_targets,
     format_unseen,
@@ -44,7 +46,7 @@ from pipeline.lab.bench.tables import (
 )
 from pipeline.lab.bench.targets import MPJPE_MM, WORST_FRAME_MM, scored_rows
 
-SUITES = ("speed", "unseen", "paper", "foreign", "exports", "calibration", "batch")
+SUITES = ("speed", "unseen", "paper", "foreign", "robustness", "exports", "calibration", "batch")
 RESULTS_JSON, RESULTS_MD = "results.json", "results.md"
 
 
@@ -100,6 +102,8 @@ def format_results(results: dict, figure_links: dict[str, str] | None = None, *,
                 ("unseen", "Accuracy on unseen captures", UNSEEN_NOTES, format_unseen),
                 ("paper", "The paper's experiments (Horaud et al. 2009, Sec. 4.1, Fig. 4)", PAPER_NOTES, None),
                 ("foreign", "Accuracy on captures made by another program", FOREIGN_NOTES, format_foreign),
+                ("robustness", "Robustness: the foreign captures perturbed, one change at a time", ROBUSTNESS_NOTES,
+                 format_robustness),
                 ("exports", "Exports: agreement, smoothing, confidence", EXPORTS_NOTES, format_exports),
                 ("calibration", "Calibrating a studio from board recordings", CALIBRATION_NOTES, format_calibration),
                 ("batch", "A study in one command: whole captures in parallel", BATCH_NOTES, format_batch))
@@ -192,11 +196,13 @@ def suite_runners() -> dict[str, Callable[..., dict]]:
     from pipeline.lab.bench.exports import run_exports
     from pipeline.lab.bench.foreign import run_foreign
     from pipeline.lab.bench.paper import run_paper
+    from pipeline.lab.bench.robustness import run_robustness
     from pipeline.lab.bench.speed import run_speed
     from pipeline.lab.bench.unseen import run_unseen
 
     return {"speed": run_speed, "unseen": run_unseen, "paper": run_paper, "foreign": run_foreign,
-            "exports": run_exports, "calibration": run_calibration, "batch": run_batch_suite}
+            "robustness": run_robustness, "exports": run_exports, "calibration": run_calibration,
+            "batch": run_batch_suite}
 
 
 def draw_figures(results: dict, folder: Path) -> dict[str, Path]:

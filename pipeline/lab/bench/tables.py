@@ -144,6 +144,42 @@ def format_foreign(foreign: dict) -> str:
     return "\n".join(lines)
 
 
+def _robustness_cell(rows: Sequence[dict]) -> str:
+    """"MPJPE (worst frame)" in mm, each the mean over the scored ``rows``, with the mean share of frames
+    estimated when a run did not estimate all (an MPJPE over fewer frames reads better than it is); "–" when no
+    row was scored."""
+    scored = [row for row in rows if "mpjpe_mm" in row]
+    if not scored:
+        return "–"
+
+    def mean(key: str) -> float:
+        return sum(row[key] for row in scored) / len(scored)
+
+    cell = f"{fmt(mean('mpjpe_mm'))} ({fmt(mean('worst_frame_mm'))})"
+    return cell if mean("fraction_estimated") >= 1.0 else f"{cell}, {percent(mean('fraction_estimated'))} estimated"
+
+
+def format_robustness(robustness: dict) -> str:
+    """One row per capture and one column per variant, MPJPE (worst frame) in mm, then the mean over the captures
+    per variant; the runs that were not scored are listed below with the reason."""
+    rows = robustness["rows"]
+    captures = list(dict.fromkeys(row["capture"] for row in rows))
+    variants = list(dict.fromkeys(row["variant"] for row in rows))
+
+    def cell(**match) -> str:
+        return _robustness_cell([row for row in rows if all(row[key] == value for key, value in match.items())])
+
+    table = [[capture, *(cell(capture=capture, variant=variant) for variant in variants)] for capture in captures]
+    table.append(["**mean**", *(cell(variant=variant) for variant in variants)])
+    lines = [f"Copies of the captures in `{robustness['root']}`, one change each; a cell is MPJPE (worst frame) in mm, "
+             "the last row their means over the captures scored.", "",
+             format_table(["capture", *variants], table)]
+    for row in rows:
+        if "mpjpe_mm" not in row:
+            lines += ["", f"`{row['capture']}`, {row['variant']}: not scored: {row.get('error', '')}"]
+    return "\n".join(lines)
+
+
 def format_exports(exports: dict) -> str:
     """The agreement and confidence per capture, then MPJPE and wrist acceleration error per cut-off."""
     def mm(row: dict, file: str):
@@ -248,6 +284,25 @@ FOREIGN_NOTES = (
     "ended in each status "
     "(doubtful: exported but flagged by the tracker's failure checks, overlapping tracked and initialised) and "
     "the share of frames initialised anew after the first.")
+ROBUSTNESS_NOTES = (
+    "How: each foreign capture is copied once per change by `pipeline.lab.bench.perturb` (seed 0; every video "
+    "decoded, changed and encoded again): compression (every frame through JPEG at quality 20), noise (Gaussian "
+    "sensor noise of 8 levels), flicker (each frame's exposure drawn in [0.9, 1.1]), no plates (the clean plates "
+    "left out: the background estimated from the frames), 4 cameras (the first four by name), one camera zoomed "
+    "1.8x (the first by name: the subject partly out of its view), calibration off 0.1° (each camera turned by "
+    "0.1° about an axis of its own, about 1.7 pixels at a focal length of 1000). The copies are made once into "
+    "`<captures>/robustness/<capture>-<change>-<key>/`, the key a hash of the change's arguments and of the "
+    "capture's capture.yaml. Each copy is processed by `python -m pipeline run` (2 workers) and scored by "
+    "`pipeline.evaluate.evaluate_run` against its ground truth (the original's, or rewritten for the cameras kept "
+    "or zoomed), as in the foreign suite. Every copy's videos are encoded a second time (MPEG-4 Part 2), so the "
+    "foreign suite's figures are not quite those without a change: that is a copy with `--change none` alone "
+    "(not run by this suite). "
+    "`python -m pipeline bench --out runs/bench --suite robustness` measures it; one copy by hand: "
+    "`python -m pipeline.lab.bench.perturb ../shared/foreign/walk --change compression --out runs/walk-compression` "
+    "(`--change none` with `--no-plates`, `--cameras cam00,cam01,cam02,cam03`, `--zoom cam00:1.8` or "
+    "`--calibration-error 0.1` for the others), then `python -m pipeline run runs/walk-compression --out "
+    "runs/walk-compression-run` and `python -m pipeline eval runs/walk-compression-run --truth "
+    "runs/walk-compression/groundtruth/joints.csv`.")
 EXPORTS_NOTES = (
     "How: each foreign capture is run afresh with the default parameters (`python -m pipeline run`, 2 workers), "
     "then its export stage alone again with `--set export.filter_cutoff_hz=<Hz>` at each cut-off. First table "
