@@ -340,8 +340,8 @@ def test_results_markdown_has_every_section_command_and_verdict(results):
     assert "**MISSED**" in text and "| met |" in text
     assert "`broken` was not scored: boom" in text and "`unrendered` was not scored: capture not" in text
     assert "![Fig. 4 redone](figures/paper_fig4.png)" in text
-    walk = ("| walk | 5 | 640x480 | 120 | 100 % | 22.0 | 60.0 | 0.950 | 17.5 | 30.0 | 15.0 | 30.0 | 1.20 | 114 | 6 | 0 |"
-            " 0 | 2 | 5 % |")
+    walk = ("| walk | 5 | 640x480 | 120 | 100 % | 22.0 | 60.0 | 0.950 | 17.5 | 30.0 | 15.0 | 30.0 | 1.20 | 114 | 6 |"
+            " 0 | 0 | 2 | 5 % |")
     assert walk in text
     assert "| data_samples/taekwondo (reference) |" in text and "`odd` was not scored: odd/capture.yaml" in text
     assert "| walk/first | 56 | ran | 56 | 18.0 | 9.5 | – | – |" in text
