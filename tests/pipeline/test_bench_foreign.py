@@ -7,7 +7,7 @@ from pipeline.evaluate import evaluate_run
 from pipeline.io import frames_io
 from pipeline.io.export_io import write_joints_csv
 from pipeline.io.run_layout import tracking_path
-from pipeline.lab.bench import foreign, suite
+from pipeline.lab.bench import foreign, robustness, suite
 
 
 def _result(status: str, doubtful: bool = False) -> dict:
@@ -47,12 +47,13 @@ def test_captures_are_the_subfolders_with_a_capture_yaml(tmp_path):
         foreign.find_captures(tmp_path / "notes")
 
 
-def test_absent_folder_skips_the_suite_with_one_line_and_keeps_the_results(tmp_path, monkeypatch):
-    monkeypatch.setattr(foreign, "FOREIGN_ROOT", tmp_path / "shared" / "foreign")
+@pytest.mark.parametrize(("name", "module"), [("foreign", foreign), ("robustness", robustness)])
+def test_absent_folder_skips_the_suite_with_one_line_and_keeps_the_results(tmp_path, monkeypatch, name, module):
+    monkeypatch.setattr(module, "FOREIGN_ROOT", tmp_path / "shared" / "foreign")
     options = suite.BenchOptions(out=tmp_path / "bench", captures=tmp_path / "captures", quick=False, workers=1)
     lines = []
-    assert suite.run_bench(["foreign"], options, log=lines.append) == {}
-    assert lines[1:] == [f"bench: foreign suite skipped: no folder {tmp_path / 'shared' / 'foreign'} "
+    assert suite.run_bench([name], options, log=lines.append) == {}
+    assert lines[1:] == [f"bench: {name} suite skipped: no folder {tmp_path / 'shared' / 'foreign'} "
                          "(expected one capture folder with a capture.yaml per subfolder)"]
     assert not (tmp_path / "bench" / suite.RESULTS_JSON).exists()
 

@@ -172,12 +172,3 @@ def test_the_results_page_has_the_section():
     assert "## Robustness: the foreign captures perturbed, one change at a time" in page
     assert "| robustness | frames estimated, worst run | ≥ 100 % | 0.0 | **MISSED** |" in page
 
-
-def test_absent_folder_skips_the_suite_with_one_line_and_keeps_the_results(tmp_path, monkeypatch):
-    monkeypatch.setattr(robustness, "FOREIGN_ROOT", tmp_path / "shared" / "foreign")
-    options = suite.BenchOptions(out=tmp_path / "bench", captures=tmp_path / "captures", quick=True, workers=1)
-    lines = []
-    assert suite.run_bench(["robustness"], options, log=lines.append) == {}
-    assert lines[1:] == [f"bench: robustness suite skipped: no folder {tmp_path / 'shared' / 'foreign'} "
-                         "(expected one capture folder with a capture.yaml per subfolder)"]
-    assert not (tmp_path / "bench" / suite.RESULTS_JSON).exists()

@@ -146,12 +146,18 @@ def test_a_smaller_rig_keeps_the_named_cameras_in_the_calibrations_own_format_an
         perturb_capture(capture, tmp_path / "other", "none", cameras=("cam2", "cam7"))
 
 
-def test_a_calibration_error_turns_each_camera_about_its_centre_by_the_angle_asked(capture, tmp_path):
+def _colmap_calibration(capture: Path) -> list[Camera]:
+    """The capture's two cameras looking at the origin, written as its COLMAP calibration (capture.yaml too)."""
     cameras = [Camera.look_at(f"cam{index}", (4.0 * np.cos(index), 4.0 * np.sin(index), 1.5), (0.0, 0.0, 1.0),
                               f_px=60.0, size=(WIDTH, HEIGHT)) for index in (0, 1)]
     save_rig(Rig(tuple(cameras)), "colmap", capture / "calibration" / "colmap")
     (capture / "capture.yaml").write_text("fps: 25\ncalibration: {format: colmap, path: calibration/colmap, units: m, "
                                           "up: +z}\n")
+    return cameras
+
+
+def test_a_calibration_error_turns_each_camera_about_its_centre_by_the_angle_asked(capture, tmp_path):
+    cameras = _colmap_calibration(capture)
     out = perturb_capture(capture, tmp_path / "off", "none", calibration_error_deg=0.2)
     turned = load_rig("colmap", out / "calibration" / "colmap")
     for before, after in zip(cameras, turned, strict=True):
@@ -164,11 +170,7 @@ def test_a_calibration_error_turns_each_camera_about_its_centre_by_the_angle_ask
 
 
 def test_a_zoomed_camera_sees_the_middle_of_its_image_enlarged_and_its_calibration_and_truth_agree(capture, tmp_path):
-    cameras = [Camera.look_at(f"cam{index}", (4.0 * np.cos(index), 4.0 * np.sin(index), 1.5), (0.0, 0.0, 1.0),
-                              f_px=60.0, size=(WIDTH, HEIGHT)) for index in (0, 1)]
-    save_rig(Rig(tuple(cameras)), "colmap", capture / "calibration" / "colmap")
-    (capture / "capture.yaml").write_text("fps: 25\ncalibration: {format: colmap, path: calibration/colmap, units: m, "
-                                          "up: +z}\n")
+    cameras = _colmap_calibration(capture)
     mask = np.zeros((HEIGHT, WIDTH), np.uint8)
     mask[20:28, 28:36] = 255  # 8 x 8 about the centre (31.5, 23.5)
     (capture / "groundtruth" / "masks" / "cam1").mkdir(parents=True)
