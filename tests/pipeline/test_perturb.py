@@ -193,3 +193,28 @@ def test_a_zoomed_camera_sees_the_middle_of_its_image_enlarged_and_its_calibrati
         perturb_capture(capture, tmp_path / "nobody", "none", zoom={"cam7": 2.0})
     with pytest.raises(SystemExit):
         main([str(capture), "--change", "none", "--zoom", "cam1:oops", "--out", str(tmp_path / "x")])
+
+
+def test_a_late_camera_shows_the_others_earlier_frames_and_its_true_masks_follow(capture, tmp_path):
+    levels = (40, 90, 140, 190)
+    writer = cv2.VideoWriter(str(capture / "videos" / "cam1.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 25, (WIDTH, HEIGHT))
+    for level in levels:
+        writer.write(np.full((HEIGHT, WIDTH, 3), level, np.uint8))
+    writer.release()
+    for camera in ("cam0", "cam1"):
+        (capture / "groundtruth" / "masks" / camera).mkdir(parents=True)
+        for frame in range(FRAMES):
+            mask = np.zeros((HEIGHT, WIDTH), np.uint8)
+            mask[frame * 10:frame * 10 + 5] = 255
+            cv2.imwrite(str(capture / "groundtruth" / "masks" / camera / f"{frame:06d}.png"), mask)
+    out = perturb_capture(capture, tmp_path / "late", "none", late={"cam1": 1})
+    source = [float(frame.mean()) for frame in _frames(capture / "videos" / "cam1.mp4")]
+    shown = [float(frame.mean()) for frame in _frames(out / "videos" / "cam1.mp4")]
+    np.testing.assert_allclose(shown, [source[0], *source[:3]], atol=3)  # frame t is the source's t - 1
+    masks = [cv2.imread(str(out / "groundtruth" / "masks" / "cam1" / f"{frame:06d}.png"), cv2.IMREAD_GRAYSCALE)
+             for frame in range(FRAMES)]
+    assert [int(np.flatnonzero(mask.any(axis=1))[0]) for mask in masks] == [0, 0, 10, 20]
+    steady = cv2.imread(str(out / "groundtruth" / "masks" / "cam0" / "000002.png"), cv2.IMREAD_GRAYSCALE)
+    assert np.flatnonzero(steady.any(axis=1))[0] == 20  # the others keep their own
+    with pytest.raises(InputError, match="whole number of frames"):
+        perturb_capture(capture, tmp_path / "early", "none", late={"cam1": 0})

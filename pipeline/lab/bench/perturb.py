@@ -43,6 +43,13 @@ subject then leaves those views in part (feet, a raised arm or the head cut off 
 studio whose cameras do not all frame the whole volume.
 
     python -m pipeline.lab.bench.perturb ../shared/foreign/taekwondo --change none --zoom cam00:1.8 --out runs/cut
+
+With ``--late NAME:FRAMES,...`` those cameras run that many frames behind the others (cameras without a common
+clock: webcams, action cameras): their frame t shows what the others showed at t - FRAMES (the first frame
+repeated before it), and their true masks move alike. The capture format has no time offset per camera, so the
+pipeline takes the frames as simultaneous.
+
+    python -m pipeline.lab.bench.perturb ../shared/foreign/frontkick --change none --late cam02:1 --out runs/late
 """
 
 from __future__ import annotations
@@ -109,11 +116,13 @@ def _to_uint8(frame: np.ndarray) -> np.ndarray:
 
 def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, plates: bool = True,
                     absent: range = range(0), cameras: tuple[str, ...] = (),
-                    calibration_error_deg: float = 0.0, zoom: dict[str, float] | None = None) -> Path:
+                    calibration_error_deg: float = 0.0, zoom: dict[str, float] | None = None,
+                    late: dict[str, int] | None = None) -> Path:
     """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
     to every frame of its videos, and the subject away on the frames ``absent``, seen by the ``cameras`` named
     (default: all) through a calibration whose cameras are each turned by ``calibration_error_deg``, the cameras
-    of ``zoom`` zoomed by its factors (:func:`zoomed`); returns ``out``.
+    of ``zoom`` zoomed by its factors (:func:`zoomed`), those of ``late`` that many frames behind the others;
+    returns ``out``.
 
     capture.yaml, the calibration and the background plates (unless ``plates`` is False) are copied, the ground
     truth (when there is one) linked, or rewritten without the ``absent`` frames and the cameras left out
@@ -126,7 +135,8 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     InputError
         An unknown change, ``out`` already there, a capture without videos, ``absent`` frames in a capture
         without a clean plate for every camera, a camera named that has no video, an angle that is not finite, or
-        a zoom factor that is not a finite number of at least 1.
+        a zoom factor that is not a finite number of at least 1, or a delay that is not a whole number of frames
+        of at least 1.
     """
     capture, out = Path(capture), Path(out)
     if change not in CHANGES:
@@ -143,7 +153,11 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         if (capture / "videos").is_dir() else []
     if not videos:
         raise InputError(f"{capture}: no videos/ folder with videos (only captures of videos can be perturbed)")
-    unknown = sorted((set(cameras) | set(zoom)) - {video.stem for video in videos})
+    late = dict(late or {})
+    for name, frames in late.items():
+        if not (isinstance(frames, int) and frames >= 1):
+            raise InputError(f"delay of camera {name!r}: {frames} (expected a whole number of frames, at least 1)")
+    unknown = sorted((set(cameras) | set(zoom) | set(late)) - {video.stem for video in videos})
     if unknown:
         raise InputError(f"{capture / 'videos'}: no video of camera(s) {', '.join(unknown)}")
     if cameras:
@@ -169,9 +183,9 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
             elif plate.stem in {video.stem for video in videos}:
                 shutil.copy2(plate, partial / "background" / plate.name)
     if (capture / "groundtruth").is_dir():
-        if absent or cameras or zoom:
+        if absent or cameras or zoom or late:
             _truth_without(capture / "groundtruth", partial / "groundtruth", absent, {video.stem for video in videos},
-                           zoom)
+                           zoom, late)
         else:
             (partial / "groundtruth").symlink_to((capture / "groundtruth").resolve(), target_is_directory=True)
     for camera, (video, plate) in enumerate(zip(videos, empty_room, strict=True)):
@@ -181,7 +195,7 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
                 frame = plate + rng.normal(0.0, ABSENT_NOISE, plate.shape)
             return apply(zoomed(frame, factor), rng, camera)
 
-        _rewrite(video, partial / "videos" / (video.stem + ".mp4"), changed)
+        _rewrite(video, partial / "videos" / (video.stem + ".mp4"), changed, late.get(video.stem, 0))
     partial.rename(out)
     return out
 
@@ -240,10 +254,12 @@ def _plate(capture: Path, camera: str) -> np.ndarray:
     return plate.astype(np.float32)
 
 
-def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], zoom: dict[str, float]) -> None:
+def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], zoom: dict[str, float],
+                   late: dict[str, int]) -> None:
     """``target``, the ground truth at ``truth`` without the ``absent`` frames, seen by ``cameras``: the absent
     frames' joints.csv rows left out and their masks empty, the other cameras' masks left out, the masks of the
-    cameras of ``zoom`` zoomed (:func:`zoomed`; the other masks and files linked)."""
+    cameras of ``zoom`` zoomed (:func:`zoomed`), those of the cameras of ``late`` the earlier frame's (the other
+    masks and files linked)."""
     target.mkdir()
     for path in sorted(truth.iterdir()):
         if path.name == "joints.csv":
@@ -255,30 +271,39 @@ def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], 
         elif path.name == "masks" and path.is_dir():
             for camera in sorted(p for p in path.iterdir() if p.is_dir() and p.name in cameras):
                 (target / "masks" / camera.name).mkdir(parents=True)
-                for mask in sorted(camera.iterdir()):
+                masks = sorted(camera.iterdir())
+                behind = late.get(camera.name, 0)
+                for index, mask in enumerate(masks):
+                    shown = masks[max(0, index - behind)]  # the frame this camera shows there (late: an earlier one)
+                    written = target / "masks" / camera.name / mask.name
                     if mask.stem.isdigit() and int(mask.stem) in absent:
                         image = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
-                        cv2.imwrite(str(target / "masks" / camera.name / mask.name), np.zeros_like(image))
+                        cv2.imwrite(str(written), np.zeros_like(image))
                     elif camera.name in zoom:
-                        image = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
-                        cv2.imwrite(str(target / "masks" / camera.name / mask.name), zoomed(image, zoom[camera.name]))
+                        image = cv2.imread(str(shown), cv2.IMREAD_GRAYSCALE)
+                        cv2.imwrite(str(written), zoomed(image, zoom[camera.name]))
                     else:
-                        (target / "masks" / camera.name / mask.name).symlink_to(mask.resolve())
+                        written.symlink_to(shown.resolve())
         else:
             (target / path.name).symlink_to(path.resolve(), target_is_directory=path.is_dir())
 
 
-def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray, int], np.ndarray]) -> None:
-    """Decode ``source``, change every frame (as float32, with its index) and encode the result to ``target``."""
+def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray, int], np.ndarray], late: int = 0) -> None:
+    """Decode ``source``, change every frame (as float32, with its index) and encode the result to ``target``;
+    ``late``: each frame t is the source's t - late (its first frame before that), as many frames as the source."""
     reader = cv2.VideoCapture(str(source))
     fps = reader.get(cv2.CAP_PROP_FPS)
     writer = None
     index = 0
+    recent: list[np.ndarray] = []  # the source's last late + 1 frames
     try:
         while True:
             ok, frame = reader.read()
             if not ok:
                 break
+            if late:
+                recent = ((recent or [frame] * late) + [frame])[-(late + 1):]  # the first stands in for earlier ones
+                frame = recent[0]
             if writer is None:
                 writer = cv2.VideoWriter(str(target), cv2.VideoWriter_fourcc(*"mp4v"), fps,
                                          (frame.shape[1], frame.shape[0]))
@@ -306,16 +331,26 @@ def _frame_span(text: str) -> range:
     return span
 
 
+def _per_camera(text: str, kind: type, what: str) -> dict:
+    """``NAME:VALUE,...`` as {camera: kind(value)}; ``what`` names the value in the error."""
+    values = {}
+    for item in (part for part in text.split(",") if part):
+        name, _, value = item.partition(":")
+        try:
+            values[name] = kind(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected NAME:{what}, a camera and a number, got {item!r}") from None
+    return values
+
+
 def _zooms(text: str) -> dict[str, float]:
     """``NAME:FACTOR,...`` as {camera: factor}."""
-    zooms = {}
-    for item in (part for part in text.split(",") if part):
-        name, _, factor = item.partition(":")
-        try:
-            zooms[name] = float(factor)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected NAME:FACTOR, a camera and a number, got {item!r}") from None
-    return zooms
+    return _per_camera(text, float, "FACTOR")
+
+
+def _delays(text: str) -> dict[str, int]:
+    """``NAME:FRAMES,...`` as {camera: frames}."""
+    return _per_camera(text, int, "FRAMES")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -338,11 +373,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--zoom", type=_zooms, default={}, metavar="NAME:FACTOR,...",
                         help="these cameras zoomed in by these factors about their images' centres (the subject "
                              "then partly out of their view)")
+    parser.add_argument("--late", type=_delays, default={}, metavar="NAME:FRAMES,...",
+                        help="these cameras that many frames behind the others (no common clock)")
     args = parser.parse_args(argv)
     try:
         perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates,
                         absent=args.absent, cameras=args.cameras, calibration_error_deg=args.calibration_error,
-                        zoom=args.zoom)
+                        zoom=args.zoom, late=args.late)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
