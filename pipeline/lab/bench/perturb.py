@@ -134,9 +134,9 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     ------
     InputError
         An unknown change, ``out`` already there, a capture without videos, ``absent`` frames in a capture
-        without a clean plate for every camera, a camera named that has no video, an angle that is not finite, or
-        a zoom factor that is not a finite number of at least 1, or a delay that is not a whole number of frames
-        of at least 1.
+        without a clean plate for every camera, a camera named that has no video, an angle that is not finite, a
+        zoom factor that is not a finite number of at least 1, or a delay that is not a whole number of frames of
+        at least 1.
     """
     capture, out = Path(capture), Path(out)
     if change not in CHANGES:
