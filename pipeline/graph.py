@@ -232,6 +232,10 @@ def _check_calibration(capture: Capture, masks_dir: Path) -> None:
         return
     figures = ", ".join(f"{camera.name} {100 * value:.1f}" for camera, value in zip(cameras, per_camera, strict=True)
                         if np.isfinite(value))
+    unchecked = [camera.name for camera, value in zip(cameras, per_camera, strict=True) if np.isnan(value)]
+    if unchecked:  # a view whose silhouette is empty or cut by the image's border gives no tangent plane
+        figures += (f"; not checked: {', '.join(unchecked)}, whose silhouettes were empty or reached the image's "
+                    "border on the frames checked")
     if not off.any():
         log.info("calibration check: every camera's silhouettes agree with the others' at the subject within "
                  "%.1f cm (epipolar tangency, median over %d frames; cm per camera: %s)",

@@ -66,3 +66,17 @@ def test_with_two_cameras_a_disagreement_names_both(tmp_path, capfd):
     _check_calibration(pair, out / "silhouettes")  # the run's terminal handler prints the log
     err = capfd.readouterr().err
     assert "WARNING pipeline.graph: calibration check: the silhouettes of cam1 (" in err and "), cam3 (" in err
+
+
+def test_a_camera_whose_silhouettes_reach_the_border_is_named_as_not_checked(tmp_path, capfd):
+    out = tmp_path / "out"
+    assert main(["run", str(TINY), "--out", str(out), "--to", "silhouettes", "-q"]) == 0
+    for path in sorted((out / "silhouettes" / "cam2").glob("*.png")):
+        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        mask[-1] = 255  # the subject cut off by the image's bottom edge
+        cv2.imwrite(str(path), mask)
+    capfd.readouterr()
+    _check_calibration(Capture.open(TINY), out / "silhouettes")
+    err = capfd.readouterr().err
+    assert "not checked: cam2, whose silhouettes were empty or reached the image's border" in err
+    assert json.loads((out / "silhouettes" / "calibration_check.json").read_text())["disagreement_m"]["cam2"] is None
