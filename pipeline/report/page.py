@@ -241,6 +241,9 @@ def _calibration_check(path: Path) -> dict | None:
 def _agreement(check: dict | None, camera: str) -> str:
     """A note on how far the camera's silhouettes agree with the other cameras' through the calibration."""
     value = check["disagreement_m"].get(camera) if check else None
+    if check and camera in check["disagreement_m"] and value is None:
+        return ("<p class='note'>Calibration check: not checked, its silhouettes were empty or reached the image's "
+                "border on the frames checked.</p>")
     if not isinstance(value, (int, float)):
         return ""
     if camera in (check.get("at_fault") or []):

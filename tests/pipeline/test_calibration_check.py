@@ -80,3 +80,6 @@ def test_a_camera_whose_silhouettes_reach_the_border_is_named_as_not_checked(tmp
     err = capfd.readouterr().err
     assert "not checked: cam2, whose silhouettes were empty or reached the image's border" in err
     assert json.loads((out / "silhouettes" / "calibration_check.json").read_text())["disagreement_m"]["cam2"] is None
+    assert main(["run", str(TINY), "--out", str(out), "--from", "reconstruction", "-q"]) == 0
+    report = (out / "export" / "report.html").read_text()
+    assert report.count("Calibration check: not checked") == 1
