@@ -146,22 +146,11 @@ def _write_masks(out_dir: Path, names: Sequence[str], frame: int, masks: Sequenc
         frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
 
 
-def subject_cut_off(mask: np.ndarray) -> bool:
-    """Whether the largest piece of the silhouette ``mask`` (H, W) reaches the image's border: the subject, rather
-    than a speck or a stray blob, goes on beyond the image (a view the reconstruction then does not let veto what
-    lies beyond it, `stages.reconstruction.views.blind_beyond_image`)."""
-    count, _, stats, _ = cv2.connectedComponentsWithStats((mask > 0).astype(np.uint8))
-    if count < 2:
-        return False
-    x, y, width, height, _ = stats[1 + np.argmax(stats[1:, cv2.CC_STAT_AREA])]
-    return bool(x == 0 or y == 0 or x + width == mask.shape[1] or y + height == mask.shape[0])
-
-
 def reconstruction_task(chunk: Sequence[int], *, capture: Capture, params: ReconstructionParams,
                         masks_dir: Path, out_dir: Path) -> None:
     """Worker: points and normals of a chunk of frames from the silhouette stage's masks."""
     from stages.reconstruction import reconstruct  # here rather than above: see the module's docstring
-    from stages.reconstruction.views import blind_beyond_image
+    from stages.reconstruction.views import subject_cut_off
 
     with single_threaded_opencv():
         for frame in chunk:
@@ -171,7 +160,7 @@ def reconstruction_task(chunk: Sequence[int], *, capture: Capture, params: Recon
             if empty:
                 log.warning("frame %d: empty silhouette in camera(s) %s", frame, ", ".join(empty))
             for camera, mask in zip(capture.rig.names, masks, strict=True):
-                if blind_beyond_image(mask) and subject_cut_off(mask):  # one message per camera: each folds
+                if subject_cut_off(mask):  # one message per camera: each folds over its frames
                     log.warning("frame %d: the subject reaches the image's border in camera %s (partly out of its "
                                 "view: that part comes from the other cameras)", frame, camera)
             observations = reconstruct(masks, capture.rig, capture.volume, params)

@@ -27,6 +27,7 @@ import numpy as np
 
 from calib.camera import Camera
 from stages.rays import nearest_point
+from stages.reconstruction.views import blind_beyond_image
 
 #: A pair whose planes through the silhouette span more than this has its baseline through the person.
 MAX_SPAN_RAD = np.radians(150.0)
@@ -128,16 +129,13 @@ def _nearest_point(masks: Sequence[np.ndarray], cameras: Sequence[Camera], fallb
 
 
 def _outline(mask: np.ndarray) -> np.ndarray | None:
-    """(N, 2) float pixels of the silhouette's outer outlines, or None when it is empty or touches the border."""
+    """(N, 2) float pixels of the silhouette's outer outlines, or None when it is empty or reaches the border
+    (`blind_beyond_image`: the border, not the person, bounds it there)."""
+    if blind_beyond_image(mask):
+        return None
     contours, _ = cv2.findContours(np.ascontiguousarray(mask, dtype=np.uint8), cv2.RETR_EXTERNAL,
                                    cv2.CHAIN_APPROX_SIMPLE)
-    if not contours:
-        return None
-    points = np.concatenate(contours).reshape(-1, 2)
-    height, width = mask.shape
-    if points.min() <= 0 or np.any(points[:, 0] >= width - 1) or np.any(points[:, 1] >= height - 1):
-        return None
-    return points.astype(float)
+    return np.concatenate(contours).reshape(-1, 2).astype(float)
 
 
 def _plane_angles(baseline: np.ndarray, towards: np.ndarray, directions: np.ndarray) -> tuple[float, float]:

@@ -341,11 +341,9 @@ class Tracker:
         frame's re-check. A re-check is not widened: it has the tracked fit to fall back on, and widened there it
         traded captures against each other (both measured in docs/results_by_hand.md).
 
-        A re-check whose search faces the subject more than a quarter-turn away from the track (`turned_around`)
-        is weighed against a search over the track's half-turn (`init.initialise`'s `facing`), which is kept
-        unless the turned one is likelier by `InitParams.finalist_margin` per observation: a body turned around
-        with left and right exchanged covers the same space as one facing the right way whenever the pose is
-        close to symmetric front to back, and a tracked fit gone astray for a few frames scored below it.
+        A re-check whose search faces the subject more than a quarter-turn away from the track (`turned_around`,
+        which says why) is weighed against a search over the track's half-turn (`init.initialise`'s `facing`),
+        kept unless the turned one is likelier by `InitParams.finalist_margin` per observation.
 
         A doubtful initialisation is still the best pose the data gave: the next frame tracks from it (at
         rest) and tries a fresh initialisation against that fit, keeping the likelier (`recheck`). Starting
@@ -367,17 +365,18 @@ class Tracker:
         measure = (not stated or params.stated_height_weight < 1) and state.height_weight < params.scale_frames
         # A stated height sizes the search; the size is measured from its result (`measured_height`).
         search_size = measure and not stated
-        init = initialise(y, n, body, self.volume, self.library, estimate_height=search_size, em=params.em,
-                          params=params.init, rng=np.random.default_rng(params.seed))
+
+        def search(init_params=params.init, facing=None):  # each search from the same draw (`TrackerParams.seed`)
+            return initialise(y, n, body, self.volume, self.library, estimate_height=search_size, em=params.em,
+                              params=init_params, rng=np.random.default_rng(params.seed), facing=facing)
+
+        init = search()
         if alone and _failed(init.fit, params):  # the coarse ranking can leave the pose that fits unrefined
-            wider = initialise(y, n, body, self.volume, self.library, estimate_height=search_size, em=params.em,
-                               params=replace(params.init, refine=params.init.refine * _WIDER_SEARCH),
-                               rng=np.random.default_rng(params.seed))
+            wider = search(replace(params.init, refine=params.init.refine * _WIDER_SEARCH))
             if wider.fit.log_likelihood[-1] > init.fit.log_likelihood[-1]:
                 init = wider
         if not alone and turned_around(init.pose, state.pose):
-            facing = initialise(y, n, body, self.volume, self.library, estimate_height=search_size, em=params.em,
-                                params=params.init, rng=np.random.default_rng(params.seed), facing=state.pose[3])
+            facing = search(facing=state.pose[3])
             if init.fit.log_likelihood[-1] < facing.fit.log_likelihood[-1] + params.init.finalist_margin * len(y):
                 init = facing
         fitted = init.fit

@@ -35,18 +35,3 @@ def test_background_model_is_read_again_when_the_file_changes(tmp_path):
     second = frame_tasks.cached_background_model(path, params)
     assert second is not first
     assert int(second.image[0, 0, 0]) == 200
-
-
-
-@pytest.mark.parametrize(("pieces", "cut"), [
-    ([(slice(10, 50), slice(20, 40))], False),  # the whole subject in view
-    ([(slice(30, 60), slice(20, 40))], True),  # his feet below the image
-    ([(slice(10, 50), slice(20, 40)), (slice(0, 2), slice(50, 53))], False),  # a speck on the border
-    ([(slice(10, 50), slice(20, 40)), (slice(20, 30), slice(0, 5))], False),  # a stray blob on the border
-    ([], False),  # nobody
-])
-def test_the_subject_is_cut_off_when_the_largest_piece_of_his_silhouette_reaches_the_border(pieces, cut):
-    mask = np.zeros((60, 80), np.uint8)
-    for rows, columns in pieces:
-        mask[rows, columns] = 255
-    assert frame_tasks.subject_cut_off(mask) is cut

@@ -149,10 +149,7 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     for name, factor in zoom.items():
         if not (np.isfinite(factor) and factor >= 1.0):
             raise InputError(f"zoom of camera {name!r}: {factor} (expected a finite factor of at least 1)")
-    videos = sorted(path for path in (capture / "videos").glob("*") if path.is_file()) \
-        if (capture / "videos").is_dir() else []
-    if not videos:
-        raise InputError(f"{capture}: no videos/ folder with videos (only captures of videos can be perturbed)")
+    videos = capture_videos(capture)
     late = dict(late or {})
     for name, frames in late.items():
         if not (isinstance(frames, int) and frames >= 1):
@@ -198,6 +195,21 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         _rewrite(video, partial / "videos" / (video.stem + ".mp4"), changed, late.get(video.stem, 0))
     partial.rename(out)
     return out
+
+
+def capture_videos(capture: Path) -> list[Path]:
+    """The capture's videos (``videos/<camera>.<ext>``), by name: what a copy can change, one per camera.
+
+    Raises
+    ------
+    InputError
+        When the capture has none (only captures of videos can be perturbed).
+    """
+    folder = Path(capture) / "videos"
+    videos = sorted(path for path in folder.iterdir() if path.is_file()) if folder.is_dir() else []
+    if not videos:
+        raise InputError(f"{capture}: no videos/ folder with videos (only captures of videos can be perturbed)")
+    return videos
 
 
 def _rewrite_calibration(source: Capture, copy: Path, kept: set[str], error_deg: float,

@@ -36,7 +36,7 @@ from calib.errors import InputError
 from pipeline.evaluate import evaluate_run
 from pipeline.io.capture import Capture
 from pipeline.lab.bench.foreign import FOREIGN_ROOT, QUICK_FRAMES, find_captures, foreign_scores
-from pipeline.lab.bench.perturb import perturb_capture
+from pipeline.lab.bench.perturb import capture_videos, perturb_capture
 from pipeline.lab.bench.runs import REPO, run_pipeline
 from pipeline.lab.bench.speed import prefix_view
 
@@ -96,18 +96,9 @@ def variants(*, quick: bool) -> tuple[Variant, ...]:
 
 
 def camera_names(capture: Path) -> list[str]:
-    """The capture's cameras by name, as :func:`perturb_capture` knows them: its videos' names without extension.
-
-    Raises
-    ------
-    InputError
-        When the capture has no videos (no copy can be made of it).
-    """
-    videos = capture / "videos"
-    names = sorted(path.stem for path in videos.iterdir() if path.is_file()) if videos.is_dir() else []
-    if not names:
-        raise InputError(f"{videos}: no videos (only captures of videos can be perturbed)")
-    return names
+    """The capture's cameras by name, as :func:`perturb_capture` knows them (:func:`capture_videos`' names without
+    extension); InputError when it has no videos."""
+    return [video.stem for video in capture_videos(capture)]
 
 
 def cache_key(arguments: dict, capture_yaml: bytes) -> str:

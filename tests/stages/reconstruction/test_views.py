@@ -5,7 +5,13 @@ import pytest
 from sphere_scene import ring_rig
 
 from calib.camera import MIN_VIEW_DEPTH_M
-from stages.reconstruction.views import VOLUME_FACES, blind_beyond_image, faces_reached, inside_view
+from stages.reconstruction.views import (
+    VOLUME_FACES,
+    blind_beyond_image,
+    faces_reached,
+    inside_view,
+    subject_cut_off,
+)
 
 
 def _inside_view_reference(camera, mask, X):
@@ -108,3 +114,17 @@ def test_a_view_is_blind_beyond_its_image_when_its_silhouette_reaches_the_border
     mask = np.zeros((100, 100), np.uint8)
     mask[slice(*rows), slice(*columns)] = 255
     assert blind_beyond_image(mask) is blind
+
+
+@pytest.mark.parametrize(("pieces", "cut"), [
+    ([(slice(10, 50), slice(20, 40))], False),  # the whole subject in view
+    ([(slice(30, 60), slice(20, 40))], True),  # his feet below the image
+    ([(slice(10, 50), slice(20, 40)), (slice(0, 2), slice(50, 53))], False),  # a speck on the border
+    ([(slice(10, 50), slice(20, 40)), (slice(20, 30), slice(0, 5))], False),  # a stray blob on the border
+    ([], False),  # nobody
+])
+def test_the_subject_is_cut_off_when_the_largest_piece_of_his_silhouette_reaches_the_border(pieces, cut):
+    mask = np.zeros((60, 80), np.uint8)
+    for rows, columns in pieces:
+        mask[rows, columns] = 255
+    assert subject_cut_off(mask) is cut
