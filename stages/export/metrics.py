@@ -8,6 +8,13 @@ Definitions (the usual ones of the human-pose literature):
 - PCK@t: the fraction of (frame, joint) pairs whose error is at most t;
 - angle error: mean absolute difference (wrapped to +-180 degrees) of an angle of :mod:`stages.export.angles`
   over the matched frames where both define it;
+- constant offset: a joint's mean error expressed in the true body's frame (``bvh.pelvis_frame``: left, up,
+  forward), over the matched frames. Two skeletons can put a joint at different places in the same flesh
+  (a shoulder at the top of the humerus or inside the deltoid, a hip centre nearer or farther from the
+  midline); that difference moves with the body and shows here rather than as scatter. The offset-free
+  MPJPE is the MPJPE after each joint's constant offset is subtracted (in that frame, frame by frame): what
+  is left of the error once the two skeletons' conventions are set aside. It needs the pelvis, neck and hips
+  among the scored joints;
 - acceleration error: the mean norm of the difference between estimated and true accelerations (second
   differences over three consecutive matched frames, m/s²), per joint: the jitter of a trajectory, which
   MPJPE barely sees, and which smoothing (``export.filter_cutoff_hz``) lowers;
@@ -25,6 +32,7 @@ import numpy as np
 
 from calib.errors import InputError
 from stages.export.angles import joint_angles
+from stages.export.bvh import pelvis_frame
 from stages.joints import SCORED_JOINTS
 
 #: PCK thresholds reported by default, millimetres.
@@ -46,6 +54,8 @@ class JointMetrics:
     pck_thresholds_mm: tuple[float, ...]
     angle_errors_deg: dict[str, float]      # mean absolute error per angle
     acceleration_errors_m_s2: dict[str, float] = field(default_factory=dict)  # per joint; {} without a frame time
+    offsets_mm: np.ndarray | None = None    # (J, 3) constant offsets (left, up, forward); None: no body frame
+    offset_free_errors_mm: np.ndarray | None = None  # (M, J) joint errors after the constant offsets
 
     @property
     def per_frame_mm(self) -> np.ndarray:
@@ -59,6 +69,10 @@ class JointMetrics:
     @property
     def mpjpe_mm(self) -> float:
         return float(self.errors_mm.mean())
+
+    @property
+    def offset_free_mpjpe_mm(self) -> float | None:
+        return None if self.offset_free_errors_mm is None else float(self.offset_free_errors_mm.mean())
 
     def pck(self, threshold_mm: float) -> float:
         """Fraction of (frame, joint) errors at most ``threshold_mm``."""
@@ -84,6 +98,10 @@ class JointMetrics:
             "acceleration_error_m_s2": (float(np.mean(list(self.acceleration_errors_m_s2.values())))
                                         if self.acceleration_errors_m_s2 else None),
             "per_joint_acceleration_error_m_s2": dict(self.acceleration_errors_m_s2),
+            "offset_free_mpjpe_mm": self.offset_free_mpjpe_mm,
+            "per_joint_offset_mm": (None if self.offsets_mm is None else
+                                    {name: [float(v) for v in offset]
+                                     for name, offset in zip(self.joints, self.offsets_mm, strict=True)}),
         }
 
 
@@ -91,6 +109,28 @@ def joint_errors(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """(F, J) Euclidean distances between ``estimate (F, J, 3)`` and ``truth (F, J, 3)`` (same units)."""
     difference = np.asarray(estimate, dtype=np.float64) - np.asarray(truth, dtype=np.float64)
     return np.linalg.norm(difference, axis=-1)
+
+
+#: The joints that define the body's frame in which constant offsets are measured (``bvh.pelvis_frame``).
+BODY_FRAME_JOINTS = ("l_hip", "r_hip", "pelvis", "neck")
+
+
+def body_frames(truth: np.ndarray, names: Sequence[str]) -> np.ndarray | None:
+    """(F, 3, 3) the true body's frame in each frame (columns: left, up, forward), or None when ``names`` lack
+    one of :data:`BODY_FRAME_JOINTS`."""
+    if not all(name in names for name in BODY_FRAME_JOINTS):
+        return None
+    return pelvis_frame({name: np.asarray(truth)[:, list(names).index(name)] for name in BODY_FRAME_JOINTS})
+
+
+def constant_offsets(estimate: np.ndarray, truth: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """(J, 3) each joint's mean error (estimate − truth, same units) in the body's ``frames`` (F, 3, 3)."""
+    return np.einsum("fba,fjb->fja", frames, np.asarray(estimate) - np.asarray(truth)).mean(axis=0)
+
+
+def without_offsets(estimate: np.ndarray, frames: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(F, J, 3) ``estimate`` with the constant ``offsets`` (J, 3), given in the body's ``frames``, taken off."""
+    return np.asarray(estimate) - np.einsum("fab,jb->fja", frames, offsets)
 
 
 def angle_errors(estimate: np.ndarray, truth: np.ndarray, names: Sequence[str]) -> dict[str, float]:
@@ -168,6 +208,8 @@ def evaluate_joints(
                          "do not overlap (expected the same frame numbering)")
     est = np.asarray(estimate)[in_estimate][:, [list(estimate_names).index(n) for n in joints]]
     tru = np.asarray(truth)[in_truth][:, [list(truth_names).index(n) for n in joints]]
+    frames = body_frames(tru, joints)
+    offsets = None if frames is None else constant_offsets(est, tru, frames)
     return JointMetrics(
         joints=joints,
         frames=common.astype(np.int64),
@@ -177,6 +219,9 @@ def evaluate_joints(
         angle_errors_deg=angle_errors(est, tru, joints),
         acceleration_errors_m_s2={} if frame_time_s is None else acceleration_errors(common, est, tru, joints,
                                                                                       frame_time_s),
+        offsets_mm=None if offsets is None else 1000.0 * offsets,
+        offset_free_errors_mm=None if offsets is None else 1000.0 * joint_errors(without_offsets(est, frames, offsets),
+                                                                                 tru),
     )
 
 

@@ -38,8 +38,7 @@ from pipeline.io.export_io import read_joints_csv
 from pipeline.lab.bench.masks import perturb_mask
 from pipeline.lab.bench.recipes import PAPER, describe, ensure_capture
 from stages.export.angles import joint_angles
-from stages.export.bvh import pelvis_frame
-from stages.export.metrics import mask_iou
+from stages.export.metrics import body_frames, constant_offsets, mask_iou, without_offsets
 from stages.joints import JOINT_NAMES, SCORED_JOINTS
 from stages.reconstruction import Observations, ReconstructionParams, reconstruct
 from stages.tracking.params import TrackerParams
@@ -183,7 +182,7 @@ def score(joints: np.ndarray, statuses: Sequence[str], truth: np.ndarray) -> dic
     hip angles, unless the knees are placed alike (``hips_forward_mm``, ``knees_forward_mm`` and
     ``hip_angle_error_deg`` show it).
     ``angle_error_offset_free_deg`` removes it: each joint's mean error in the true body's frame
-    (`stages.export.bvh.pelvis_frame`), taken over the sequence, is subtracted before the angles are
+    (`stages.export.metrics.constant_offsets`), taken over the sequence, is subtracted before the angles are
     measured.
 
     Returns
@@ -207,9 +206,9 @@ def score(joints: np.ndarray, statuses: Sequence[str], truth: np.ndarray) -> dic
     _, true = joint_angles(truth)
     limbs = [names.index(name) for name in LIMB_ANGLES]
     angle_error = np.abs(estimated[:, limbs] - true[:, limbs]).mean(axis=1)  # (F,) per frame
-    frames = pelvis_frame({name: truth[:, JOINT_NAMES.index(name)] for name in ("l_hip", "r_hip", "pelvis", "neck")})
-    offset = np.einsum("fba,fjb->fja", frames, joints - truth).mean(axis=0)  # (17, 3) in the body's frame
-    _, offset_free = joint_angles(joints - np.einsum("fab,jb->fja", frames, offset))
+    frames = body_frames(truth, JOINT_NAMES)
+    offset = constant_offsets(joints, truth, frames)  # (17, 3) in the body's frame
+    _, offset_free = joint_angles(without_offsets(joints, frames, offset))
     hips = [names.index(name) for name in ("l_hip_elevation", "r_hip_elevation")]
     forward = 1000.0 * offset[:, 2]  # the pelvis frame's third axis, millimetres
     scored = [JOINT_NAMES.index(name) for name in SCORED_JOINTS]

@@ -94,7 +94,8 @@ def format_speed(speed: dict) -> str:
 UNSEEN_COLUMNS = (("capture", "capture"), ("clip", "clip"), ("body", "body"), ("cams", "cameras"),
                   ("size", "size"), ("noise", "noise"), ("distr.", "distractors"), ("media", "media"),
                   ("calibration", "calibration"), ("height", "height_known"), ("frames", "frames"),
-                  ("estimated", "fraction_estimated"), ("MPJPE mm", "mpjpe_mm"), ("worst mm", "worst_frame_mm"),
+                  ("estimated", "fraction_estimated"), ("MPJPE mm", "mpjpe_mm"),
+                  ("offset-free mm", "offset_free_mpjpe_mm"), ("worst mm", "worst_frame_mm"),
                   ("knee °", "knee_flexion_deg"), ("elbow °", "elbow_flexion_deg"), ("sil. IoU", "silhouette_iou"))
 
 
@@ -115,7 +116,8 @@ def format_unseen(unseen: dict) -> str:
 
 
 FOREIGN_COLUMNS = (("capture", "capture"), ("cams", "cameras"), ("size", "size"), ("frames", "frames"),
-                   ("estimated", "fraction_estimated"), ("MPJPE mm", "mpjpe_mm"), ("worst mm", "worst_frame_mm"),
+                   ("estimated", "fraction_estimated"), ("MPJPE mm", "mpjpe_mm"),
+                   ("offset-free mm", "offset_free_mpjpe_mm"), ("worst mm", "worst_frame_mm"),
                    ("sil. IoU median", "silhouette_iou_median"), ("MPJPE true masks mm", "mpjpe_true_masks_mm"),
                    ("worst true masks mm", "worst_true_masks_mm"), ("end to end fps", "fps_end_to_end"),
                    ("tracker ms/frame", "tracker_ms_per_frame"),

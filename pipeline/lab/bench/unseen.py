@@ -21,8 +21,8 @@ from pipeline.lab.bench.recipes import QUICK_UNSEEN, UNSEEN, Recipe, describe, e
 from pipeline.lab.bench.runs import run_pipeline
 
 #: Row fields averaged into the "mean" row.
-MEAN_FIELDS = ("fraction_estimated", "mpjpe_mm", "worst_frame_mm", "knee_flexion_deg", "elbow_flexion_deg",
-               "silhouette_iou")
+MEAN_FIELDS = ("fraction_estimated", "mpjpe_mm", "offset_free_mpjpe_mm", "worst_frame_mm", "knee_flexion_deg",
+               "elbow_flexion_deg", "silhouette_iou")
 
 
 def unseen_recipes(quick: bool) -> list[Recipe]:
@@ -51,6 +51,7 @@ def score_row(metrics: dict) -> dict:
     return {
         "fraction_estimated": metrics["fraction_estimated"],
         "mpjpe_mm": metrics["mpjpe_mm"],
+        "offset_free_mpjpe_mm": metrics["offset_free_mpjpe_mm"],
         "worst_frame_mm": metrics["worst_frame"]["mpjpe_mm"],
         "knee_flexion_deg": float(np.mean([angles["l_knee_flexion"], angles["r_knee_flexion"]])),
         "elbow_flexion_deg": float(np.mean([angles["l_elbow_flexion"], angles["r_elbow_flexion"]])),

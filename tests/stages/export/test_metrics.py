@@ -21,6 +21,34 @@ def test_constant_offset_of_10_mm_gives_mpjpe_10_and_full_pck():
     assert summary["pck"] == {"50mm": 1.0, "100mm": 1.0} and summary["fraction_estimated"] == 1.0
 
 
+def test_an_offset_that_turns_with_the_body_is_measured_in_its_frame_and_taken_off_the_offset_free_mpjpe():
+    """A skeleton that puts each shoulder 20 mm further out and the head 15 mm further forward, in the subject's own
+    frame (so that in the world the offset turns as he turns), plus 3 mm of noise: MPJPE counts the offsets, the
+    offset-free MPJPE only the noise, and the offsets come out in the body's (left, up, forward) axes."""
+    from stages.export.metrics import body_frames
+
+    truth = random_motion(40, seed=3)
+    frames = np.arange(40)
+    axes = body_frames(truth, JOINT_NAMES)  # (F, 3, 3) columns left, up, forward
+    offsets = np.zeros((len(JOINT_NAMES), 3))
+    offsets[JOINT_NAMES.index("l_shoulder")] = [0.020, 0.0, 0.0]
+    offsets[JOINT_NAMES.index("r_shoulder")] = [-0.020, 0.0, 0.0]
+    offsets[JOINT_NAMES.index("head")] = [0.0, 0.0, 0.015]
+    noise = np.random.default_rng(3).normal(0.0, 0.003 / np.sqrt(3), truth.shape)
+    estimate = truth + np.einsum("fab,jb->fja", axes, offsets) + noise
+    metrics = evaluate_joints(frames, JOINT_NAMES, estimate, frames, JOINT_NAMES, truth)
+    summary = metrics.summary()
+    assert summary["offset_free_mpjpe_mm"] == pytest.approx(2.8, abs=0.4)  # the noise's mean norm
+    assert summary["mpjpe_mm"] > summary["offset_free_mpjpe_mm"] + 2.5  # (20 + 20 + 15) / 15 joints, about
+    np.testing.assert_allclose(summary["per_joint_offset_mm"]["l_shoulder"], [20.0, 0.0, 0.0], atol=1.0)
+    np.testing.assert_allclose(summary["per_joint_offset_mm"]["r_shoulder"], [-20.0, 0.0, 0.0], atol=1.0)
+    np.testing.assert_allclose(summary["per_joint_offset_mm"]["head"], [0.0, 0.0, 15.0], atol=1.0)
+    without_hips = [name for name in JOINT_NAMES if name not in ("l_hip", "r_hip")]
+    partial = evaluate_joints(frames, without_hips, estimate[:, [JOINT_NAMES.index(n) for n in without_hips]],
+                              frames, JOINT_NAMES, truth).summary()
+    assert partial["offset_free_mpjpe_mm"] is None and partial["per_joint_offset_mm"] is None  # no body frame
+
+
 def test_missing_frames_lower_the_fraction_and_the_worst_frame_is_found():
     truth = random_motion(10, seed=1)
     estimate = truth.copy()
