@@ -51,7 +51,7 @@ def score_row(metrics: dict) -> dict:
     return {
         "fraction_estimated": metrics["fraction_estimated"],
         "mpjpe_mm": metrics["mpjpe_mm"],
-        "offset_free_mpjpe_mm": metrics["offset_free_mpjpe_mm"],
+        "offset_free_mpjpe_mm": metrics.get("offset_free_mpjpe_mm"),  # None without the body frame's joints
         "worst_frame_mm": metrics["worst_frame"]["mpjpe_mm"],
         "knee_flexion_deg": float(np.mean([angles["l_knee_flexion"], angles["r_knee_flexion"]])),
         "elbow_flexion_deg": float(np.mean([angles["l_elbow_flexion"], angles["r_elbow_flexion"]])),
