@@ -13,8 +13,9 @@ Definitions (the usual ones of the human-pose literature):
   (a shoulder at the top of the humerus or inside the deltoid, a hip centre nearer or farther from the
   midline); that difference moves with the body and shows here rather than as scatter. The offset-free
   MPJPE is the MPJPE after each joint's constant offset is subtracted (in that frame, frame by frame): what
-  is left of the error once the two skeletons' conventions are set aside. It needs the pelvis, neck and hips
-  among the scored joints;
+  is left of the error once the two skeletons' conventions are set aside. The offsets are measured on the
+  frames it scores, so it is what the best fixed correction of each joint would leave, a lower bound rather
+  than an accuracy any tracker could claim. It needs the pelvis, neck and hips among the scored joints;
 - acceleration error: the mean norm of the difference between estimated and true accelerations (second
   differences over three consecutive matched frames, m/s²), per joint: the jitter of a trajectory, which
   MPJPE barely sees, and which smoothing (``export.filter_cutoff_hz``) lowers;
