@@ -152,16 +152,13 @@ def format_metrics(summary: dict) -> str:
         wrists = "  ".join(f"{name} {acceleration[name]:.2f}" for name in ("l_wrist", "r_wrist")
                            if name in acceleration)
         lines.append(f"acceleration error {summary['acceleration_error_m_s2']:.2f} m/s² (mean over joints; {wrists})")
-    offsets = summary.get("per_joint_offset_mm")
+    offsets = summary.get("per_joint_offset_mm") or {}  # none without the joints of the subject's frame
     if offsets:
         lines.append(f"offset-free MPJPE {summary['offset_free_mpjpe_mm']:.1f} mm (each joint's constant offset in the "
                      "subject's frame taken off: where the two skeletons put the joint in the same flesh)")
-        lines += ["", f"{'joint':<20}{'MPJPE mm':>10}   constant offset mm (left, up, forward)"]
-        lines += [f"{name:<20}{value:>10.1f}   " + " ".join(f"{v:+6.0f}" for v in offsets[name])
-                  for name, value in summary["per_joint_mpjpe_mm"].items()]
-    else:
-        lines += ["", f"{'joint':<20}{'MPJPE mm':>10}"]
-        lines += [f"{name:<20}{value:>10.1f}" for name, value in summary["per_joint_mpjpe_mm"].items()]
+    lines += ["", f"{'joint':<20}{'MPJPE mm':>10}" + ("   constant offset mm (left, up, forward)" if offsets else "")]
+    lines += [f"{name:<20}{value:>10.1f}" + ("   " + " ".join(f"{v:+6.0f}" for v in offsets[name]) if offsets else "")
+              for name, value in summary["per_joint_mpjpe_mm"].items()]
     if summary["angle_errors_deg"]:
         lines += ["", f"{'angle':<20}{'error deg':>10}"]
         lines += [f"{name:<20}{value:>10.1f}" for name, value in summary["angle_errors_deg"].items()]

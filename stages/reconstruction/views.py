@@ -24,18 +24,23 @@ def blind_beyond_image(mask: np.ndarray) -> bool:
 
     A body is one piece, so a silhouette that is not empty and does not reach the border shows all of it.
     """
-    return bool(not mask.any() or mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
+    return not mask.any() or _reaches_border(mask)
 
 
 def subject_cut_off(mask: np.ndarray) -> bool:
     """Whether the largest piece of the silhouette ``mask`` (H, W) reaches the image's border: the subject himself,
     rather than a speck or a stray blob, goes on beyond the image (which makes the view blind beyond it, as
     :func:`blind_beyond_image` says of any silhouette reaching the border)."""
-    if not mask.any() or not blind_beyond_image(mask):  # cheap: most silhouettes keep clear of the border
+    if not _reaches_border(mask):  # cheap: most silhouettes keep clear of the border
         return False
     _, _, stats, _ = cv2.connectedComponentsWithStats((mask > 0).astype(np.uint8))
     x, y, width, height, _ = stats[1 + np.argmax(stats[1:, cv2.CC_STAT_AREA])]
     return bool(x == 0 or y == 0 or x + width == mask.shape[1] or y + height == mask.shape[0])
+
+
+def _reaches_border(mask: np.ndarray) -> bool:
+    """Whether any pixel of the silhouette ``mask`` (H, W) lies on the image's border."""
+    return bool(mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
 
 
 def inside_view(camera: Camera, mask: np.ndarray, X: np.ndarray, corner: tuple[int, int] = (0, 0),
