@@ -103,25 +103,30 @@ def error_figure(metrics: JointMetrics) -> str:
 
 
 def quality_figure(statuses: Sequence[FrameStatus], limits: Mapping[str, float]) -> str:
-    """The tracker's view of each frame (SVG): log-likelihood, outlier share and Σ spread of the kept fit (with
-    the failure checks' limits, ``limits["max_outlier_fraction"]`` and ``limits["failure_sigma_m"]``),
+    """The tracker's view of each frame (SVG): log-likelihood, outlier share and Σ spread of the kept fit, with
+    the failure checks' limits (``limits["max_outlier_fraction"]``; the Σ spread's, each frame's own:
+    ``FrameStatus.sigma_limit_m``, which follows the track's usual spread on data whose good fits are wide),
     and the frame's category as a coloured strip."""
     frames = np.array([status.frame for status in statuses])
     fitted = np.array([status.status in ("tracked", "initialised") for status in statuses])
-    quantities = (("log-likelihood (nats)", [status.log_likelihood for status in statuses], None),
+
+    def fitted_only(values) -> np.ndarray:  # a frame without a fit has no value
+        return np.where(fitted, np.asarray(values, dtype=float), np.nan)
+
+    sigma_limit = Series(*with_gaps(frames, fitted_only([100 * status.sigma_limit_m for status in statuses])), RED,
+                         "dotted", width=1.2)
+    quantities = (("log-likelihood (nats)", [status.log_likelihood for status in statuses], [], []),
                   ("outliers (%)", [100 * status.outlier_fraction for status in statuses],
-                   100 * limits["max_outlier_fraction"]),
-                  ("Σ spread (cm)", [100 * status.sigma_spread_m for status in statuses],
-                   100 * limits["failure_sigma_m"]))
+                   [ReferenceLine(100 * limits["max_outlier_fraction"], RED, "failure check")], []),
+                  ("Σ spread (cm)", [100 * status.sigma_spread_m for status in statuses], [], [sigma_limit]))
     panels = []
-    for label, values, limit in quantities:
-        values = np.where(fitted, np.asarray(values, dtype=float), np.nan)  # a frame without a fit has no value
-        lines = [ReferenceLine(limit, RED, "failure check")] if limit is not None else []
-        panels.append(Panel([Series(*with_gaps(frames, values), BLUE, dots=True, width=1)], y_label=label,
-                            reference_lines=lines, height=130))
+    for label, values, lines, more in quantities:
+        panels.append(Panel([Series(*with_gaps(frames, fitted_only(values)), BLUE, dots=True, width=1), *more],
+                            y_label=label, reference_lines=lines, height=130))
     colours = [CATEGORY_COLOURS[status.category] for status in statuses]
     panels.append(Panel(strip=Strip(frames, colours, _frame_step(frames)), y_label="", height=36))
     legend = [LegendEntry(category, CATEGORY_COLOURS[category], "box") for category in CATEGORIES]
+    legend.append(LegendEntry("failure check", RED, "dotted"))
     return line_chart(panels, x_label="frame", legend=legend, legend_below=True, description="tracking quality")
 
 

@@ -11,7 +11,9 @@ tracker's parameters (the tracking stage's manifest), by the rules of :mod:`stag
   fit from the previous frame failed the failure checks and a fresh initialisation explained the data
   better;
 - *doubtful* (tracked or initialised, exported but flagged): the kept fit failed the checks, an outlier
-  share above ``max_outlier_fraction`` and/or a spread of Σ above ``failure_sigma_m``;
+  share above ``max_outlier_fraction`` and/or a spread of Σ above the limit the tracker applied
+  (``failure_sigma_m``, or for a tracked fit on data whose good fits are wider, the track's usual spread:
+  :func:`stages.tracking.results.spread_limit`) or at the ``max_sigma_m`` ceiling;
 - *predicted*: fewer than ``min_observations`` usable observations, the pose carried on;
 - *lost*: too few observations for longer than ``max_predicted_frames`` frames, or before any fit.
 """
@@ -30,14 +32,14 @@ from pipeline.io import frames_io
 from pipeline.io.run_layout import read_manifest_file
 from pipeline.io.tracking_io import read_tracking
 from stages.tracking.params import TrackerParams
-from stages.tracking.results import BodyHeight, FrameResult, TrackerState
+from stages.tracking.results import BodyHeight, FrameResult, TrackerState, sigma_spread, spread_limit
 
 #: The categories counted, in the order they are reported; a doubtful frame counts only as doubtful.
 CATEGORIES = ("tracked", "initialised", "doubtful", "predicted", "lost")
 
 #: Tracker parameters the causes depend on; the tracker's defaults stand in for a manifest that lacks them.
-CAUSE_PARAMS = ("max_outlier_fraction", "failure_sigma_m", "min_observations", "max_predicted_frames",
-                "reinit_every")
+CAUSE_PARAMS = ("max_outlier_fraction", "failure_sigma_m", "max_sigma_m", "min_observations",
+                "max_predicted_frames", "reinit_every")
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,7 @@ class FrameStatus:
     log_likelihood : float, nats (0 when not fitted)
     outlier_fraction : float, mean outlier posterior (1 when not fitted)
     sigma_spread_m : float, square root of the largest eigenvalue of the kept fit's Σ, metres
+    sigma_limit_m : float, the widest spread the failure check let that fit have, metres (NaN without a fit)
     causes : why the frame is not plainly tracked (empty for a tracked frame that passed the checks)
     """
 
@@ -61,20 +64,26 @@ class FrameStatus:
     log_likelihood: float
     outlier_fraction: float
     sigma_spread_m: float
+    sigma_limit_m: float
     causes: tuple[str, ...]
 
 
-def _sigma_spread(state: TrackerState) -> float:
-    sigma = state.Sigma
-    return float(np.sqrt(max(np.linalg.eigvalsh(sigma).max(), 0.0))) if sigma.size else 0.0
+def _sigma_limit(status: str, previous: tuple[FrameResult, TrackerState] | None, params: Mapping) -> float:
+    """The widest Σ spread the tracker let this frame's fit have: a tracked fit's from the state before it
+    (`spread_limit`), an initialisation's `failure_sigma_m`."""
+    if status == "tracked" and previous is not None:
+        return spread_limit(previous[1], params["failure_sigma_m"])
+    return params["failure_sigma_m"] if status in ("tracked", "initialised") else np.nan
 
 
-def _doubt_causes(result: FrameResult, spread: float, params: Mapping) -> tuple[str, ...]:
+def _doubt_causes(result: FrameResult, spread: float, limit: float, params: Mapping) -> tuple[str, ...]:
     causes = []
     if result.outlier_fraction > params["max_outlier_fraction"]:
         causes.append(f"outlier share above {100 * params['max_outlier_fraction']:.0f} %")
-    if spread > params["failure_sigma_m"]:
-        causes.append(f"Sigma spread above {100 * params['failure_sigma_m']:.1f} cm")
+    if spread >= params["max_sigma_m"] * (1.0 - 1e-6):
+        causes.append(f"Sigma spread at its ceiling of {100 * params['max_sigma_m']:.1f} cm")
+    elif spread > limit:
+        causes.append(f"Sigma spread above {100 * limit:.1f} cm")
     return tuple(causes) or ("failed the failure checks",)
 
 
@@ -100,7 +109,8 @@ def frame_status(frame: int, record: tuple[FrameResult, TrackerState],
     (tracked or initialised)."""
     result, state = record
     status = result.status
-    spread = _sigma_spread(state) if status in ("tracked", "initialised") else 0.0
+    spread = sigma_spread(state.Sigma) if status in ("tracked", "initialised") else 0.0
+    limit = _sigma_limit(status, previous, params)
     causes: tuple[str, ...] = ()
     if status == "initialised":
         causes = (_initialisation_cause(previous, params),)
@@ -112,10 +122,10 @@ def frame_status(frame: int, record: tuple[FrameResult, TrackerState],
                   else f"fewer than {params['min_observations']} observations before any fit",)
     doubtful = result.doubtful and status in ("tracked", "initialised")
     if doubtful:
-        causes = _doubt_causes(result, spread, params) + tuple(f"initialised: {cause}" for cause in causes)
+        causes = _doubt_causes(result, spread, limit, params) + tuple(f"initialised: {cause}" for cause in causes)
     return FrameStatus(frame=frame, category="doubtful" if doubtful else status, status=status,
                        log_likelihood=float(result.log_likelihood), outlier_fraction=float(result.outlier_fraction),
-                       sigma_spread_m=spread, causes=causes)
+                       sigma_spread_m=spread, sigma_limit_m=limit, causes=causes)
 
 
 def tracker_params(tracking_dir: Path) -> dict:

@@ -70,7 +70,9 @@ class TrackerParams:
     failure_sigma_m : float
         A fit whose Σ has a standard deviation above this (metres) is a failure: the ellipsoids are
         off the body surface by a few centimetres, not by a spread close to the `max_sigma_m` ceiling
-        (which it must be below: Σ never grows past that ceiling, so the check would never fail).
+        (which it must be below: Σ never grows past that ceiling, so the check would never fail). A tracked
+        fit on data whose good fits are wider is held to their usual spread instead
+        (`results.spread_limit`); an initialisation always to this.
     refit_drop, refit_iterations : float, int
         A fit whose log-likelihood per observation is `refit_drop` nats below the running level gets up
         to `refit_iterations` (at least 1) more EM iterations with a strict stopping rule before it is

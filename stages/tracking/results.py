@@ -118,6 +118,10 @@ class TrackerState:
     exchange_misses, exchange_wait : (X,) int or None
         The same for the exchange of each pair of `Tracker.legs` (`limbs.swap_limbs`), tried on a fit worse
         than usual.
+    spread_level, spread_variance : float
+        Running level (the likelihood level's exponential average) of the largest standard deviation of the
+        fitted Σ (metres) over the tracked frames that passed the checks, and its running variance (m²): how
+        wide a good fit of this capture's data is (`spread_limit`); NaN until such a frame sets them.
     """
 
     pose: np.ndarray
@@ -140,18 +144,20 @@ class TrackerState:
     search_wait: np.ndarray | None = None
     exchange_misses: np.ndarray | None = None
     exchange_wait: np.ndarray | None = None
+    spread_level: float = np.nan
+    spread_variance: float = np.nan
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
-        level = self.likelihood_level if np.isfinite(self.likelihood_level) else None
         return {**asdict(self), "pose": self.pose.tolist(), "velocity": self.velocity.tolist(),
                 "length_factors": self.length_factors.tolist(), "Sigma": self.Sigma.tolist(),
-                "pi": self.pi.tolist(), "likelihood_level": level,
+                "pi": self.pi.tolist(), "likelihood_level": _finite(self.likelihood_level),
                 "segment_shares": _listed(self.segment_shares),
                 "velocity_covariance": _listed(self.velocity_covariance),
                 "velocity_variance": _listed(self.velocity_variance),
                 "search_misses": _listed(self.search_misses), "search_wait": _listed(self.search_wait),
-                "exchange_misses": _listed(self.exchange_misses), "exchange_wait": _listed(self.exchange_wait)}
+                "exchange_misses": _listed(self.exchange_misses), "exchange_wait": _listed(self.exchange_wait),
+                "spread_level": _finite(self.spread_level), "spread_variance": _finite(self.spread_variance)}
 
     @staticmethod
     def from_dict(data: dict) -> TrackerState:
@@ -161,8 +167,7 @@ class TrackerState:
                             length_factors=np.asarray(data["length_factors"], dtype=float),
                             height_weight=int(data["height_weight"]),
                             Sigma=np.asarray(data["Sigma"], dtype=float), pi=np.asarray(data["pi"], dtype=float),
-                            likelihood_level=np.nan if data["likelihood_level"] is None
-                            else float(data["likelihood_level"]),
+                            likelihood_level=_unknown_nan(data["likelihood_level"]),
                             frames_without_fit=int(data["frames_without_fit"]), lost=bool(data["lost"]),
                             since_initialisation=int(data.get("since_initialisation", 0)),
                             segment_shares=_array(data.get("segment_shares")),
@@ -174,7 +179,43 @@ class TrackerState:
                             exchange_misses=_array(data.get("exchange_misses"), int),
                             exchange_wait=_array(data.get("exchange_wait"), int),
                             measured_height_m=None if data.get("measured_height_m") is None
-                            else float(data["measured_height_m"]))
+                            else float(data["measured_height_m"]),
+                            spread_level=_unknown_nan(data.get("spread_level")),
+                            spread_variance=_unknown_nan(data.get("spread_variance")))
+
+
+#: A tracked fit's Σ is as wide as usual within this many standard deviations of the track's usual spread.
+SPREAD_DEVIATIONS = 3.0
+
+
+def sigma_spread(Sigma: np.ndarray) -> float:
+    """The largest standard deviation of a covariance Σ (metres; 0 for an empty one)."""
+    return float(np.sqrt(max(np.linalg.eigvalsh(Sigma).max(), 0.0))) if Sigma.size else 0.0
+
+
+def spread_limit(state: TrackerState, failure_sigma_m: float) -> float:
+    """The widest Σ spread (metres) the next tracked fit may have and pass the failure checks: `failure_sigma_m`,
+    or on data whose good fits are wider, their running level plus `SPREAD_DEVIATIONS` standard deviations
+    (`TrackerState.spread_level`, `spread_variance`).
+
+    Σ measures how far the data lie from the fitted surface, and that is the data's own quality as much as
+    the fit's: lossy video, sensor noise or few cameras leave rims centimetres off the body in every frame,
+    and a fixed limit then fails fit after fit that is as good as these data allow, each failure costing an
+    initialisation. The level comes only from fits that passed, under `failure_sigma_m` at first, so that a
+    bad start cannot make itself the norm.
+    """
+    if not np.isfinite(state.spread_level):
+        return failure_sigma_m
+    return max(failure_sigma_m, state.spread_level + SPREAD_DEVIATIONS * float(np.sqrt(state.spread_variance)))
+
+
+def _finite(value: float) -> float | None:
+    """A float for strict JSON: None for NaN (unknown)."""
+    return float(value) if np.isfinite(value) else None
+
+
+def _unknown_nan(value: float | None) -> float:
+    return np.nan if value is None else float(value)
 
 
 def _listed(values: np.ndarray | None) -> list | None:

@@ -17,9 +17,10 @@ is handled here:
   height: their EM, with the girth and lengths free as well, drifted it upward on stout bodies;
 - a frame far worse than usual even after more EM iterations is also fitted from the last pose
   without velocity (`restart_drop`), the better fit kept;
-- failure detection, by absolute checks that a bad start cannot make the norm: an outlier fraction
-  above `max_outlier_fraction` or a Σ wider than `failure_sigma_m` triggers a re-initialisation,
-  and the better of the two fits (by likelihood) is kept; a frame that was fitted is never dropped:
+- failure detection: an outlier fraction above `max_outlier_fraction`, or a Σ wider than both
+  `failure_sigma_m` and what this capture's good fits usually are (`spread_limit`), or held at the
+  `max_sigma_m` ceiling, triggers a re-initialisation, and the better of the two fits (by likelihood) is
+  kept; a frame that was fitted is never dropped:
   when both fail the checks, the better one is the estimate, flagged `doubtful`; after a doubtful
   initialisation the next frame tracks from it and weighs a fresh initialisation against that fit;
   a re-initialisation that turns the subject around (more than a quarter-turn from the track) must beat a
@@ -68,7 +69,7 @@ from stages.tracking.limbs import (
 )
 from stages.tracking.mixture import Mixture, volume_size
 from stages.tracking.params import TrackerParams, shipped_body
-from stages.tracking.results import FrameResult, TrackerState
+from stages.tracking.results import FrameResult, TrackerState, sigma_spread, spread_limit
 
 # Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
 _LEVEL_RATE = 0.1
@@ -149,7 +150,7 @@ class Tracker:
         tracked, moved, searches = self._search_limbs(y, n, tracked, state, em)
         tracked, exchanged, exchanges = self._exchange_legs(y, n, tracked, state, em)
         moved += exchanged
-        doubtful = _failed(tracked, params)
+        doubtful = _failed(tracked, params, spread_limit(state, params.failure_sigma_m))
         tried = doubtful or 0 < params.reinit_every <= state.since_initialisation + 1 or state.recheck
         if tried:
             result, new_state = self._initialise(state, y, n, sized)
@@ -280,6 +281,9 @@ class Tracker:
         velocity = tracked.pose - state.pose if moving else np.zeros_like(state.velocity)
         for dofs in moved:
             velocity[dofs] = 0.0
+        spread_level, spread_variance = state.spread_level, state.spread_variance
+        if not doubtful:
+            spread_level, spread_variance = running_spread(state, sigma_spread(tracked.mixture.Sigma))
         covariance, variance = state.velocity_covariance, state.velocity_variance
         if moving and np.any(state.velocity):
             if covariance is None:
@@ -293,7 +297,8 @@ class Tracker:
                                  since_initialisation=0 if tried else state.since_initialisation + 1,
                                  segment_shares=shares, velocity_covariance=covariance,
                                  velocity_variance=variance, search_misses=searches[0], search_wait=searches[1],
-                                 exchange_misses=exchanges[0], exchange_wait=exchanges[1])
+                                 exchange_misses=exchanges[0], exchange_wait=exchanges[1],
+                                 spread_level=spread_level, spread_variance=spread_variance)
         result = FrameResult(pose=tracked.pose, joints=tracked.joints,
                              log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
                              outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m,
@@ -491,15 +496,30 @@ def velocity_gain(state: TrackerState) -> np.ndarray | float:
     return np.clip(np.where(state.velocity_variance > 0, ratio, 1.0), 0.0, 1.0)
 
 
-def _failed(result: FitResult, params: TrackerParams) -> bool:
-    """Whether a fit fails the absolute checks: too many outliers, or Σ spread beyond `failure_sigma_m`.
+def _failed(result: FitResult, params: TrackerParams, spread_limit_m: float | None = None) -> bool:
+    """Whether a fit fails the checks: too many outliers, or a Σ wider than `spread_limit_m` (default
+    `failure_sigma_m`) or held at the `max_sigma_m` ceiling.
 
-    Absolute rather than relative to a running level, so that a bad start cannot make itself the
-    norm. A Σ as wide as the data's spread around the wrong surface is what a torso or a pair of legs
-    locked onto the wrong data looks like, while the outlier fraction stays small.
+    A Σ as wide as the data's spread around the wrong surface is what a torso or a pair of legs locked onto
+    the wrong data looks like, while the outlier fraction stays small. A tracked fit is judged against what
+    the track's good fits are (`spread_limit`); an initialisation, which has no track behind it, against
+    `failure_sigma_m` alone: its fit is coarse by design, and one wider than that is checked again at the next
+    frame (`TrackerState.recheck`), a cheap guard against starting a track in a wrong pose.
     """
-    spread = float(np.sqrt(np.linalg.eigvalsh(result.mixture.Sigma).max()))
-    return result.outlier_fraction > params.max_outlier_fraction or spread > params.failure_sigma_m
+    wide = sigma_spread(result.mixture.Sigma)
+    limit = params.failure_sigma_m if spread_limit_m is None else spread_limit_m
+    ceiling = wide >= params.max_sigma_m * (1.0 - 1e-6)
+    return result.outlier_fraction > params.max_outlier_fraction or wide > limit or ceiling
+
+
+def running_spread(state: TrackerState, spread: float) -> tuple[float, float]:
+    """`TrackerState.spread_level` and `spread_variance` after a fit of this Σ `spread` passed the checks
+    (exponentially weighted mean and variance, at the likelihood level's rate)."""
+    if not np.isfinite(state.spread_level):
+        return spread, 0.0
+    change = spread - state.spread_level
+    return (state.spread_level + _LEVEL_RATE * change,
+            (1 - _LEVEL_RATE) * (state.spread_variance + _LEVEL_RATE * change**2))
 
 
 def _usable(obs) -> tuple[np.ndarray, np.ndarray]:

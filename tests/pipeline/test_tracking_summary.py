@@ -13,12 +13,12 @@ from pipeline.report.tracking_summary import (
 from stages.joints import JOINT_NAMES
 from stages.tracking.results import BodyHeight, FrameResult, TrackerState, frame_record, read_frame_record
 
-PARAMS = {"max_outlier_fraction": 0.6, "failure_sigma_m": 0.05, "min_observations": 30, "max_predicted_frames": 10,
-          "reinit_every": 0}
+PARAMS = {"max_outlier_fraction": 0.6, "failure_sigma_m": 0.05, "max_sigma_m": 0.06, "min_observations": 30,
+          "max_predicted_frames": 10, "reinit_every": 0}
 
 
 def record(frame, status, *, doubtful=False, outliers=0.05, spread_m=0.02, recheck=False, since=0, height_m=1.7,
-           measured_m=None):
+           measured_m=None, spread_level=np.nan, spread_variance=np.nan):
     """A tracking record as the tracker writes it (`frame_record`), with the fields the summary reads set."""
     fitted = status in ("tracked", "initialised")
     result = FrameResult(pose=np.zeros(6), joints=np.zeros((len(JOINT_NAMES), 3)),
@@ -27,7 +27,8 @@ def record(frame, status, *, doubtful=False, outliers=0.05, spread_m=0.02, reche
     state = TrackerState(pose=np.zeros(6), velocity=np.zeros(6), height_m=height_m, length_factors=np.ones(0),
                          height_weight=1, Sigma=np.diag([spread_m**2, (spread_m / 2) ** 2, 1e-6]), pi=np.ones(1),
                          likelihood_level=np.nan, frames_without_fit=0 if fitted else 1, lost=False,
-                         since_initialisation=since, recheck=recheck, measured_height_m=measured_m)
+                         since_initialisation=since, recheck=recheck, measured_height_m=measured_m,
+                         spread_level=spread_level, spread_variance=spread_variance)
     return frame_record(frame, result, state)
 
 
@@ -52,13 +53,30 @@ def test_initialisations_say_why_they_happened():
 
 
 def test_a_doubtful_frame_names_the_checks_it_failed():
-    category, why = causes(record(3, "tracked", doubtful=True, outliers=0.7, spread_m=0.08), record(2, "tracked"))
+    category, why = causes(record(3, "tracked", doubtful=True, outliers=0.7, spread_m=0.055), record(2, "tracked"))
     assert category == "doubtful" and why == ("outlier share above 60 %", "Sigma spread above 5.0 cm")
-    category, why = causes(record(0, "initialised", doubtful=True, spread_m=0.07), fitted_before=False)
+    category, why = causes(record(0, "initialised", doubtful=True, spread_m=0.055), fitted_before=False)
     assert why == ("Sigma spread above 5.0 cm", "initialised: first frame")
-    current = record(3, "tracked", spread_m=0.08)
+    category, why = causes(record(3, "tracked", doubtful=True, spread_m=0.06), record(2, "tracked"))
+    assert why == ("Sigma spread at its ceiling of 6.0 cm",)
+    current = record(3, "tracked", spread_m=0.055)
     status = frame_status(3, read_frame_record(current, 3), None, PARAMS, fitted_before=True)
-    assert status.category == "tracked" and status.causes == () and status.sigma_spread_m == pytest.approx(0.08)
+    assert status.category == "tracked" and status.causes == () and status.sigma_spread_m == pytest.approx(0.055)
+
+
+def test_a_tracked_fit_is_judged_against_the_tracks_usual_spread():
+    """On data whose good fits are wide (the level and variance in the state before the frame), the limit is
+    their level plus three standard deviations (5.2 cm here); an initialisation's stays `failure_sigma_m`."""
+    wide = record(2, "tracked", spread_m=0.046, spread_level=0.046, spread_variance=0.002**2)
+    status = frame_status(3, read_frame_record(record(3, "tracked", doubtful=True, spread_m=0.053), 3),
+                          read_frame_record(wide, 2), PARAMS, fitted_before=True)
+    assert status.sigma_limit_m == pytest.approx(0.052) and status.causes == ("Sigma spread above 5.2 cm",)
+    status = frame_status(3, read_frame_record(record(3, "initialised", spread_m=0.045), 3),
+                          read_frame_record(wide, 2), PARAMS, fitted_before=True)
+    assert status.sigma_limit_m == pytest.approx(0.05)
+    status = frame_status(3, read_frame_record(record(3, "predicted"), 3), read_frame_record(wide, 2), PARAMS,
+                          fitted_before=True)
+    assert np.isnan(status.sigma_limit_m)
 
 
 def test_frames_without_a_fit_say_whether_the_subject_was_ever_found():

@@ -12,7 +12,7 @@ from stages.joints import JOINT_NAMES
 from stages.tracking import tracker
 from stages.tracking.body_file import load_body
 from stages.tracking.params import TrackerParams
-from stages.tracking.results import STATUSES, TrackerState
+from stages.tracking.results import STATUSES, TrackerState, sigma_spread, spread_limit
 from stages.tracking.tracker import Tracker, velocity_gain
 
 PARAMS = TrackerParams(height_m=1.75, init_headings=6, init_refine=2)
@@ -100,6 +100,40 @@ def test_state_round_trips_through_json(body):
     np.testing.assert_array_equal(again.pose, state.pose)
     assert again.to_dict() == state.to_dict()
     assert result.status in STATUSES and json.loads(json.dumps(result.to_dict()))["status"] == result.status
+
+
+def test_a_tracked_fit_is_judged_against_the_spread_this_tracks_good_fits_have(body):
+    """Data a centimetre and a half off the surface give fits a little wider than a `failure_sigma_m` of 1.2 cm:
+    alone, such a fit fails the checks and costs an initialisation; after good fits about as wide (the running
+    level and variance in the state), it is tracked as usual. An initialisation is still held to the limit."""
+    rng = np.random.default_rng(30)
+    poses = _walk(body.scaled(1.75), 2)
+    tracker = Tracker(replace(PARAMS, failure_sigma_m=0.012), VOLUME)
+
+    def noisy(pose):
+        y, n = sample_ellipsoids(body, pose, 600, rng, outlier_fraction=0.1)
+        return SimpleNamespace(points=y + rng.normal(0.0, 0.015, (len(y), 1)) * n, normals=n)
+
+    first, state = tracker.track(None, noisy(poses[0]))
+    assert first.status == "initialised" and first.doubtful  # wider than 1.2 cm, and no track to judge it by
+    data = noisy(poses[1])
+    alone, _ = tracker.track(replace(state, recheck=False), data)
+    assert alone.doubtful
+    usual = replace(state, recheck=False, spread_level=0.0115, spread_variance=0.001**2)
+    assert spread_limit(usual, 0.012) == pytest.approx(0.0145)
+    tracked, after = tracker.track(usual, data)
+    assert tracked.status == "tracked" and not tracked.doubtful
+    assert 0.012 < sigma_spread(after.Sigma) < 0.0145 and after.spread_level > usual.spread_level
+    assert np.linalg.norm(tracked.joints - body.joint_positions(poses[1]), axis=1).mean() < 0.02
+
+
+def test_the_usual_spread_is_a_running_mean_and_variance_of_the_fits_that_passed():
+    start = SimpleNamespace(spread_level=np.nan, spread_variance=np.nan)
+    assert tracker.running_spread(start, 0.04) == (0.04, 0.0)
+    level, variance = tracker.running_spread(SimpleNamespace(spread_level=0.04, spread_variance=0.0), 0.05)
+    assert level == pytest.approx(0.041) and variance == pytest.approx(0.9 * 0.1 * 0.01**2)
+    assert spread_limit(SimpleNamespace(spread_level=np.nan, spread_variance=np.nan), 0.05) == 0.05
+    assert spread_limit(SimpleNamespace(spread_level=0.03, spread_variance=0.002**2), 0.05) == 0.05  # narrow data
 
 
 def test_segment_shares_are_learnt_over_tracked_frames_and_round_trip(body):
@@ -260,7 +294,7 @@ def test_a_doubtful_initialisation_is_tracked_from_and_weighed_against_a_fresh_o
     rng = np.random.default_rng(25)
     poses = _walk(body.scaled(1.75), 2)
     failing = [True]  # the checks fail on the first frame only
-    monkeypatch.setattr(tracker, "_failed", lambda result, params: failing[0])
+    monkeypatch.setattr(tracker, "_failed", lambda result, params, spread_limit_m=None: failing[0])
     the_tracker = Tracker(PARAMS, VOLUME)
     first, state = the_tracker.track(None, _obs(body, poses[0], rng))
     assert first.status == "initialised" and first.doubtful and state.recheck and not state.lost
@@ -502,7 +536,8 @@ def test_a_re_check_that_turns_the_subject_around_is_weighed_against_a_search_fa
         return original(*args, facing=poses[1][3] + np.pi if facing is None else facing, **kwargs)
 
     monkeypatch.setattr(tracker, "initialise", turned_unless_told)
-    monkeypatch.setattr(tracker, "_failed", lambda result, params: True)  # the tracked fit fails: a re-check
+    # the tracked fit fails: a re-check
+    monkeypatch.setattr(tracker, "_failed", lambda result, params, spread_limit_m=None: True)
     result, _ = the_tracker.track(state, _obs(body, poses[1], rng))
     assert facings[0] is None and facings[1] == pytest.approx(state.pose[3])
     assert not tracker.turned_around(result.pose, poses[1])
