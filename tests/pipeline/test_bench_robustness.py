@@ -108,7 +108,9 @@ def fake_runs(tmp_path, monkeypatch):
 
     monkeypatch.setattr(robustness, "FOREIGN_ROOT", root)
     monkeypatch.setattr(robustness, "perturb_capture", fake_perturb)
-    monkeypatch.setattr(robustness, "frame_count", lambda capture: 10)
+    monkeypatch.setattr(robustness, "frame_numbers", lambda capture: list(range(10)))
+    monkeypatch.setattr(robustness, "tracking_results", lambda run_dir, frames: [
+        {"status": "initialised" if frame in (0, 4) else "tracked"} for frame in frames])
     monkeypatch.setattr(robustness, "run_pipeline", fake_run)
     monkeypatch.setattr(robustness, "evaluate_run", lambda run_dir, truth: _metrics(20.0 + len(run_dir.name)))
     return runs
@@ -125,7 +127,8 @@ def test_a_failing_run_or_copy_is_an_error_row_and_the_others_still_run(tmp_path
     assert rows[("leaning", "flicker")] == {"capture": "leaning", "variant": "flicker", "error": not_copied}
     scored = rows[("walk", "no plates")]
     assert scored["mpjpe_mm"] == 20.0 + len("walk-no-plates") and scored["silhouette_iou_median"] == 0.95
-    assert set(scored) == {"capture", "variant", "copy", "frames", "run", *robustness.SCORES}
+    assert set(scored) == {"capture", "variant", "copy", "frames", "run", "reinitialised_fraction", *robustness.SCORES}
+    assert scored["reinitialised_fraction"] == pytest.approx(0.1)  # frame 4 of 10; the first does not count
     assert fake_runs[0][1] == tmp_path / "bench" / "robustness" / "leaning-compression"
     assert fake_runs[0][0].parent == tmp_path / "captures" / "robustness"
 
@@ -139,13 +142,14 @@ def test_a_quick_run_takes_two_variants_on_the_copies_first_frames(tmp_path, fak
     assert f"stop: {robustness.QUICK_FRAMES}" in (view / "capture.yaml").read_text()
 
 
-def _row(capture: str, variant: str, mpjpe_mm: float, estimated: float = 1.0) -> dict:
+def _row(capture: str, variant: str, mpjpe_mm: float, estimated: float = 1.0, reinitialised: float = 0.0) -> dict:
     return {"capture": capture, "variant": variant, "mpjpe_mm": mpjpe_mm, "worst_frame_mm": 2 * mpjpe_mm,
-            "fraction_estimated": estimated, "silhouette_iou_median": 0.9, "run": {"ok": True}}
+            "fraction_estimated": estimated, "silhouette_iou_median": 0.9, "reinitialised_fraction": reinitialised,
+            "run": {"ok": True}}
 
 
 SECTION = {"root": "../shared/foreign", "quick": False, "rows": [
-    _row("walk", "noise", 20.0), _row("walk", "4 cameras", 30.0, estimated=0.9),
+    _row("walk", "noise", 20.0, reinitialised=0.12), _row("walk", "4 cameras", 30.0, estimated=0.9),
     _row("leaning", "noise", 24.0), {"capture": "leaning", "variant": "4 cameras", "error": "boom"}]}
 
 
@@ -154,6 +158,8 @@ def test_the_table_has_a_column_per_variant_and_their_means_below():
     assert lines[2:7] == ["| capture | noise | 4 cameras |", "|---|---|---|",
                           "| walk | 20.0 (40.0) | 30.0 (60.0), 90 % estimated |", "| leaning | 24.0 (48.0) | – |",
                           "| **mean** | 22.0 (44.0) | 30.0 (60.0), 90 % estimated |"]
+    assert lines[10:15] == ["| capture | noise | 4 cameras |", "|---|---|---|", "| walk | 12 % | 0 % |",
+                            "| leaning | 0 % | – |", "| **mean** | 6 % | 0 % |"]
     assert lines[-1] == "`leaning`, 4 cameras: not scored: boom"
 
 

@@ -35,7 +35,14 @@ from pathlib import Path
 from calib.errors import InputError
 from pipeline.evaluate import evaluate_run
 from pipeline.io.capture import Capture
-from pipeline.lab.bench.foreign import FOREIGN_ROOT, QUICK_FRAMES, find_captures, foreign_scores
+from pipeline.lab.bench.foreign import (
+    FOREIGN_ROOT,
+    QUICK_FRAMES,
+    find_captures,
+    foreign_scores,
+    reinitialised_after_first,
+    tracking_results,
+)
 from pipeline.lab.bench.perturb import capture_videos, perturb_capture
 from pipeline.lab.bench.runs import REPO, run_pipeline
 from pipeline.lab.bench.speed import prefix_view
@@ -130,13 +137,15 @@ def ensure_copy(capture: Path, variant: Variant, cache: Path) -> Path:
     return copy
 
 
-def frame_count(capture: Path) -> int:
-    """How many frames a run of ``capture`` processes (its capture.yaml's selection)."""
-    return len(Capture.open(capture).frame_numbers)
+def frame_numbers(capture: Path) -> list[int]:
+    """The frames a run of ``capture`` processes (its capture.yaml's selection)."""
+    return list(Capture.open(capture).frame_numbers)
 
 
 def run_variant(capture: Path, variant: Variant, cache: Path, out: Path, *, quick: bool, workers: int) -> dict:
-    """The row of ``capture`` perturbed by ``variant``: its scores, or why it has none (``error``).
+    """The row of ``capture`` perturbed by ``variant``: its scores and the share of its frames initialised anew
+    after the first (``reinitialised_fraction``: how gracefully the tracker met the change), or why it has none
+    (``error``).
 
     The copy is cached in ``cache``; the run goes to ``<out>/<capture>-<variant slug>`` (``-quick`` added in a
     quick run, which processes a view of the copy's first :data:`~pipeline.lab.bench.foreign.QUICK_FRAMES` frames
@@ -147,7 +156,8 @@ def run_variant(capture: Path, variant: Variant, cache: Path, out: Path, *, quic
     try:
         copy = ensure_copy(capture, variant, cache)
         source = prefix_view(copy, out / f"{name}-capture", QUICK_FRAMES) if quick else copy
-        frames = frame_count(source)
+        numbers = frame_numbers(source)
+        frames = len(numbers)
         measure = run_pipeline(source, out / name, workers=workers, frames=frames, fresh=True)
     except (InputError, OSError, subprocess.CalledProcessError) as error:
         return row | {"error": str(error)}
@@ -157,9 +167,10 @@ def run_variant(capture: Path, variant: Variant, cache: Path, out: Path, *, quic
         return row | {"error": f"the run failed (exit status {measure.returncode}): {last_line[0]}"}
     try:
         scores = foreign_scores(evaluate_run(out / name, truth=source / "groundtruth" / "joints.csv"))
+        reinitialised = reinitialised_after_first(tracking_results(out / name, numbers))
     except (InputError, OSError) as error:
         return row | {"error": str(error)}
-    return row | {key: scores[key] for key in SCORES}
+    return row | {key: scores[key] for key in SCORES} | {"reinitialised_fraction": reinitialised}
 
 
 def run_robustness(out: Path, captures: Path, *, quick: bool, workers: int) -> dict:

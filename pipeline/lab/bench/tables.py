@@ -171,11 +171,23 @@ def format_robustness(robustness: dict) -> str:
     def cell(**match) -> str:
         return _robustness_cell([row for row in rows if all(row[key] == value for key, value in match.items())])
 
-    table = [[capture, *(cell(capture=capture, variant=variant) for variant in variants)] for capture in captures]
-    table.append(["**mean**", *(cell(variant=variant) for variant in variants)])
+    def reinitialised(**match) -> str:
+        shares = [row["reinitialised_fraction"] for row in rows if "reinitialised_fraction" in row
+                  and all(row[key] == value for key, value in match.items())]
+        return percent(sum(shares) / len(shares)) if shares else "–"
+
+    def per_variant(cell_of) -> list[list[str]]:
+        table = [[capture, *(cell_of(capture=capture, variant=variant) for variant in variants)]
+                 for capture in captures]
+        return table + [["**mean**", *(cell_of(variant=variant) for variant in variants)]]
+
     lines = [f"Copies of the captures in `{robustness['root']}`, one change each; a cell is MPJPE (worst frame) in mm, "
              "the last row their means over the captures scored.", "",
-             format_table(["capture", *variants], table)]
+             format_table(["capture", *variants], per_variant(cell))]
+    if any("reinitialised_fraction" in row for row in rows):
+        lines += ["", "Share of each copy's frames initialised anew after the first (the fit failed the checks and a "
+                  "fresh initialisation explained the data better: the tracker lost the body and searched again).", "",
+                  format_table(["capture", *variants], per_variant(reinitialised))]
     for row in rows:
         if "mpjpe_mm" not in row:
             lines += ["", f"`{row['capture']}`, {row['variant']}: not scored: {row.get('error', '')}"]
@@ -299,7 +311,8 @@ ROBUSTNESS_NOTES = (
     "`<captures>/robustness/<capture>-<change>-<key>/`, the key a hash of the change's arguments and of the "
     "capture's capture.yaml. Each copy is processed by `python -m pipeline run` (2 workers) and scored by "
     "`pipeline.evaluate.evaluate_run` against its ground truth (the original's, or rewritten for the cameras kept "
-    "or zoomed), as in the foreign suite. Every copy's videos are encoded a second time (MPEG-4 Part 2), so the "
+    "or zoomed), as in the foreign suite, and its tracking records give the share of its frames initialised anew "
+    "after the first (second table). Every copy's videos are encoded a second time (MPEG-4 Part 2), so the "
     "foreign suite's figures are not quite those without a change: that is a copy with `--change none` alone "
     "(not run by this suite). "
     "`python -m pipeline bench --out runs/bench --suite robustness` measures it; one copy by hand: "
