@@ -544,7 +544,8 @@ def _predict(state: TrackerState, body: BodyModel, params: TrackerParams,
                              length_factors=state.length_factors, measured_height_m=state.measured_height_m,
                              height_weight=state.height_weight,
                              Sigma=state.Sigma, pi=state.pi, likelihood_level=state.likelihood_level,
-                             frames_without_fit=gap, lost=lost, segment_shares=state.segment_shares)
+                             frames_without_fit=gap, lost=lost, segment_shares=state.segment_shares,
+                             spread_level=state.spread_level, spread_variance=state.spread_variance)
     result = FrameResult(pose=pose, joints=body.joint_positions(pose), log_likelihood=0.0, iterations=0,
                          outlier_fraction=1.0, status="lost" if lost else "predicted", height_m=state.height_m,
                          observations=observations)

@@ -105,7 +105,8 @@ def test_state_round_trips_through_json(body):
 def test_a_tracked_fit_is_judged_against_the_spread_this_tracks_good_fits_have(body):
     """Data a centimetre and a half off the surface give fits a little wider than a `failure_sigma_m` of 1.2 cm:
     alone, such a fit fails the checks and costs an initialisation; after good fits about as wide (the running
-    level and variance in the state), it is tracked as usual. An initialisation is still held to the limit."""
+    level and variance in the state), it is tracked as usual, and a frame without data keeps that level. An
+    initialisation is still held to the limit."""
     rng = np.random.default_rng(30)
     poses = _walk(body.scaled(1.75), 2)
     tracker = Tracker(replace(PARAMS, failure_sigma_m=0.012), VOLUME)
@@ -124,6 +125,9 @@ def test_a_tracked_fit_is_judged_against_the_spread_this_tracks_good_fits_have(b
     tracked, after = tracker.track(usual, data)
     assert tracked.status == "tracked" and not tracked.doubtful
     assert 0.012 < sigma_spread(after.Sigma) < 0.0145 and after.spread_level > usual.spread_level
+    empty = SimpleNamespace(points=np.zeros((0, 3)), normals=np.zeros((0, 3)))
+    _, gap = tracker.track(after, empty)  # the data's quality outlives frames without data
+    assert (gap.spread_level, gap.spread_variance) == (after.spread_level, after.spread_variance)
     assert np.linalg.norm(tracked.joints - body.joint_positions(poses[1]), axis=1).mean() < 0.02
 
 
