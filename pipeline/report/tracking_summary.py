@@ -32,7 +32,14 @@ from pipeline.io import frames_io
 from pipeline.io.run_layout import read_manifest_file
 from pipeline.io.tracking_io import read_tracking
 from stages.tracking.params import TrackerParams
-from stages.tracking.results import BodyHeight, FrameResult, TrackerState, sigma_spread, spread_limit
+from stages.tracking.results import (
+    BodyHeight,
+    FrameResult,
+    TrackerState,
+    at_sigma_ceiling,
+    sigma_spread,
+    spread_limit,
+)
 
 #: The categories counted, in the order they are reported; a doubtful frame counts only as doubtful.
 CATEGORIES = ("tracked", "initialised", "doubtful", "predicted", "lost")
@@ -80,7 +87,7 @@ def _doubt_causes(result: FrameResult, spread: float, limit: float, params: Mapp
     causes = []
     if result.outlier_fraction > params["max_outlier_fraction"]:
         causes.append(f"outlier share above {100 * params['max_outlier_fraction']:.0f} %")
-    if spread >= params["max_sigma_m"] * (1.0 - 1e-6):
+    if at_sigma_ceiling(spread, params["max_sigma_m"]):
         causes.append(f"Sigma spread at its ceiling of {100 * params['max_sigma_m']:.1f} cm")
     elif spread > limit:
         causes.append(f"Sigma spread above {100 * limit:.1f} cm")

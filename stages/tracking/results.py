@@ -193,6 +193,12 @@ def sigma_spread(Sigma: np.ndarray) -> float:
     return float(np.sqrt(max(np.linalg.eigvalsh(Sigma).max(), 0.0))) if Sigma.size else 0.0
 
 
+def at_sigma_ceiling(spread: float, max_sigma_m: float) -> bool:
+    """Whether a Σ spread (metres) is held at the `max_sigma_m` ceiling that bounds Σ's eigenvalues (to rounding):
+    the data want a wider Σ than any fit may have, which the failure checks always count as a failure."""
+    return spread >= max_sigma_m * (1.0 - 1e-6)
+
+
 def spread_limit(state: TrackerState, failure_sigma_m: float) -> float:
     """The widest Σ spread (metres) the next tracked fit may have and pass the failure checks: `failure_sigma_m`,
     or on data whose good fits are wider, their running level plus `SPREAD_DEVIATIONS` standard deviations
@@ -215,6 +221,7 @@ def _finite(value: float) -> float | None:
 
 
 def _unknown_nan(value: float | None) -> float:
+    """A float from strict JSON: NaN (unknown) for None."""
     return np.nan if value is None else float(value)
 
 

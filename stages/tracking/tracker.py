@@ -69,7 +69,7 @@ from stages.tracking.limbs import (
 )
 from stages.tracking.mixture import Mixture, volume_size
 from stages.tracking.params import TrackerParams, shipped_body
-from stages.tracking.results import FrameResult, TrackerState, sigma_spread, spread_limit
+from stages.tracking.results import FrameResult, TrackerState, at_sigma_ceiling, sigma_spread, spread_limit
 
 # Weight of a new frame in the running log-likelihood level (an exponential average over ~10 frames).
 _LEVEL_RATE = 0.1
@@ -508,8 +508,8 @@ def _failed(result: FitResult, params: TrackerParams, spread_limit_m: float | No
     """
     wide = sigma_spread(result.mixture.Sigma)
     limit = params.failure_sigma_m if spread_limit_m is None else spread_limit_m
-    ceiling = wide >= params.max_sigma_m * (1.0 - 1e-6)
-    return result.outlier_fraction > params.max_outlier_fraction or wide > limit or ceiling
+    return (result.outlier_fraction > params.max_outlier_fraction or wide > limit
+            or at_sigma_ceiling(wide, params.max_sigma_m))
 
 
 def running_spread(state: TrackerState, spread: float) -> tuple[float, float]:
