@@ -31,6 +31,7 @@ from pipeline.cli import INTERRUPTED, SUBCOMMANDS, main
 from pipeline.engine.output_folder import output_lock
 from pipeline.graph import STAGES
 from pipeline.io import atomic, frames_io
+from pipeline.io.capture import Capture
 from pipeline.io.run_layout import MANIFEST, WARNINGS_FILE
 
 REPO = Path(__file__).resolve().parents[2]
@@ -196,14 +197,26 @@ def test_camera_in_calibration_but_not_in_media(tiny_capture, tmp_path, capsys):
 
 
 def test_videos_with_different_frame_counts(tmp_path, capsys):
+    """Refused, saying how to keep the frames every camera has; a frames.stop within them is that choice, and one
+    beyond them is refused too."""
     capture = make_capture(tmp_path / "c", media="videos", n_frames=6)
     write_video(capture / "videos" / "cam2.avi", 5)
+    expect_error(capsys, run_argv(capture, tmp_path / "out"), "cam2.avi: 5 frames but cam0.avi has 6",
+                 "frames: {stop: 5} in capture.yaml")
+    write_config(capture, frames={"start": 0, "stop": 5, "step": 1})
+    assert Capture.open(capture).frame_numbers == (0, 1, 2, 3, 4)
+    write_config(capture, frames={"start": 1, "stop": 4, "step": 2})
+    assert Capture.open(capture).frame_numbers == (1, 3)
+    write_config(capture, frames={"start": 0, "stop": 6, "step": 1})
     expect_error(capsys, run_argv(capture, tmp_path / "out"), "cam2.avi: 5 frames but cam0.avi has 6")
 
 
 def test_image_folders_with_different_frames(tiny_capture, tmp_path, capsys):
     (tiny_capture / "images" / "cam2" / "000003.png").unlink()
-    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "frame 3", "same frame numbers")
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "frame 3", "same frame numbers",
+                 "frames.start and frames.stop")
+    write_config(tiny_capture, frames={"start": 0, "stop": 3, "step": 1})
+    assert Capture.open(tiny_capture).frame_numbers == (0, 1, 2)
 
 
 def test_non_image_file_in_an_image_folder(tiny_capture, tmp_path, capsys):

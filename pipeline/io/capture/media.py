@@ -165,29 +165,43 @@ def _iter_video(path: Path, frames: Iterable[int], *, reuse: bool = False) -> It
         video.release()
 
 
-def _available_frames(camera_media: Mapping[str, _CameraMedia], media: str, root: Path) -> list[int]:
-    """Frame numbers present for every camera; all cameras must have the same ones."""
+def _available_frames(camera_media: Mapping[str, _CameraMedia], media: str, root: Path, frames: dict,
+                      config_path: Path) -> list[int]:
+    """The frames every camera has, when ``frames`` (capture.yaml's ``frames``) selects only frames that every
+    camera has; all cameras must have the same frames unless ``frames.stop`` keeps the selection within them.
+
+    Real recordings often end a frame or two apart from camera to camera. Using the frames they share without
+    being told would hide a camera that dropped frames midway or belongs to another take (its views then
+    disagree with the others' on every later frame), so a mismatch is refused, saying how to select the shared
+    frames; a ``frames.stop`` within every camera's frames is that choice made.
+    """
     per_camera = {}
     for name, source in camera_media.items():
         if media == "videos":
-            count = _video_frame_count(source.path)
-            per_camera[name] = list(range(count))
+            per_camera[name] = list(range(_video_frame_count(source.path)))
         else:
             per_camera[name] = _frame_numbers_in(source)
     reference_name = min(per_camera)
     reference = per_camera[reference_name]
-    for name, frames in sorted(per_camera.items()):
-        if frames != reference:
-            where, reference_file = camera_media[name].path, camera_media[reference_name].path.name
-            if media == "videos":
-                raise InputError(f"{where}: {len(frames)} frames but {reference_file} has {len(reference)} "
-                                 "(expected the same frame count for every camera)")
-            extra = sorted(set(frames) ^ set(reference))
-            raise InputError(f"{where}: frame {extra[0]} is in one of {name!r} and {reference_name!r} but "
-                             "not the other (expected the same frame numbers for every camera)")
     if not reference:
         raise InputError(f"{root / media}: the media have no frames (expected at least one)")
-    return reference
+    differing = sorted(name for name, frames_of in per_camera.items() if frames_of != reference)
+    if not differing:
+        return reference
+    shared = sorted(set.intersection(*(set(frames_of) for frames_of in per_camera.values())))
+    if frames["stop"] is not None and shared and set(_select_frames(frames, reference, config_path)) <= set(shared):
+        return shared
+    name = differing[0]
+    where, reference_file = camera_media[name].path, camera_media[reference_name].path.name
+    if media == "videos":
+        hint = (f"; if they start together and only their ends differ, frames: {{stop: {len(shared)}}} in "
+                f"{config_path.name} uses the {len(shared)} frames every camera has" if shared else "")
+        raise InputError(f"{where}: {len(per_camera[name])} frames but {reference_file} has {len(reference)} "
+                         f"(expected the same frame count for every camera{hint})")
+    extra = sorted(set(per_camera[name]) ^ set(reference))
+    raise InputError(f"{where}: frame {extra[0]} is in one of {name!r} and {reference_name!r} but not the other "
+                     "(expected the same frame numbers for every camera, or frames.start and frames.stop in "
+                     f"{config_path.name} selecting frames that every camera has)")
 
 
 def _select_frames(frames: dict, available: list[int], config_path: Path) -> list[int]:

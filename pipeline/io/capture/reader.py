@@ -135,7 +135,7 @@ class Capture:
         check_rig_size(rig, units=calibration["units"], where=str(calibration_path))
         check_intrinsics(rig, where=str(calibration_path))
 
-        available = _available_frames(camera_media, media, root)
+        available = _available_frames(camera_media, media, root, config["frames"], root / "capture.yaml")
         frame_numbers = _select_frames(config["frames"], available, root / "capture.yaml")
         _check_given_files(frame_numbers, silhouette_media, background_paths, sizes)
         subject = config["subject"] or {}
