@@ -165,10 +165,11 @@ def _iter_video(path: Path, frames: Iterable[int], *, reuse: bool = False) -> It
         video.release()
 
 
-def _available_frames(camera_media: Mapping[str, _CameraMedia], media: str, root: Path, frames: dict,
-                      config_path: Path) -> list[int]:
-    """The frames every camera has, when ``frames`` (capture.yaml's ``frames``) selects only frames that every
-    camera has; all cameras must have the same frames unless ``frames.stop`` keeps the selection within them.
+def _selected_frames(camera_media: Mapping[str, _CameraMedia], media: str, root: Path, frames: dict,
+                     config_path: Path) -> list[int]:
+    """The frames a run processes: capture.yaml's ``frames`` (start, stop, step on frame numbers) applied to the
+    cameras' frames, which must be the same for every camera unless ``frames.stop`` keeps the selection within
+    the frames they share.
 
     Real recordings often end a frame or two apart from camera to camera. Using the frames they share without
     being told would hide a camera that dropped frames midway or belongs to another take (its views then
@@ -187,10 +188,12 @@ def _available_frames(camera_media: Mapping[str, _CameraMedia], media: str, root
         raise InputError(f"{root / media}: the media have no frames (expected at least one)")
     differing = sorted(name for name, frames_of in per_camera.items() if frames_of != reference)
     if not differing:
-        return reference
+        return _select_frames(frames, reference, config_path)
     shared = sorted(set.intersection(*(set(frames_of) for frames_of in per_camera.values())))
-    if frames["stop"] is not None and shared and set(_select_frames(frames, reference, config_path)) <= set(shared):
-        return shared
+    if frames["stop"] is not None and shared:
+        selected = _select_frames(frames, reference, config_path)
+        if set(selected) <= set(shared):
+            return selected
     name = differing[0]
     where, reference_file = camera_media[name].path, camera_media[reference_name].path.name
     if media == "videos":

@@ -39,7 +39,6 @@ from calib.world import WorldTransform, fixed_transform
 from pipeline.io import frames_io
 from pipeline.io.capture.config import _read_config
 from pipeline.io.capture.media import (
-    _available_frames,
     _CameraMedia,
     _find_backgrounds,
     _find_image_folders,
@@ -47,7 +46,7 @@ from pipeline.io.capture.media import (
     _first_frame_size,
     _image_size,
     _iter_video,
-    _select_frames,
+    _selected_frames,
 )
 from pipeline.io.capture.volume import working_volume
 from pipeline.io.digest import DIGEST_HEX, canonical_json, text_digest
@@ -135,8 +134,7 @@ class Capture:
         check_rig_size(rig, units=calibration["units"], where=str(calibration_path))
         check_intrinsics(rig, where=str(calibration_path))
 
-        available = _available_frames(camera_media, media, root, config["frames"], root / "capture.yaml")
-        frame_numbers = _select_frames(config["frames"], available, root / "capture.yaml")
+        frame_numbers = _selected_frames(camera_media, media, root, config["frames"], root / "capture.yaml")
         _check_given_files(frame_numbers, silhouette_media, background_paths, sizes)
         subject = config["subject"] or {}
         capture = cls(root=root, config=config, fps=float(config["fps"]), rig=rig, volume=np.zeros((2, 3)),
