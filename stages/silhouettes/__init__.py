@@ -16,10 +16,12 @@ clean plate instead of a training sequence, the noise is estimated from each fra
   background itself (medians per plate level, then means on the half of the image that is surely
   background; see :func:`_noise`), and the background model is T(B); α and the distortions below are taken
   against T(B). A single ratio per channel fits the room's most common tone and misses the others (a bright
-  wall above a dark floor) by more than the noise wherever the tone curve changed;
+  wall above a dark floor) by more than the noise wherever the tone curve changed. Bright levels too rare in
+  the image to be fitted (a white skirting board) are extrapolated, and how uncertain that is counts as noise
+  (τ_p below; :func:`_tone_curve`);
 - the noise level σ comes from the lower quartile of ‖I − T(B)‖ over the image, and grows where the
   background is textured, because a sub-pixel shift or compression changes a textured pixel by about its
-  gradient times the shift: σ_p² = σ² + (κ ‖∇B‖)² / 3.
+  gradient times the shift, and where T(B) is extrapolated: σ_p² = σ² + (κ ‖∇B‖)² / 3 + τ_p².
 
 The evidence is ‖I − T(B)‖ / σ_p, except on shadows, where only the chromaticity distortion counts. A
 pixel looks like a shadow when it is darker than the background by as much as a shadow darkens

@@ -53,6 +53,8 @@ TONE_BIN_LEVELS = 16
 MIN_TONE_SAMPLES = 20
 # cv2.transform's matrix summing the three channels of each pixel.
 CHANNEL_SUM = np.ones((1, 3), np.float32)
+# A tone curve with no variance of its own (one ratio per channel, :func:`_ratio_tone`; :class:`_Noise`).
+_NO_TONE_VARIANCE = np.zeros((256, 1, 3), np.float32)
 
 
 @dataclass(frozen=True, eq=False)
@@ -267,6 +269,9 @@ def _blur(image: np.ndarray, blur_kernel: int) -> np.ndarray:
 class _Noise:
     tone: np.ndarray  # (3, 256) float32 T_k(b), the frame's expected level of channel k where the background's is b
     sigma2: float  # σ², the per-channel noise variance (8-bit levels squared)
+    # (256, 1, 3) float32 the variance of T_k(b) itself, a table for cv2.LUT: 0 where the frame's background has
+    # level b, growing where T_k is extrapolated (:func:`_tone_curve`)
+    tone_variance: np.ndarray
 
     def expose(self, B: np.ndarray) -> np.ndarray:
         """(3, ...) float32 T(B) of 8-bit background levels B (3, ...), channels first (see :func:`_dot`)."""
@@ -297,11 +302,13 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     levels = np.ascontiguousarray(I.transpose(2, 0, 1)).reshape(3, -1)  # (3, m) uint8
     I = levels.astype(np.float32)
     B = model.sample_B
+    tone_variance = _NO_TONE_VARIANCE
     if model.tone_curve:
         keys = model.sample_keys + levels  # (3, m) each pixel's bin and frame level, as one index of the histogram
-        tone = _tone_curve(keys, model, median=True)
-        tone = _tone_curve(keys, model, np.flatnonzero(_closest_half(I, _toned(tone, model.sample_levels))),
-                           median=False)
+        first, _ = _tone_curve(keys, model, median=True)
+        tone, spread = _tone_curve(keys, model, np.flatnonzero(_closest_half(I, _toned(first, model.sample_levels))),
+                                   median=False)
+        tone_variance = np.ascontiguousarray((spread * spread).T.reshape(256, 1, 3))
     else:
         tone = _ratio_tone(I, model)
     D = I - _toned(tone, model.sample_levels)
@@ -312,9 +319,10 @@ def _noise(I: np.ndarray, model: BackgroundModel) -> _Noise:
     # around the moving person, carry the codec's noise. Only the others tell the noise level.
     measured = np.flatnonzero((I != B).any(axis=0))
     if len(measured) < max(MIN_NOISE_SAMPLES, len(distance2) // 2):
-        return _Noise(tone, model.noise_floor**2)
+        return _Noise(tone, model.noise_floor**2, tone_variance)
     quartile = _quantile(distance2.take(measured), 0.25)
-    return _Noise(tone, min(max(quartile / CHI2_3_LOWER_QUARTILE, model.noise_floor**2), NOISE_SIGMA_MAX**2))
+    return _Noise(tone, min(max(quartile / CHI2_3_LOWER_QUARTILE, model.noise_floor**2), NOISE_SIGMA_MAX**2),
+                  tone_variance)
 
 
 # Offsets of each channel's 256 levels in a flattened (3, 256) tone curve.
@@ -337,17 +345,31 @@ def _bin_levels(levels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _tone_curve(keys: np.ndarray, model: BackgroundModel, chosen: np.ndarray | None = None, *,
-                median: bool) -> np.ndarray:
-    """(3, 256) float32 each channel's tone curve T_k(b): the frame's median (``median``) or mean level I_k
-    over the ``chosen`` pixels (indices into the sample; None: all) whose background level B_k falls in each
-    bin, joined linearly between the bins' mean background levels and made non-decreasing.
+                median: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(3, 256) float32 each channel's tone curve T_k(b) and its uncertainty (a standard deviation, 8-bit levels).
+
+    T_k is the frame's median (``median``) or mean level I_k over the ``chosen`` pixels (indices into the
+    sample; None: all) whose background level B_k falls in each bin, joined linearly between the bins' mean
+    background levels and made non-decreasing; it is known there (uncertainty 0).
 
     ``keys`` (3, m) intp holds the sample's 8-bit levels plus ``model.sample_keys`` (made once for both fits
     of a frame), ``model`` the background's levels at the same pixels. Both are counted into histograms of
     integer levels per bin, from which the medians, means and counts follow exactly (sums of 8-bit levels
-    are exact in floating point). Beyond the first and last bins with ``MIN_TONE_SAMPLES``, T_k(b) is b
-    times the ratio there; a channel with no such bin keeps T_k(b) = b. T_k(b) stays within
-    ``EXPOSURE_RATIO_RANGE`` of b widened by ``TONE_SHIFT_MAX`` levels either way.
+    are exact in floating point).
+
+    Below the first bin with ``MIN_TONE_SAMPLES``, T_k(b) is b times the ratio there: a change of exposure keeps
+    black black. Above the last lie bright levels that few pixels of the room have (a white skirting board, a
+    window frame), where two readings of the bins fit: a gain (b times the ratio at the last bin: exposure,
+    white balance) and the curve's own course (its slope between the last two bins: exposure moved before the
+    camera's gamma, a lifted black level). T_k(b) is their mean there and their difference its uncertainty,
+    which the evidence adds to the noise (:func:`_evidence`): where they agree nothing changes, and where they
+    part, a level that either explains, or that lies a little beyond both (the course is a secant, and a bending
+    curve runs past it), is not taken for the person. The gain alone missed a skirting board by ten to twenty
+    levels after such a change of exposure, and put it in the mask with the person it touches. (At the dark end
+    the two readings part on unchanged frames too, where the first bins are few and far apart, and the
+    uncertainty cost the contrast of dark clothing in front of a dark poster.) A channel with one such bin has
+    the gain alone, one with none T_k(b) = b. T_k(b) stays within ``EXPOSURE_RATIO_RANGE`` of b widened by
+    ``TONE_SHIFT_MAX`` levels either way.
     """
     if chosen is None:
         count, level = model.sample_bins
@@ -364,15 +386,22 @@ def _tone_curve(keys: np.ndarray, model: BackgroundModel, chosen: np.ndarray | N
     filled = (count >= MIN_TONE_SAMPLES).reshape(3, -1)
     level, frame = level.reshape(3, -1), frame.reshape(3, -1)
     tone = np.repeat(_LEVELS[None], 3, axis=0)
+    spread = np.zeros_like(tone)
     for k in np.flatnonzero(filled.any(axis=1)).tolist():
         levels, means = level[k, filled[k]], np.maximum.accumulate(frame[k, filled[k]])
         tone[k] = np.interp(_LEVELS, levels, means)
         # The levels below the first bin's mean and above the last's: ends of the ascending _LEVELS.
-        first, last = levels[0], levels[-1]
-        low, high = math.ceil(first), math.floor(last) + 1
-        tone[k, :low] = _LEVELS[:low] * (means[0] / max(first, 1.0))
-        tone[k, high:] = _LEVELS[high:] * (means[-1] / max(last, 1.0))
-    return np.clip(tone, _LOWEST_TONE, _HIGHEST_TONE).astype(np.float32)
+        low, high = math.ceil(levels[0]), math.floor(levels[-1]) + 1
+        tone[k, :low] = _LEVELS[:low] * (means[0] / max(levels[0], 1.0))
+        gain = _LEVELS[high:] * (means[-1] / max(levels[-1], 1.0))
+        if len(levels) < 2:
+            tone[k, high:] = gain
+            continue
+        slope = (means[-1] - means[-2]) / (levels[-1] - levels[-2])
+        course = means[-1] + np.clip(slope, *EXPOSURE_RATIO_RANGE) * (_LEVELS[high:] - levels[-1])
+        tone[k, high:] = 0.5 * (gain + course)
+        spread[k, high:] = np.abs(gain - course)
+    return np.clip(tone, _LOWEST_TONE, _HIGHEST_TONE).astype(np.float32), spread.astype(np.float32)
 
 
 def _bin_medians(histogram: np.ndarray, count: np.ndarray) -> np.ndarray:
@@ -480,7 +509,9 @@ def _evidence(
     alpha = cv2.divide(IB, BB + np.float32(BACKGROUND_ENERGY_FLOOR))  # (h', w') α
     chroma2 = cv2.subtract(II, cv2.multiply(IB, alpha))  # (h', w') ‖I − αT(B)‖² (≥ 0 up to rounding)
     difference2 = cv2.add(cv2.addWeighted(II, 1.0, IB, -2.0, 0.0), BB)  # ‖I − T(B)‖²
-    variance = model.texture_variance[region] + np.float32(noise.sigma2)
+    # T(B)'s own variance, the mean of the channels' (the evidence counts per-channel noise variances)
+    tone_variance = cv2.transform(cv2.LUT(model.B[region], noise.tone_variance), CHANNEL_SUM / 3.0)
+    variance = cv2.add(model.texture_variance[region], tone_variance) + np.float32(noise.sigma2)
     return cv2.divide(difference2, variance), cv2.divide(chroma2, variance), alpha
 
 
