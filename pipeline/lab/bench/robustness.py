@@ -2,12 +2,12 @@
 
 The foreign suite (:mod:`pipeline.lab.bench.foreign`) measures four captures as another program made them; a real
 studio differs from them in ways that each stage meets on its own: a codec that blocks, a noisy sensor, mains
-flicker, no clean plate, fewer cameras, a camera that does not frame the whole volume, a calibration slightly
-off. Each of :data:`VARIANTS` makes one such change to every foreign capture with
-:func:`~pipeline.lab.bench.perturb.perturb_capture` (seed 0), so that what it costs is read against the foreign
-suite's figures for the same capture (roughly: every copy's videos are also encoded a second time, which a copy with
-``change="none"`` alone measures). The folder of foreign captures lives outside the repository, so the suite is
-skipped with one line when it is absent.
+flicker, an automatic exposure acting before the camera's gamma, no clean plate, fewer cameras, a camera that does
+not frame the whole volume, a calibration slightly off. Each of :data:`VARIANTS` makes one such change to every
+foreign capture with :func:`~pipeline.lab.bench.perturb.perturb_capture` (seed 0), so that what it costs is read
+against the foreign suite's figures for the same capture (roughly: every copy's videos are also encoded a second
+time, which a copy with ``change="none"`` alone measures). The folder of foreign captures lives outside the
+repository, so the suite is skipped with one line when it is absent.
 
 A copy takes a while to write (every frame of every video decoded, changed and encoded again) and depends only
 on its source and its perturbation, so copies are cached in ``<captures>/robustness/`` (the bench's cache of
@@ -88,6 +88,7 @@ VARIANTS = (
     Variant("compression", change="compression"),
     Variant("noise", change="noise"),
     Variant("flicker", change="flicker"),
+    Variant("darker before the gamma", change="gamma_dark"),
     Variant("no plates", plates=False),
     Variant("4 cameras", first_cameras=4),
     Variant("one camera zoomed 1.8x", first_camera_zoom=1.8),

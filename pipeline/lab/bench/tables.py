@@ -304,7 +304,9 @@ FOREIGN_NOTES = (
 ROBUSTNESS_NOTES = (
     "How: each foreign capture is copied once per change by `pipeline.lab.bench.perturb` (seed 0; every video "
     "decoded, changed and encoded again): compression (every frame through JPEG at quality 20), noise (Gaussian "
-    "sensor noise of 8 levels), flicker (each frame's exposure drawn in [0.9, 1.1]), no plates (the clean plates "
+    "sensor noise of 8 levels), flicker (each frame's exposure drawn in [0.9, 1.1]), darker before the gamma "
+    "(every level I made 255 (I / 255)^1.25: the camera's automatic exposure lowered before its gamma, so that the "
+    "frames' levels are a curve of the plates', not a multiple), no plates (the clean plates "
     "left out: the background estimated from the frames), 4 cameras (the first four by name), one camera zoomed "
     "1.8x (the first by name: the subject partly out of its view), calibration off 0.1° (each camera turned by "
     "0.1° about an axis of its own, about 1.7 pixels at a focal length of 1000). The copies are made once into "
@@ -317,7 +319,8 @@ ROBUSTNESS_NOTES = (
     "(not run by this suite). "
     "`python -m pipeline bench --out runs/bench --suite robustness` measures it; one copy by hand: "
     "`python -m pipeline.lab.bench.perturb ../shared/foreign/walk --change compression --out runs/walk-compression` "
-    "(`--change none` with `--no-plates`, `--cameras cam00,cam01,cam02,cam03`, `--zoom cam00:1.8` or "
+    "(`--change gamma_dark`, or `--change none` with `--no-plates`, `--cameras cam00,cam01,cam02,cam03`, "
+    "`--zoom cam00:1.8` or "
     "`--calibration-error 0.1` for the others), then `python -m pipeline run runs/walk-compression --out "
     "runs/walk-compression-run` and `python -m pipeline eval runs/walk-compression-run --truth "
     "runs/walk-compression/groundtruth/joints.csv`.")
