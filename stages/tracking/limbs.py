@@ -182,6 +182,15 @@ def folded_limbs(limbs: list[Limb], result: FitResult, previous: np.ndarray | No
     return [limb for limb, bent in zip(suspects, before, strict=True) if not bent]
 
 
+def checks_due(count: int, limbs: int, every: int) -> np.ndarray:
+    """(limbs,) bool the limbs whose periodic search falls on the `count`-th tracked frame since an initialisation:
+    each every `every` frames, the limbs spread over that interval in turn (limb i when count ≡ i·every / limbs),
+    so that a frame pays for one search at most; none with `every` 0."""
+    if every <= 0:
+        return np.zeros(limbs, dtype=bool)
+    return (count - (np.arange(limbs) * every) // limbs) % every == 0
+
+
 def search_backoff(misses: np.ndarray, wait: np.ndarray, searched: np.ndarray,
                    kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each limb's searches in a row that kept the fit and the frames it now waits before a share test may
@@ -217,8 +226,8 @@ def _starved(limbs: list[Limb], own: np.ndarray, reference: np.ndarray, compared
 
 
 def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Limb, volume: np.ndarray,
-                      em: EMParams, candidates: np.ndarray, *,
-                      rng: np.random.Generator | None = None) -> FitResult:
+                      em: EMParams, candidates: np.ndarray, *, rng: np.random.Generator | None = None,
+                      refine: int = _LIMB_REFINE, elsewhere: bool = False) -> FitResult:
     """Re-initialise one limb of a fit locally; returns the better (by likelihood) of the two fits.
 
     Joint-angle hypotheses for the limb's DOFs come from the pose library (`candidates`, the limb's
@@ -230,18 +239,24 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
     would otherwise be handicapped by its small prior) and under the initialisation's coarse Σ
     (`SCORE_SIGMA_M`), not the fit's: grid and library angles are tens of millimetres off at best, and
     under a Σ of 2-3 cm they lost to the misplaced limb itself (the test with arms off the grid shows it).
-    The best `_LIMB_REFINE` are refined by EM on all the data (the whole body free); the best of them
+    The best `refine` are refined by EM on all the data (the whole body free); the best of them
     that does not leave the limb `folded` replaces the fit when it is better by `LIMB_MARGIN` nats per
-    observation.
+    observation. `elsewhere` leaves out the hypotheses at the current angles: a check of a limb that no test
+    suspects looks for another optimum only (the fit is one already, and refined there it stays there).
     """
     rng = np.random.default_rng(0) if rng is None else rng
     body, pose = result.body, result.pose
     values = np.vstack([candidates[:, limb.dofs], candidates[:, limb.mirror_dofs] * limb.mirror_sign,
                         pose[limb.mirror_dofs] * limb.mirror_sign, pose[limb.dofs], _limb_grid(body, pose, limb)])
     values = np.clip(values, body.lower[limb.dofs], body.upper[limb.dofs])
-    _, first = np.unique(np.round(values / _LIMB_HYPOTHESIS_STEP), axis=0, return_index=True)
+    cells = np.round(values / _LIMB_HYPOTHESIS_STEP)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    first = np.sort(first)
+    if elsewhere:
+        here = np.round(np.clip(pose[limb.dofs], body.lower[limb.dofs], body.upper[limb.dofs]) / _LIMB_HYPOTHESIS_STEP)
+        first = first[np.any(cells[first] != here, axis=1)]
     hypotheses = np.repeat(pose[None], len(first), axis=0)
-    hypotheses[:, limb.dofs] = values[np.sort(first)]
+    hypotheses[:, limb.dofs] = values[first]
     pi = result.mixture.pi.copy()
     mine = np.isin(body.ellipsoid_segment, limb.segments)
     theirs = np.isin(body.ellipsoid_segment, limb.mirror_segments)
@@ -256,7 +271,7 @@ def reinitialise_limb(y: np.ndarray, n: np.ndarray, result: FitResult, limb: Lim
                         distance=em.distance, normal_noise_rad=em.normal_noise_rad)
     scores = _screened_scores(ys, ns, body.posed_ellipsoids(hypotheses), coarse, V, np.flatnonzero(mine), rest, em)
     best = result
-    for q in hypotheses[np.argsort(scores)[::-1][:_LIMB_REFINE]]:
+    for q in hypotheses[np.argsort(scores)[::-1][:refine]]:
         refined = fit(y, n, body, q, volume, em, mixture=mixture)
         if refined.log_likelihood[-1] > best.log_likelihood[-1] and not folded(refined.body, refined.pose, limb):
             best = refined

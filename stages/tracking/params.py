@@ -106,6 +106,12 @@ class TrackerParams:
         that reference is at least `limb_min_observations`), or that has just folded onto itself, is
         re-initialised locally (`limbs.misplaced_limbs`, `limbs.deserted_limbs`, `limbs.folded_limbs`,
         `limbs.reinitialise_limb`); 0 disables the whole limb recovery.
+    limb_check_every : int
+        Every this many tracked frames each limb is also searched (`limbs.reinitialise_limb`) when no test
+        suspects it, the limbs in turn (`limbs.checks_due`): a limb can settle a few centimetres off in a
+        place where it explains about its usual share of the data (a planted foot's shank), and the likelihood
+        level, learnt from the same track, soon takes the lower likelihood for usual, so no test ever fires;
+        0 never.
     seed : int
         Seed of the random subsamples on which the initialisation and the limb recovery score their
         hypotheses (each call draws afresh from it). Another seed is another equally good draw: tracking a
@@ -142,6 +148,7 @@ class TrackerParams:
     max_sigma_m: float = 0.06
     limb_share_ratio: float = LIMB_SHARE_RATIO
     limb_min_observations: int = LIMB_MIN_OBSERVATIONS
+    limb_check_every: int = 24
     seed: int = 0
     body: str = "default"
 
@@ -197,7 +204,7 @@ class TrackerParams:
 # Smallest valid value of each integer field of TrackerParams.
 _INTEGER_MINIMA = {"max_iterations": 1, "min_observations": 1, "reinit_every": 0, "refit_iterations": 1,
                    "max_predicted_frames": 0, "scale_frames": 0, "init_headings": 1, "init_refine": 1,
-                   "limb_min_observations": 0, "seed": 0}
+                   "limb_min_observations": 0, "limb_check_every": 0, "seed": 0}
 # (minimum, maximum, strictly above the minimum) of each float field of TrackerParams. Σ starts from
 # sigma_m² I, so a zero sigma_m is a singular covariance; a fraction or a prior are at most 1 (the
 # outlier prior at most one half: the outlier class may not own most of the data).

@@ -59,6 +59,7 @@ from stages.tracking.init import initialise
 from stages.tracking.library import load_pose_library
 from stages.tracking.limbs import (
     body_limbs,
+    checks_due,
     deserted_limbs,
     folded_limbs,
     misplaced_limbs,
@@ -233,8 +234,10 @@ class Tracker:
         """
         misses, wait = _search_counts(state.search_misses, state.search_wait, len(self.limbs))
         usual = not _worse_than_usual(tracked, len(y), state, self.params)
+        every = self.params.limb_check_every if self.params.limbs.share_ratio > 0 else 0  # 0: no limb recovery
+        due = checks_due(state.since_initialisation + 1, len(self.limbs), every)
         tracked, searched, kept = self._recover_limbs(y, n, tracked, em, state.segment_shares, state.pose,
-                                                      (wait > 0) & usual)
+                                                      (wait > 0) & usual, due)
         moved = [limb.dofs for limb, still in zip(self.limbs, kept, strict=True) if not still]
         return tracked, moved, search_backoff(misses, wait, searched, kept)
 
@@ -307,13 +310,14 @@ class Tracker:
         return result, new_state
 
     def _recover_limbs(self, y, n, result: FitResult, em: EMParams, usual_shares=None,
-                       previous: np.ndarray | None = None,
-                       waiting: np.ndarray | None = None) -> tuple[FitResult, np.ndarray, np.ndarray]:
+                       previous: np.ndarray | None = None, waiting: np.ndarray | None = None,
+                       due: np.ndarray | None = None) -> tuple[FitResult, np.ndarray, np.ndarray]:
         """The fit with each limb that explains far fewer data than its mirror, or than it usually does
         (`usual_shares`, the running level of `limbs.segment_shares`; None: no history), or that has folded
         onto itself since the `previous` pose (`limbs.folded_limbs`; None: no previous pose), re-initialised
         locally; and which of `self.limbs` were searched and which of them kept their place (L,) bool each.
-        The limbs `waiting` (L,) bool (`limbs.search_backoff`; None: none) are left to the fold test.
+        The limbs `waiting` (L,) bool (`limbs.search_backoff`; None: none) are left to the fold test; the limbs
+        `due` (L,) bool for their periodic search (`TrackerParams.limb_check_every`; None: none) are searched.
 
         A limb EM put on the wrong side of the body or folded away from its data gets almost no
         observations, and the local minimum holds it there for many frames; trying the library's angles
@@ -327,11 +331,15 @@ class Tracker:
         if self.params.limbs.share_ratio > 0:
             limbs += folded_limbs(self.limbs, result, previous)
         suspects = {limb.name for limb in limbs}
-        searched = np.array([limb.name in suspects for limb in self.limbs])
+        checked = np.array([limb.name not in suspects for limb in self.limbs]) & (
+            due if due is not None else np.zeros(len(self.limbs), dtype=bool))
+        searched = np.array([limb.name in suspects for limb in self.limbs]) | checked
         kept = np.ones(len(self.limbs), dtype=bool)
         for index in np.flatnonzero(searched):
+            # A check of a limb no test suspects refines the likeliest hypothesis away from where it is.
             recovered = reinitialise_limb(y, n, result, self.limbs[index], self.volume, em, self.library,
-                                          rng=np.random.default_rng(self.params.seed))
+                                          rng=np.random.default_rng(self.params.seed),
+                                          **({"refine": 1, "elsewhere": True} if checked[index] else {}))
             kept[index] = recovered is result
             result = recovered
         return result, searched, kept

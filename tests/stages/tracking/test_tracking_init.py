@@ -128,6 +128,14 @@ def test_a_limb_placed_wrong_is_found_and_recovered_locally():
     error = np.linalg.norm(recovered.body.joint_positions(recovered.pose) - body.joint_positions(truth), axis=1)
     assert error.max() < 0.03  # metres, every joint
     assert misplaced_limbs(body_limbs(body), recovered, len(y)) == []
+    # A periodic check, which refines the likeliest hypothesis away from the current angles only, finds it too,
+    # and keeps a fit that is where the data are.
+    checked = reinitialise_limb(y, n, stuck, suspects[0], VOLUME, em, load_pose_library(body), refine=1,
+                                elsewhere=True)
+    error = np.linalg.norm(checked.body.joint_positions(checked.pose) - body.joint_positions(truth), axis=1)
+    assert error.max() < 0.03
+    assert reinitialise_limb(y, n, recovered, suspects[0], VOLUME, em, load_pose_library(body), refine=1,
+                             elsewhere=True) is recovered
 
 
 @pytest.mark.parametrize("arm", [
