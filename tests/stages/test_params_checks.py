@@ -49,6 +49,7 @@ BAD = {
         "limb_share_ratio": [-0.1, 1.5, NAN],
         "stated_height_weight": [-0.5, 1.5, NAN, INF],
         "limb_min_observations": [-1, 2.5, True],
+        "limb_check_every": [-1, 2.5, True],
         "seed": [-1, 0.5, True],
         "body": ["centaur", "", 3, None],  # a missing body file: tests/pipeline/test_body_io.py
     },
