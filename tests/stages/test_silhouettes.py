@@ -259,41 +259,49 @@ def test_clothing_close_to_the_wall_is_found_after_a_change_of_white_balance():
     assert _iou(mask, truth) > 0.9
 
 
+def _wall_and_floor(rng: np.random.Generator, wall: tuple[float, float, float], rows: int) -> np.ndarray:
+    """(H, W, 3) float a wall of colour ``wall`` over the first ``rows`` rows and a dark wooden floor below,
+    both slightly mottled."""
+    background = np.empty((HEIGHT, WIDTH, 3))
+    background[:rows] = wall
+    background[rows:] = (60.0, 75.0, 95.0)
+    return background + cv2.resize(rng.uniform(-6, 6, (HEIGHT // 20, WIDTH // 20, 3)), (WIDTH, HEIGHT))
+
+
+def _person_after_a_tone_change(background: np.ndarray, tone: str, rng: np.random.Generator):
+    """The person painted over ``background`` (H, W, 3) float, the frame's levels then changed by ``tone``
+    ("gamma": the exposure lowered before the camera's gamma; "black level": the blacks lifted) and sensor noise
+    added: (image (H, W, 3) uint8, the person's mask)."""
+    truth = _person_mask()
+    image = background.copy()
+    image[truth > 0] = (120.0, 110.0, 150.0)
+    image = 255.0 * (image / 255.0) ** 1.25 if tone == "gamma" else image * 0.85 + 20.0
+    return np.clip(image + rng.normal(0.0, 2.0, image.shape), 0, 255).astype(np.uint8), truth
+
+
 @pytest.mark.parametrize("tone", ["gamma", "black level"])
 def test_a_change_of_tone_curve_over_a_bright_wall_and_a_dark_floor_is_not_a_person(tone):
     # The camera's automatic exposure acts before its gamma (or a grabber lifts the black level): the frame's
     # levels are no longer the plate's times one ratio per channel, and a ratio fitted to the floor, most of
     # the image, would put the whole wall in the mask.
     rng = np.random.default_rng(12)
-    background = np.empty((HEIGHT, WIDTH, 3))
-    background[: HEIGHT // 3] = (200.0, 205.0, 190.0)  # a bright wall
-    background[HEIGHT // 3 :] = (60.0, 75.0, 95.0)  # a dark wooden floor
-    background += cv2.resize(rng.uniform(-6, 6, (HEIGHT // 20, WIDTH // 20, 3)), (WIDTH, HEIGHT))
-    truth = _person_mask()
-    image = background.copy()
-    image[truth > 0] = (120.0, 110.0, 150.0)
-    image = 255.0 * (image / 255.0) ** 1.25 if tone == "gamma" else image * 0.85 + 20.0
-    image = np.clip(image + rng.normal(0.0, 2.0, image.shape), 0, 255).astype(np.uint8)
+    background = _wall_and_floor(rng, (200.0, 205.0, 190.0), HEIGHT // 3)  # a bright wall
+    image, truth = _person_after_a_tone_change(background, tone, rng)
     mask = extract_silhouette(image, np.clip(background, 0, 255).astype(np.uint8), SilhouetteParams())
     assert _iou(mask, truth) > 0.9
+
+
 @pytest.mark.parametrize("tone", ["gamma", "black level"])
 def test_a_bright_strip_few_pixels_have_is_not_a_person_after_a_change_of_tone_curve(tone):
     # A white skirting board: its levels are too rare in the image for the tone curve to be measured there, so
     # the curve is extrapolated from the wall's and the floor's levels, and a gain through black alone misses it
     # by more than the noise after the exposure moved before the camera's gamma (or a black level was lifted).
     rng = np.random.default_rng(13)
-    background = np.empty((HEIGHT, WIDTH, 3))
-    background[: HEIGHT // 2] = (150.0, 155.0, 140.0)  # a wall
-    background[HEIGHT // 2 :] = (60.0, 75.0, 95.0)  # a dark wooden floor
-    background += cv2.resize(rng.uniform(-6, 6, (HEIGHT // 20, WIDTH // 20, 3)), (WIDTH, HEIGHT))
+    background = _wall_and_floor(rng, (150.0, 155.0, 140.0), HEIGHT // 2)
     strip = np.zeros((HEIGHT, WIDTH), bool)
     strip[HEIGHT // 2 - 12 : HEIGHT // 2, :200] = True
     background[strip] = np.repeat(np.linspace(196.0, 244.0, 200)[None, :, None], 12, axis=0).reshape(-1, 1)
-    truth = _person_mask()
-    image = background.copy()
-    image[truth > 0] = (120.0, 110.0, 150.0)
-    image = 255.0 * (image / 255.0) ** 1.25 if tone == "gamma" else image * 0.85 + 20.0
-    image = np.clip(image + rng.normal(0.0, 2.0, image.shape), 0, 255).astype(np.uint8)
+    image, truth = _person_after_a_tone_change(background, tone, rng)
     mask = extract_silhouette(image, np.clip(background, 0, 255).astype(np.uint8), SilhouetteParams())
     away = strip & (cv2.dilate(truth, np.ones((9, 9), np.uint8)) == 0)
     assert (mask[away] > 0).mean() < 0.02
