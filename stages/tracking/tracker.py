@@ -331,15 +331,15 @@ class Tracker:
         if self.params.limbs.share_ratio > 0:
             limbs += folded_limbs(self.limbs, result, previous)
         suspects = {limb.name for limb in limbs}
-        checked = np.array([limb.name not in suspects for limb in self.limbs]) & (
-            due if due is not None else np.zeros(len(self.limbs), dtype=bool))
-        searched = np.array([limb.name in suspects for limb in self.limbs]) | checked
+        suspected = np.array([limb.name in suspects for limb in self.limbs])
+        checked = ~suspected & (due if due is not None else False)  # due, and suspected by no test
+        searched = suspected | checked
         kept = np.ones(len(self.limbs), dtype=bool)
         for index in np.flatnonzero(searched):
-            # A check of a limb no test suspects refines the likeliest hypothesis away from where it is.
+            # A check refines only the likeliest hypothesis away from where the limb is: the fit is an optimum there.
+            check = {"refine": 1, "elsewhere": True} if checked[index] else {}
             recovered = reinitialise_limb(y, n, result, self.limbs[index], self.volume, em, self.library,
-                                          rng=np.random.default_rng(self.params.seed),
-                                          **({"refine": 1, "elsewhere": True} if checked[index] else {}))
+                                          rng=np.random.default_rng(self.params.seed), **check)
             kept[index] = recovered is result
             result = recovered
         return result, searched, kept
