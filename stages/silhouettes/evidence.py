@@ -364,10 +364,10 @@ def _tone_curve(keys: np.ndarray, model: BackgroundModel, chosen: np.ndarray | N
     camera's gamma, a lifted black level). T_k(b) is their mean there and their difference its uncertainty,
     which the evidence adds to the noise (:func:`_evidence`): where they agree nothing changes, and where they
     part, a level that either explains, or that lies a little beyond both (the course is a secant, and a bending
-    curve runs past it), is not taken for the person. The gain alone missed a skirting board by ten to twenty
-    levels after such a change of exposure, and put it in the mask with the person it touches. (At the dark end
-    the two readings part on unchanged frames too, where the first bins are few and far apart, and the
-    uncertainty cost the contrast of dark clothing in front of a dark poster.) A channel with one such bin has
+    curve runs past it), is not taken for the person. The gain alone misses a skirting board by more than the
+    noise after such a change of exposure, and puts it in the mask with the person it touches. (At the dark end
+    the two readings part on unchanged frames too, where the first bins are few and far apart, and an
+    uncertainty there would cost the contrast of dark clothing in front of a dark poster.) A channel with one such bin has
     the gain alone, one with none T_k(b) = b. T_k(b) stays within ``EXPOSURE_RATIO_RANGE`` of b widened by
     ``TONE_SHIFT_MAX`` levels either way.
     """

@@ -168,12 +168,14 @@ def format_robustness(robustness: dict) -> str:
     captures = list(dict.fromkeys(row["capture"] for row in rows))
     variants = list(dict.fromkeys(row["variant"] for row in rows))
 
+    def matching(**match) -> list[dict]:
+        return [row for row in rows if all(row[key] == value for key, value in match.items())]
+
     def cell(**match) -> str:
-        return _robustness_cell([row for row in rows if all(row[key] == value for key, value in match.items())])
+        return _robustness_cell(matching(**match))
 
     def reinitialised(**match) -> str:
-        shares = [row["reinitialised_fraction"] for row in rows if "reinitialised_fraction" in row
-                  and all(row[key] == value for key, value in match.items())]
+        shares = [row["reinitialised_fraction"] for row in matching(**match) if "reinitialised_fraction" in row]
         return percent(sum(shares) / len(shares)) if shares else "–"
 
     def per_variant(cell_of) -> list[list[str]]:
