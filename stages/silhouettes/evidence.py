@@ -367,8 +367,8 @@ def _tone_curve(keys: np.ndarray, model: BackgroundModel, chosen: np.ndarray | N
     curve runs past it), is not taken for the person. The gain alone misses a skirting board by more than the
     noise after such a change of exposure, and puts it in the mask with the person it touches. (At the dark end
     the two readings part on unchanged frames too, where the first bins are few and far apart, and an
-    uncertainty there would cost the contrast of dark clothing in front of a dark poster.) A channel with one such bin has
-    the gain alone, one with none T_k(b) = b. T_k(b) stays within ``EXPOSURE_RATIO_RANGE`` of b widened by
+    uncertainty there would cost the contrast of dark clothing in front of a dark poster.) A channel with one such
+    bin has the gain alone, one with none T_k(b) = b. T_k(b) stays within ``EXPOSURE_RATIO_RANGE`` of b widened by
     ``TONE_SHIFT_MAX`` levels either way.
     """
     if chosen is None:

@@ -72,7 +72,8 @@ class TrackerParams:
         off the body surface by a few centimetres, not by a spread close to the `max_sigma_m` ceiling
         (which it must be below: Σ never grows past that ceiling, so the check would never fail). A tracked
         fit on data whose good fits are wider is held to their usual spread instead
-        (`results.spread_limit`); an initialisation always to this.
+        (`results.spread_limit`), and fails it only when it also explains its data `refit_drop` worse than
+        usual; an initialisation is always held to this.
     refit_drop, refit_iterations : float, int
         A fit whose log-likelihood per observation is `refit_drop` nats below the running level gets up
         to `refit_iterations` (at least 1) more EM iterations with a strict stopping rule before it is

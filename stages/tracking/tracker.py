@@ -151,7 +151,8 @@ class Tracker:
         tracked, moved, searches = self._search_limbs(y, n, tracked, state, em)
         tracked, exchanged, exchanges = self._exchange_legs(y, n, tracked, state, em)
         moved += exchanged
-        doubtful = _failed(tracked, params, spread_limit(state, params.failure_sigma_m))
+        doubtful = _failed(tracked, params, spread_limit(state, params.failure_sigma_m),
+                           usual=_as_likely_as_usual(tracked, len(y), state, params))
         tried = doubtful or 0 < params.reinit_every <= state.since_initialisation + 1 or state.recheck
         if tried:
             result, new_state = self._initialise(state, y, n, sized)
@@ -481,6 +482,12 @@ def _worse_than_usual(result: FitResult, observations: int, state: TrackerState,
     return bool(np.isfinite(level) and result.log_likelihood[-1] / observations < level - params.refit_drop)
 
 
+def _as_likely_as_usual(result: FitResult, observations: int, state: TrackerState, params: TrackerParams) -> bool:
+    """Whether a fit's log-likelihood per observation is within `refit_drop` of the track's level (never while the
+    level is unknown: the frames after an initialisation have no track's fits to be judged by)."""
+    return bool(np.isfinite(state.likelihood_level)) and not _worse_than_usual(result, observations, state, params)
+
+
 def _search_counts(misses: np.ndarray | None, wait: np.ndarray | None, count: int) -> tuple[np.ndarray, np.ndarray]:
     """A state's misses and waits of `limbs.search_backoff`, zeros (count,) when it has none yet."""
     if misses is None or wait is None:
@@ -504,19 +511,26 @@ def velocity_gain(state: TrackerState) -> np.ndarray | float:
     return np.clip(np.where(state.velocity_variance > 0, ratio, 1.0), 0.0, 1.0)
 
 
-def _failed(result: FitResult, params: TrackerParams, spread_limit_m: float | None = None) -> bool:
-    """Whether a fit fails the checks: too many outliers, or a Σ wider than `spread_limit_m` (default
-    `failure_sigma_m`) or held at the `max_sigma_m` ceiling.
+def _failed(result: FitResult, params: TrackerParams, spread_limit_m: float | None = None,
+            usual: bool = False) -> bool:
+    """Whether a fit fails the checks: too many outliers, a Σ held at the `max_sigma_m` ceiling, or a Σ wider
+    than `spread_limit_m` (default `failure_sigma_m`) in a fit not `usual` (`_as_likely_as_usual`).
 
     A Σ as wide as the data's spread around the wrong surface is what a torso or a pair of legs locked onto
     the wrong data looks like, while the outlier fraction stays small. A tracked fit is judged against what
     the track's good fits are (`spread_limit`); an initialisation, which has no track behind it, against
     `failure_sigma_m` alone: its fit is coarse by design, and one wider than that is checked again at the next
     frame (`TrackerState.recheck`), a cheap guard against starting a track in a wrong pose.
+
+    A wide Σ fails only a fit that explains its data worse than the track's fits usually do. Locked onto the
+    wrong data, a body explains them worse; a frame of worse data (a lossy frame, a flicker, a view that
+    cut the subject off) widens Σ as much, while the fit explains them as well as the track's fits do theirs,
+    and an initialisation there finds the same optimum or, by a few thousandths of a nat per observation, a
+    limb somewhere else.
     """
     wide = sigma_spread(result.mixture.Sigma)
     limit = params.failure_sigma_m if spread_limit_m is None else spread_limit_m
-    return (result.outlier_fraction > params.max_outlier_fraction or wide > limit
+    return (result.outlier_fraction > params.max_outlier_fraction or (wide > limit and not usual)
             or at_sigma_ceiling(wide, params.max_sigma_m))
 
 

@@ -131,6 +131,27 @@ def test_a_tracked_fit_is_judged_against_the_spread_this_tracks_good_fits_have(b
     assert np.linalg.norm(tracked.joints - body.joint_positions(poses[1]), axis=1).mean() < 0.02
 
 
+def test_a_fit_wider_than_usual_that_explains_the_data_as_well_as_usual_is_not_a_failure(body):
+    """A tracked fit whose Σ is wider than the track's good fits have been, but whose likelihood per observation is
+    at the track's level, is what a frame of worse data looks like (a lossy frame, a flicker), not a lost track: it
+    passes, and costs no initialisation. The same fit when the track's fits have explained the data clearly better
+    (`refit_drop` above it) fails, as it does while the level is unknown."""
+    rng = np.random.default_rng(31)
+    poses = _walk(body.scaled(1.75), 2)
+    tracker_ = Tracker(replace(PARAMS, failure_sigma_m=0.012), VOLUME)
+    y, n = sample_ellipsoids(body, poses[1], 600, rng, outlier_fraction=0.1)
+    data = SimpleNamespace(points=y + rng.normal(0.0, 0.015, (len(y), 1)) * n, normals=n)
+    _, state = tracker_.track(None, SimpleNamespace(points=y, normals=n))
+    narrow = replace(state, recheck=False, spread_level=0.005, spread_variance=0.0)  # good fits 5 mm wide
+    unknown, _ = tracker_.track(narrow, data)
+    assert unknown.doubtful  # wider than 1.2 cm, and no likelihood level to weigh it by
+    level = unknown.log_likelihood / unknown.observations
+    usual, after = tracker_.track(replace(narrow, likelihood_level=level), data)
+    assert usual.status == "tracked" and not usual.doubtful and sigma_spread(after.Sigma) > 0.012
+    worse, _ = tracker_.track(replace(narrow, likelihood_level=level + 2 * PARAMS.refit_drop), data)
+    assert worse.doubtful
+
+
 def test_the_usual_spread_is_a_running_mean_and_variance_of_the_fits_that_passed():
     start = SimpleNamespace(spread_level=np.nan, spread_variance=np.nan)
     assert tracker.running_spread(start, 0.04) == (0.04, 0.0)
@@ -298,7 +319,7 @@ def test_a_doubtful_initialisation_is_tracked_from_and_weighed_against_a_fresh_o
     rng = np.random.default_rng(25)
     poses = _walk(body.scaled(1.75), 2)
     failing = [True]  # the checks fail on the first frame only
-    monkeypatch.setattr(tracker, "_failed", lambda result, params, spread_limit_m=None: failing[0])
+    monkeypatch.setattr(tracker, "_failed", lambda result, params, spread_limit_m=None, usual=False: failing[0])
     the_tracker = Tracker(PARAMS, VOLUME)
     first, state = the_tracker.track(None, _obs(body, poses[0], rng))
     assert first.status == "initialised" and first.doubtful and state.recheck and not state.lost
@@ -565,7 +586,7 @@ def test_a_re_check_that_turns_the_subject_around_is_weighed_against_a_search_fa
 
     monkeypatch.setattr(tracker, "initialise", turned_unless_told)
     # the tracked fit fails: a re-check
-    monkeypatch.setattr(tracker, "_failed", lambda result, params, spread_limit_m=None: True)
+    monkeypatch.setattr(tracker, "_failed", lambda result, params, spread_limit_m=None, usual=False: True)
     result, _ = the_tracker.track(state, _obs(body, poses[1], rng))
     assert facings[0] is None and facings[1] == pytest.approx(state.pose[3])
     assert not tracker.turned_around(result.pose, poses[1])
