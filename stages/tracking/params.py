@@ -89,7 +89,10 @@ class TrackerParams:
         After this many frames without a fit, the subject is lost and the next data re-initialise.
     scale_frames : int
         Frames over which the height (when unknown: by the initialisations among them) and the length
-        factors keep being estimated.
+        factors keep being estimated. A frame's estimate of a length depends on its pose (a forearm held
+        towards a camera, an arm against the trunk), and the mean over more of a motion's poses depends on it
+        less, while every such frame costs a second EM fit; why 20: docs/results_by_hand.md, "Lengths learnt
+        over twenty frames".
     init_headings, init_refine : int
         Initialisation: headings per library pose, hypotheses refined by EM.
     normal_noise_deg : float
@@ -141,7 +144,7 @@ class TrackerParams:
     restart_drop: float = 0.3
     velocity_decay: float = 0.7
     max_predicted_frames: int = 10
-    scale_frames: int = 10
+    scale_frames: int = 20
     init_headings: int = 12
     init_refine: int = 12
     normal_noise_deg: float = 10.0
