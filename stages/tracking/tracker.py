@@ -148,8 +148,11 @@ class Tracker:
         tracked = self._fit_from(prediction, state, y, n, sized, mixture, em)
         if em.estimate_lengths and np.any(state.length_factors != self.body.length_factors):
             tracked = self._likelier_fresh_lengths(prediction, state, y, n, mixture, em, tracked)
-        tracked, moved, searches = self._search_limbs(y, n, tracked, state, em)
-        tracked, exchanged, exchanges = self._exchange_legs(y, n, tracked, state, em)
+        # The searches move limbs at the lengths the frame's own fit has learnt: a search looks for a pose, and with
+        # the lengths free each of its EM iterations costs several.
+        searching = replace(em, estimate_lengths=False)
+        tracked, moved, searches = self._search_limbs(y, n, tracked, state, searching)
+        tracked, exchanged, exchanges = self._exchange_legs(y, n, tracked, state, searching)
         moved += exchanged
         doubtful = _failed(tracked, params, spread_limit(state, params.failure_sigma_m),
                            usual=_as_likely_as_usual(tracked, len(y), state, params))
