@@ -115,14 +115,11 @@ def _normal_equations(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
     if X:
         starts = problem.starts
         T = body.segment_twists(kin)[body.ellipsoid_segment[problem.p[starts]]]  # (P',6,D)
-        Xw = whitened(W, extra)  # (K,k,X)
-        # As matrix products (BLAS) rather than einsum, which loops in C over these small axes.
-        per_ellipsoid = np.add.reduceat(np.matmul(Bw.transpose(0, 2, 1), Xw), starts)  # (P',6,X)
-        H[:D, D:] = np.tensordot(T, per_ellipsoid, axes=([0, 1], [0, 1]))
+        Xw = whitened(W, extra)
+        H[:D, D:] = np.einsum("pid,pix->dx", T, np.add.reduceat(np.einsum("kai,kax->kix", Bw, Xw), starts))
         H[D:, :D] = H[:D, D:].T
-        flat = Xw.reshape(-1, X)
-        H[D:, D:] = flat.T @ flat
-        g[D:] = flat.T @ r.reshape(-1)
+        H[D:, D:] = np.einsum("kax,kay->xy", Xw, Xw)
+        g[D:] = np.einsum("kax,ka->x", Xw, r)
     prior = np.zeros(D + X)
     prior[:D] = problem.prior
     g[:D] += problem.prior * (pose - problem.prior_pose)
