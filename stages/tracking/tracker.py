@@ -528,8 +528,7 @@ def _failed(result: FitResult, params: TrackerParams, spread_limit_m: float | No
     A wide Σ fails only a fit that explains its data worse than the track's fits usually do. Locked onto the
     wrong data, a body explains them worse; a frame of worse data (a lossy frame, a flicker, a view that
     cut the subject off) widens Σ as much, while the fit explains them as well as the track's fits do theirs,
-    and an initialisation there finds the same optimum or, by a few thousandths of a nat per observation, a
-    limb somewhere else.
+    and an initialisation there finds the same optimum or, barely likelier, a limb somewhere else.
     """
     wide = sigma_spread(result.mixture.Sigma)
     limit = params.failure_sigma_m if spread_limit_m is None else spread_limit_m
