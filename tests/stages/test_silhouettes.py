@@ -306,5 +306,3 @@ def test_a_bright_strip_few_pixels_have_is_not_a_person_after_a_change_of_tone_c
     away = strip & (cv2.dilate(truth, np.ones((9, 9), np.uint8)) == 0)
     assert (mask[away] > 0).mean() < 0.02
     assert _iou(mask, truth) > 0.9
-
-

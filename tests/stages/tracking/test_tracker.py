@@ -138,17 +138,17 @@ def test_a_fit_wider_than_usual_that_explains_the_data_as_well_as_usual_is_not_a
     (`refit_drop` above it) fails, as it does while the level is unknown."""
     rng = np.random.default_rng(31)
     poses = _walk(body.scaled(1.75), 2)
-    tracker_ = Tracker(replace(PARAMS, failure_sigma_m=0.012), VOLUME)
+    the_tracker = Tracker(replace(PARAMS, failure_sigma_m=0.012), VOLUME)
     y, n = sample_ellipsoids(body, poses[1], 600, rng, outlier_fraction=0.1)
     data = SimpleNamespace(points=y + rng.normal(0.0, 0.015, (len(y), 1)) * n, normals=n)
-    _, state = tracker_.track(None, SimpleNamespace(points=y, normals=n))
+    _, state = the_tracker.track(None, SimpleNamespace(points=y, normals=n))
     narrow = replace(state, recheck=False, spread_level=0.005, spread_variance=0.0)  # good fits 5 mm wide
-    unknown, _ = tracker_.track(narrow, data)
+    unknown, _ = the_tracker.track(narrow, data)
     assert unknown.doubtful  # wider than 1.2 cm, and no likelihood level to weigh it by
     level = unknown.log_likelihood / unknown.observations
-    usual, after = tracker_.track(replace(narrow, likelihood_level=level), data)
+    usual, after = the_tracker.track(replace(narrow, likelihood_level=level), data)
     assert usual.status == "tracked" and not usual.doubtful and sigma_spread(after.Sigma) > 0.012
-    worse, _ = tracker_.track(replace(narrow, likelihood_level=level + 2 * PARAMS.refit_drop), data)
+    worse, _ = the_tracker.track(replace(narrow, likelihood_level=level + 2 * PARAMS.refit_drop), data)
     assert worse.doubtful
 
 
@@ -523,6 +523,34 @@ def test_every_limb_is_searched_in_turn_even_when_no_test_suspects_it(body, monk
         _, state = the_tracker.track(state, _obs(body, pose, rng))
     assert searched == [(2, 1), (4, 2), (6, 3), (8, 0), (10, 1), (12, 2), (14, 3), (16, 0)]
     assert not tracker.checks_due(8, 4, 0).any()
+
+
+def test_a_learning_frame_searches_its_limbs_at_the_lengths_its_own_fit_learnt(body, monkeypatch):
+    """While the lengths are learnt (`scale_frames`), a frame's own fit has them free, and its limb searches keep
+    them: a search looks for a pose, and with the lengths free each of its EM iterations costs several."""
+    rng = np.random.default_rng(36)
+    the_tracker, state = Tracker(replace(PARAMS, scale_frames=6, limb_check_every=2), VOLUME), None
+    fits, searches, tracking = [], [], [False]
+    original_fit, original_search = tracker.fit, tracker.reinitialise_limb
+
+    def fit(y, n, body_, pose, volume, em, **kwargs):
+        if tracking[0]:
+            fits.append(em.estimate_lengths)
+        return original_fit(y, n, body_, pose, volume, em, **kwargs)
+
+    def search(y, n, result, limb, volume, em, *args, **kwargs):
+        if tracking[0]:
+            searches.append(em.estimate_lengths)
+        return original_search(y, n, result, limb, volume, em, *args, **kwargs)
+
+    monkeypatch.setattr(tracker, "fit", fit)
+    monkeypatch.setattr(tracker, "reinitialise_limb", search)
+    for frame, pose in enumerate(_walk(body.scaled(1.75), 5)):
+        tracking[0] = frame > 0  # the first frame is an initialisation
+        _, state = the_tracker.track(state, _obs(body, pose, rng))
+    assert 0 < state.height_weight < 6  # every frame so far a learning frame
+    assert fits and all(fits)  # the frames' own fits learn the lengths
+    assert searches and not any(searches)  # their searches keep them
 
 
 def test_an_exchange_of_the_legs_that_gains_nothing_is_tried_at_doubling_intervals(body, monkeypatch):
