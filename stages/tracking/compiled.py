@@ -411,6 +411,50 @@ def whitened_norm2(W, e):
 
 
 @njit(cache=True, error_model="numpy")
+def extra_normal_equations(W, X, Bw, r, p, P):
+    """The normal equations' blocks of further unknowns (the body's size, its length factors) with columns
+    X = de/dx (K, k, m): per ellipsoid Σ Bwᵀ Wᵀ X (P, 6, m), and Σ (Wᵀ X)ᵀ Wᵀ X (m, m) and Σ (Wᵀ X)ᵀ r (m,)
+    over the pairs, for lower-triangular W (K, k, k), Bw = Wᵀ B (K, k, 6), r = Wᵀ e (K, k), the pairs'
+    ellipsoids p (K,) among P.
+
+    Whitened pair by pair and summed in one pass: as numpy products of (K, k, m) temporaries these sums
+    cost a learning frame's M-step more than its pose block.
+    """
+    K, k, m = X.shape
+    HX = np.zeros((P, 6, m))
+    XX = np.zeros((m, m))
+    gX = np.zeros(m)
+    xw = np.empty((k, m))
+    for q in range(K):
+        for b in range(k):  # (Wᵀ X)_b = Σ_{a ≥ b} W_ab X_a
+            for c in range(m):
+                acc = 0.0
+                for a in range(b, k):
+                    acc += W[q, a, b] * X[q, a, c]
+                xw[b, c] = acc
+        e = p[q]
+        for c in range(m):
+            for j in range(6):
+                acc = 0.0
+                for b in range(k):
+                    acc += Bw[q, b, j] * xw[b, c]
+                HX[e, j, c] += acc
+            acc = 0.0
+            for b in range(k):
+                acc += xw[b, c] * r[q, b]
+            gX[c] += acc
+            for d in range(c, m):
+                acc = 0.0
+                for b in range(k):
+                    acc += xw[b, c] * xw[b, d]
+                XX[c, d] += acc
+    for c in range(m):
+        for d in range(c):
+            XX[c, d] = XX[d, c]
+    return HX, XX, gX
+
+
+@njit(cache=True, error_model="numpy")
 def pose_normal_equations(H6, g6, ellipsoid_segment, moves, axis, origin, revolute):
     """H = Σ_p T_pᵀ H_p T_p (D, D) and g = Σ_p T_pᵀ g_p (D,) from the per-ellipsoid blocks (P, 6, 6), (P, 6).
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from stages.tracking import compiled
 from stages.tracking.body import BodyModel, Kinematics
-from stages.tracking.distances import Distance, whitened
+from stages.tracking.distances import Distance
 
 # Prior strength: a DOF with prior weight 1 is held to its predicted value with this standard
 # deviation (radians) when the data say nothing about it; data dominate it whenever they see it.
@@ -113,13 +113,11 @@ def _normal_equations(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
     H[:D, :D], g[:D] = compiled.pose_normal_equations(H6, g6, body.ellipsoid_segment, body.moves, kin.axis,
                                                       kin.origin, body.dof_revolute)
     if X:
-        starts = problem.starts
-        T = body.segment_twists(kin)[body.ellipsoid_segment[problem.p[starts]]]  # (P',6,D)
-        Xw = whitened(W, extra)
-        H[:D, D:] = np.einsum("pid,pix->dx", T, np.add.reduceat(np.einsum("kai,kax->kix", Bw, Xw), starts))
+        present = problem.p[problem.starts]
+        HX, H[D:, D:], g[D:] = compiled.extra_normal_equations(W, extra, Bw, r, problem.p, body.n_ellipsoids)
+        T = body.segment_twists(kin)[body.ellipsoid_segment[present]]  # (P',6,D)
+        H[:D, D:] = np.einsum("pid,pix->dx", T, HX[present])
         H[D:, :D] = H[:D, D:].T
-        H[D:, D:] = np.einsum("kax,kay->xy", Xw, Xw)
-        g[D:] = np.einsum("kax,ka->x", Xw, r)
     prior = np.zeros(D + X)
     prior[:D] = problem.prior
     g[:D] += problem.prior * (pose - problem.prior_pose)

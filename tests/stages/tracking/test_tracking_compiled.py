@@ -44,6 +44,20 @@ def test_normal_equations_match_the_reference(pairs):
         np.testing.assert_allclose(g[q], block.T @ r[p == q].reshape(-1), atol=1e-10)
 
 
+@pytest.mark.parametrize("k", [1, 3])
+def test_extra_normal_equations_match_the_products_they_sum(pairs, k):
+    _, _, i, p, _, ell, rng = pairs
+    L = np.tril(rng.normal(size=(len(i), k, k))) + 3.0 * np.eye(k)
+    X = rng.normal(size=(len(i), k, 4))  # four further unknowns' columns de/dx
+    Bw, r = rng.normal(size=(len(i), k, 6)), rng.normal(size=(len(i), k))
+    HX, XX, gX = compiled.extra_normal_equations(L, X, Bw, r, p, len(ell.t))
+    Xw = L.transpose(0, 2, 1) @ X  # Wᵀ X
+    for q in range(len(ell.t)):
+        np.testing.assert_allclose(HX[q], np.einsum("kai,kax->ix", Bw[p == q], Xw[p == q]), atol=1e-10)
+    np.testing.assert_allclose(XX, np.einsum("kax,kay->xy", Xw, Xw), rtol=1e-12)
+    np.testing.assert_allclose(gX, np.einsum("kax,ka->x", Xw, r), rtol=1e-12)
+
+
 def _noisy_covariance_terms(pairs):
     _, n, i, p, _, ell, rng = pairs
     sigma_n = np.radians(10.0)
