@@ -433,21 +433,15 @@ def extra_normal_equations(W, X, Bw, r, p, P):
                     acc += W[q, a, b] * X[q, a, c]
                 xw[b, c] = acc
         e = p[q]
-        for c in range(m):
-            for j in range(6):
-                acc = 0.0
-                for b in range(k):
-                    acc += Bw[q, b, j] * xw[b, c]
-                HX[e, j, c] += acc
-            acc = 0.0
-            for b in range(k):
-                acc += xw[b, c] * r[q, b]
-            gX[c] += acc
-            for d in range(c, m):
-                acc = 0.0
-                for b in range(k):
-                    acc += xw[b, c] * xw[b, d]
-                XX[c, d] += acc
+        for b in range(k):
+            rb = r[q, b]
+            for c in range(m):
+                x = xw[b, c]
+                gX[c] += x * rb
+                for d in range(c, m):
+                    XX[c, d] += x * xw[b, d]
+                for j in range(6):
+                    HX[e, j, c] += Bw[q, b, j] * x
     for c in range(m):
         for d in range(c):
             XX[c, d] = XX[d, c]
