@@ -417,8 +417,8 @@ def extra_normal_equations(W, X, Bw, r, p, P):
     over the pairs, for lower-triangular W (K, k, k), Bw = Wᵀ B (K, k, 6), r = Wᵀ e (K, k), the pairs'
     ellipsoids p (K,) among P.
 
-    Whitened pair by pair and summed in one pass: as numpy products of (K, k, m) temporaries these sums
-    cost a learning frame's M-step more than its pose block.
+    Whitened pair by pair and summed in one pass, as the pose block is (`normal_equations`): numpy would
+    build (K, k, m) temporaries and sum their products without BLAS, at every M-step of a learning frame.
     """
     K, k, m = X.shape
     HX = np.zeros((P, 6, m))
