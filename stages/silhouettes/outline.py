@@ -54,12 +54,10 @@ def silhouette_from_evidence(view: Evidence, shadow: np.ndarray | None, params: 
     region = view.region
     y0, y1, x0, x1 = y0 + region[0].start, y1 + region[0].start, x0 + region[1].start, x1 + region[1].start
     frame_box = (slice(y0, y1), slice(x0, x1))  # the same in the working-resolution frame
-    off_line2 = np.float32(params.strong_threshold**2 * view.noise.sigma2)
     matte = _matte(mask[box], view.I_sharp[frame_box], background.B_sharp[frame_box], view.noise,
-                   view.alpha[box], ds, off_line2)
+                   view.alpha[box], ds)
     if ds > 1:
-        score = _full_resolution_score(matte, image, background.image, view.noise, (y0 * ds, x0 * ds), ds,
-                                       off_line2)
+        score = _full_resolution_score(matte, image, background.image, view.noise, (y0 * ds, x0 * ds), ds)
     else:
         score = matte.score
     inside = silhouette[y0 * ds : y1 * ds, x0 * ds : x1 * ds]  # a view, clipped at the image's edges
@@ -100,7 +98,7 @@ _MASK_SCORE = np.where(np.arange(256) > 0, np.float32(SCORE_FLOOR), np.float32(-
 
 
 def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, noise: _Noise, alpha: np.ndarray,
-           downsample: int, off_line2: float) -> _Matte:
+           downsample: int) -> _Matte:
     """The person's share φ of the pixels near the outline, and what it was measured against.
 
     A pixel on a blurred edge mixes the person's colour F and the background's, λB:
@@ -110,12 +108,8 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, noise: _Noise, alpha:
     would keep the whole blurred edge of a high-contrast outline and grow the silhouette. ``I`` (h, w, 3)
     uint8 and the background ``B`` (h, w, 3) uint8, exposed by the frame's tone curve T (``noise``), are not
     blurred, so the edge is as sharp as the camera made it. φ is measured within ``MATTE_RADIUS_PX`` of the
-    outline, on both sides; elsewhere the mask decides, with a small magnitude so that interpolation still
-    places the outline between pixels. It decides too where F is too close to the background to measure φ,
-    and where I is no mix of the two: farther from the line between λB and F than ``off_line2`` (squared
-    8-bit levels). F is the core's colour nearby, and a thin limb's core nearby is often another part
-    of the person (an arm against a shirt): φ of the arm's skin measured against the shirt's colour
-    gave the arm up.
+    outline, on both sides; elsewhere (and where F is too close to the background to measure it) the mask
+    decides, with a small magnitude so that interpolation still places the outline between pixels.
     """
     depth = disk(max(1, round(CORE_DEPTH_PX / downsample)))
     radius = max(1, round(MATTE_RADIUS_PX / downsample))
@@ -140,8 +134,8 @@ def _matte(mask: np.ndarray, I: np.ndarray, B: np.ndarray, noise: _Noise, alpha:
     F = sums[:3] / np.maximum(n_core, 1.0)  # (3, n)
     at = _channel_index(index, 3)
     exposed = noise.expose(B.ravel().take(at))  # (3, n) T(B) at those pixels only
-    phi, EE, off2 = _share(I.ravel().take(at), F, lam * exposed)
-    measured = np.flatnonzero((n_core > 0) & (EE > MIN_MATTE_CONTRAST**2) & (off2 <= off_line2))
+    phi, EE = _share(I.ravel().take(at), F, lam * exposed)
+    measured = np.flatnonzero((n_core > 0) & (EE > MIN_MATTE_CONTRAST**2))
     share = phi.take(measured) - 0.5
     score.ravel()[index.take(measured)] = share
     # A block all person, or all background, needs no new measurement at full resolution.
@@ -170,20 +164,18 @@ def flat_nonzero(mask: np.ndarray) -> np.ndarray:
     return y * np.int32(mask.shape[1]) + x
 
 
-def _share(I: np.ndarray, F: np.ndarray, background: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _share(I: np.ndarray, F: np.ndarray, background: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """φ (...) of colours I (3, ...) between the person's F and the background's (both broadcast to I's
-    shape), ‖F − bg‖², and the squared distance of I from the line through the two, ‖I − bg − φ (F − bg)‖²;
-    channels come first (see :func:`_dot`)."""
+    shape), and ‖F − bg‖²; channels come first (see :func:`_dot`)."""
     E = F - background  # (3, ...)
     D = I - background
     EE = _dot(E, E)
-    phi = _dot(D, E) / np.maximum(EE, 1e-6)
-    return phi, EE, np.maximum(_dot(D, D) - phi * phi * EE, 0.0)
+    return _dot(D, E) / np.maximum(EE, 1e-6), EE
 
 
 def _full_resolution_score(
     matte: _Matte, image: np.ndarray, background: np.ndarray, noise: _Noise, origin: tuple[int, int],
-    downsample: int, off_line2: float,
+    downsample: int,
 ) -> np.ndarray:
     """(h ds, w ds) float32 outline score of the box at full resolution, from its working-resolution matte.
 
@@ -192,8 +184,7 @@ def _full_resolution_score(
     outline then follows the full-resolution edge rather than its average over ``downsample`` x
     ``downsample`` blocks. ``image`` and ``background`` (H, W, 3) uint8 are whole (flat
     gathers from them are the fastest), the box starting at full-resolution pixel ``origin`` (row, column);
-    the background is exposed by the frame's tone curve (``noise``), as in the matte, and a pixel whose colour
-    is no mix of F and the background (farther than ``off_line2`` from their line) keeps the interpolated score.
+    the background is exposed by the frame's tone curve (``noise``), as in the matte.
     """
     height, width = matte.score.shape
     ds = downsample
@@ -208,9 +199,8 @@ def _full_resolution_score(
     # Each λ repeated for its ds² pixels: broadcast along the last axis, numpy's loops would run ds² at a time.
     lam = np.repeat(matte.lam, ds * ds).reshape(-1, ds * ds)  # (m, ds²)
     lam_B = noise.expose(background.ravel().take(at)) * lam  # (3, m, ds²) λT(B)
-    phi, _, off2 = _share(image.ravel().take(at), matte.F[:, :, None], lam_B)
-    mixes = off2 <= off_line2
-    score.ravel()[(rows * (width * ds) + cols)[mixes]] = phi[mixes] - 0.5
+    phi, _ = _share(image.ravel().take(at), matte.F[:, :, None], lam_B)
+    score.ravel()[rows * (width * ds) + cols] = phi - 0.5
     return score
 
 
