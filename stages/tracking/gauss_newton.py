@@ -56,11 +56,6 @@ class LeastSquares:
     estimate_scale: bool
     estimate_lengths: bool
 
-    @property
-    def starts(self) -> np.ndarray:
-        """Index of each present ellipsoid's first pair (the pairs are sorted by ellipsoid); empty without pairs."""
-        return np.flatnonzero(np.diff(self.p, prepend=-1))
-
     def residuals(self, body: BodyModel, kin: Kinematics) -> np.ndarray:
         """The pairs' residuals e (K, k) on `body` posed by the kinematics `kin`."""
         return self.distance.pair_residuals(self.y, self.n, self.i, self.p, kin, body.ellipsoids(kin))
@@ -113,10 +108,9 @@ def _normal_equations(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
     H[:D, :D], g[:D] = compiled.pose_normal_equations(H6, g6, body.ellipsoid_segment, body.moves, kin.axis,
                                                       kin.origin, body.dof_revolute)
     if X:
-        present = problem.p[problem.starts]
         HX, H[D:, D:], g[D:] = compiled.extra_normal_equations(W, extra, Bw, r, problem.p, body.n_ellipsoids)
-        T = body.segment_twists(kin)[body.ellipsoid_segment[present]]  # (P',6,D)
-        H[:D, D:] = np.einsum("pid,pix->dx", T, HX[present])
+        T = body.segment_twists(kin)[body.ellipsoid_segment]  # (P,6,D); an ellipsoid without pairs adds zeros
+        H[:D, D:] = np.einsum("pid,pix->dx", T, HX)
         H[D:, :D] = H[:D, D:].T
     prior = np.zeros(D + X)
     prior[:D] = problem.prior
