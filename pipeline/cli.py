@@ -22,11 +22,14 @@ terminal.
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
+import importlib.util
 import logging
 import os
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from calib.errors import InputError
 from pipeline.terminal import FoldingStreamHandler, PrintableFormatter, printable
@@ -54,11 +57,27 @@ def _first_line(text: str | None) -> str:
     return (text or "").strip().splitlines()[0] if text and text.strip() else ""
 
 
+def _summary(module_path: str) -> str:
+    """The first line of a subcommand module's docstring, read from its source without importing the module.
+
+    The help listing names every subcommand; importing each for its docstring would load all their
+    dependencies (open3d, matplotlib, numba: seconds) to print a dozen lines. Empty when the source cannot
+    be read (a module made in memory).
+    """
+    try:
+        spec = importlib.util.find_spec(module_path)
+        source = Path(spec.origin).read_text(encoding="utf-8") if spec is not None and spec.origin else None
+    except (ImportError, ValueError, OSError):
+        return ""
+    return _first_line(ast.get_docstring(ast.parse(source))) if source else ""
+
+
 def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
     """The parser, with one sub-parser per entry of :data:`SUBCOMMANDS`.
 
-    With `chosen`, only that subcommand's module is imported (the others get bare sub-parsers, enough to
-    parse a command line that names `chosen`); without it, all are, for the help listing.
+    Only the `chosen` subcommand's module is imported (None: none); the others get sub-parsers with their
+    one-line summary (`_summary`) and no arguments, enough for the help listing and to parse a command line
+    that names `chosen`.
     """
     parser = argparse.ArgumentParser(
         prog="python -m pipeline",
@@ -67,8 +86,8 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     subparsers = parser.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=True)
     for name, module_path in SUBCOMMANDS.items():
-        if chosen is not None and name != chosen:
-            subparsers.add_parser(name)
+        if name != chosen:
+            subparsers.add_parser(name, help=_summary(module_path))
             continue
         module = importlib.import_module(module_path)
         summary = _first_line(module.__doc__)

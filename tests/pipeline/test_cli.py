@@ -92,6 +92,29 @@ def test_help_everywhere(capsys):
         assert "usage:" in capsys.readouterr().out
 
 
+def test_the_help_listing_summarises_every_subcommand_without_importing_them():
+    """`python -m pipeline --help` reads each subcommand's summary from its source: importing them all would load
+    open3d, matplotlib and numba, seconds before a dozen lines appear."""
+    script = textwrap.dedent("""
+        import contextlib, io, sys
+        from pipeline.cli import main
+        with contextlib.redirect_stdout(io.StringIO()) as out:
+            try:
+                main(["--help"])
+            except SystemExit:
+                pass
+        print(sorted(name for name in ("open3d", "matplotlib", "numba", "pipeline.graph") if name in sys.modules))
+        print(out.getvalue())
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                          cwd=Path(__file__).resolve().parents[2])
+    loaded, listing = done.stdout.split("\n", 1)
+    assert loaded == "[]"
+    for name, module_path in SUBCOMMANDS.items():
+        summary = importlib.import_module(module_path).__doc__.strip().splitlines()[0]
+        assert re.search(rf"^\s+{name}\s+{re.escape(summary.split()[0])}", listing, re.MULTILINE), name
+
+
 def test_a_closed_pipe_ends_quietly(monkeypatch, tmp_path):
     """`python -m pipeline eval runs/x | head -1`: the reader leaves early, the command ends without a traceback."""
     def broken(args):
