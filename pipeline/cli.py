@@ -7,9 +7,9 @@ Each subcommand is a module with two functions::
 
 (and, for a subcommand whose work a rerun resumes, ``INTERRUPTED_HINT``: what the Ctrl-C line adds)
 and one line in :data:`SUBCOMMANDS` below, mapping the subcommand's name to that module's import
-path. Modules are imported only when their subcommand runs (and for ``--help``), so a heavy import
+path. Modules are imported only when their subcommand runs (or shows its own ``--help``), so a heavy import
 (open3d, Dask) in one subcommand does not slow down the others. The module's docstring's first line
-is the subcommand's one-line help.
+is the subcommand's one-line help (read from the module's source for the listing, which imports none).
 
 Errors: a user mistake anywhere is raised as :class:`calib.errors.InputError`; :func:`main` prints it
 as one line ``error: <message>`` on stderr and returns 2, without a traceback. Ctrl-C is one line too,
