@@ -110,9 +110,10 @@ def test_the_help_listing_summarises_every_subcommand_without_importing_them():
                           cwd=Path(__file__).resolve().parents[2])
     loaded, listing = done.stdout.split("\n", 1)
     assert loaded == "[]"
+    words = " ".join(listing.split())  # argparse wraps the summaries
     for name, module_path in SUBCOMMANDS.items():
         summary = importlib.import_module(module_path).__doc__.strip().splitlines()[0]
-        assert re.search(rf"^\s+{name}\s+{re.escape(summary.split()[0])}", listing, re.MULTILINE), name
+        assert f" {name} {' '.join(summary.split())}" in words, name
 
 
 def test_a_closed_pipe_ends_quietly(monkeypatch, tmp_path):
