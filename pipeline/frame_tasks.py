@@ -53,6 +53,9 @@ WORKER_MODULES = (__name__, "stages.reconstruction")
 FEW_OBSERVATIONS = 30
 #: Background models a worker keeps (a few MB each): enough for every camera of a large rig.
 CACHED_BACKGROUNDS = 32
+#: Given masks marking more than this share of every camera's image as person are reported: a subject that a
+#: studio's cameras frame whole covers far less, and masks saved the other way round (person 0) cover most.
+MAX_GIVEN_COVERAGE = 0.5
 
 
 @contextlib.contextmanager
@@ -121,6 +124,9 @@ def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: Silhouet
         if capture.silhouettes_given:
             for frame in chunk:
                 masks = [capture.read_silhouette(camera, frame) for camera in names]
+                if all(cv2.countNonZero(mask) > MAX_GIVEN_COVERAGE * mask.size for mask in masks):
+                    log.warning("frame %d: the given silhouettes mark most of every camera's image as person "
+                                "(expected 0 = background, 255 = person: are they inverted?)", frame)
                 _write_masks(out_dir, names, frame, _checked(masks, capture, params))
             return
         backgrounds = [cached_background_model(background_path(out_dir, camera), params,

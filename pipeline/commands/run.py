@@ -75,10 +75,15 @@ def unusable_result(export_dir: Path, frames: int) -> str | None:
     the capture's ``frames`` estimated. A motion with most frames missing says "success" while it has
     lost the subject (out of view, silhouettes that disagree, a working volume that cuts them off).
     """
+    joints = export_dir / JOINTS_FILE
+    if joints.is_file() and len(joints.read_text(encoding="utf-8").split()) <= 1:
+        # Its header alone, and no motion file beside it: the cause, not the missing files, is what to say.
+        return (f"{joints}: no frame estimated (the subject was lost on every frame: the warnings above and "
+                "the report say why)")
     missing = [name for name in EXPORTED_FILES if not (export_dir / name).is_file()]
     if missing:
         return f"{export_dir}: no {', '.join(missing)} written (expected every export of a finished run)"
-    estimated = len(read_joints_csv(export_dir / JOINTS_FILE)[0])
+    estimated = len(read_joints_csv(joints)[0])
     if estimated < MIN_ESTIMATED_FRACTION * frames:
         return (f"{export_dir / JOINTS_FILE}: only {estimated} of {frames} frames estimated (expected at least "
                 f"half; `python -m pipeline stages` and the report say where the subject was lost)")

@@ -561,3 +561,5 @@ def test_a_run_whose_result_is_not_usable_exits_3_with_one_line(tmp_path):
     problem = unusable_result(export, 10)
     assert "joints.csv: only 4 of 10 frames estimated" in problem and "\n" not in problem
     assert UNUSABLE_RESULT == 3
+    (export / "joints.csv").write_text("frame,joint,x,y,z\n")  # the export of a run that lost every frame
+    assert "joints.csv: no frame estimated" in unusable_result(export, 10)

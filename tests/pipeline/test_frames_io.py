@@ -105,6 +105,19 @@ def test_masks_from_other_writers_are_read_by_opencv_and_thresholded(tmp_path):
         np.testing.assert_array_equal(frames_io.read_mask(tmp_path / name), np.where(mask > 127, 255, 0))
 
 
+def test_two_level_masks_mark_the_person_with_their_brighter_level_however_dim(tmp_path):
+    mask = np.zeros((40, 60), np.uint8)
+    mask[10:30, 15:45] = 1
+    cv2.imwrite(str(tmp_path / "ones.png"), mask)  # a boolean array saved as it is
+    np.testing.assert_array_equal(frames_io.read_mask(tmp_path / "ones.png"), np.where(mask > 0, 255, 0))
+    cv2.imwrite(str(tmp_path / "dark.png"), mask * 38)  # a palette's dark red, as OpenCV reads it in grey
+    np.testing.assert_array_equal(frames_io.read_mask(tmp_path / "dark.png"), np.where(mask > 0, 255, 0))
+    noise = np.zeros((40, 60), np.uint8)
+    noise[5, 5], noise[20, 30], noise[30, 50] = 1, 2, 3  # an empty mask's JPEG noise: several dim levels
+    cv2.imwrite(str(tmp_path / "noise.png"), noise)
+    assert not frames_io.read_mask(tmp_path / "noise.png").any()
+
+
 def test_ply_round_trip_and_open3d_reads_it(tmp_path):
     rng = np.random.default_rng(0)
     points = rng.normal(size=(50, 3))
