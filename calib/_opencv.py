@@ -17,6 +17,7 @@ import numpy as np
 from calib import _parse
 from calib.camera import Rig
 from calib.errors import InputError
+from calib.formats import NO_IMAGE_SIZE
 
 INTRINSICS = "intri.yml"
 EXTRINSICS = "extri.yml"
@@ -104,8 +105,8 @@ def _name(node: cv2.FileNode, where: str) -> str:
     raise InputError(f"{where}: expected a camera name (string)")
 
 
-def load(path: Path, image_sizes: dict[str, tuple[int, int]] | None) -> Rig:
-    """The rig in ``intri.yml`` / ``extri.yml`` at ``path``.
+def load(path: Path, image_sizes: dict[str, tuple[int, int]] | None, keep: set[str] | None = None) -> Rig:
+    """The rig in ``intri.yml`` / ``extri.yml`` at ``path``, only the cameras named in ``keep`` (None: all).
 
     Image sizes come from ``image_sizes`` (name -> (w, h)), else from ``W_``/``H_`` keys.
     """
@@ -114,13 +115,15 @@ def load(path: Path, image_sizes: dict[str, tuple[int, int]] | None) -> Rig:
     sizes = image_sizes or {}
     cameras = []
     for name in intri.names():
+        if keep is not None and name not in keep:
+            continue
         if name in sizes:
             size = sizes[name]
         elif intri.has(f"W_{name}") and intri.has(f"H_{name}"):
             size = (intri.integer(f"W_{name}"), intri.integer(f"H_{name}"))
         else:
             raise InputError(
-                f"{intri_path}: no image size for camera {name!r} (no W_{name}/H_{name} keys),"
+                f"{intri_path}: {NO_IMAGE_SIZE} {name!r} (no W_{name}/H_{name} keys),"
                 " expected it from the camera's video or images"
             )
         cameras.append(

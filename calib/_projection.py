@@ -17,7 +17,7 @@ import scipy.linalg
 from calib import _parse
 from calib.camera import Rig
 from calib.errors import InputError
-from calib.formats import natural_key
+from calib.formats import NO_IMAGE_SIZE, natural_key
 
 #: Extension the writer gives each camera's file (the name is everything before the first dot).
 FILE_SUFFIX = ".P.txt"
@@ -78,8 +78,9 @@ def _is_float(word: str) -> bool:
     return True
 
 
-def load(path: Path, image_sizes: dict[str, tuple[int, int]]) -> Rig:
-    """The rig of the directory ``path``: every visible file is one camera's P."""
+def load(path: Path, image_sizes: dict[str, tuple[int, int]], keep: set[str] | None = None) -> Rig:
+    """The rig of the directory ``path``: every visible file is one camera's P (only those named in ``keep``;
+    None: all)."""
     if not path.is_dir():
         raise InputError(f"{path}: no such directory, expected a folder of 3x4 projection matrices "
                          "(one text file per camera)")
@@ -90,8 +91,10 @@ def load(path: Path, image_sizes: dict[str, tuple[int, int]]) -> Rig:
     cameras = []
     for file in files:
         name = file.name.split(".")[0]
+        if keep is not None and name not in keep:
+            continue
         if name not in image_sizes:
-            raise InputError(f"{file}: no image size for camera {name!r}, expected it from the camera's "
+            raise InputError(f"{file}: {NO_IMAGE_SIZE} {name!r}, expected it from the camera's "
                              "video or images")
         K, R, t = decompose(read_matrix(file))
         cameras.append(_parse.camera(str(file), name=name, K=K, dist=np.zeros(5), R=R, t=t,

@@ -101,8 +101,9 @@ def _subpixels(intrinsic: ElementTree.Element, full_width: int, where: str) -> f
     return float(factor)
 
 
-def load(path: Path, image_sizes: dict[str, tuple[int, int]] | None) -> Rig:
-    """The rig of the Qualisys calibration at ``path``; ``image_sizes`` (from the media) select and size cameras."""
+def load(path: Path, image_sizes: dict[str, tuple[int, int]] | None, keep: set[str] | None = None) -> Rig:
+    """The rig of the Qualisys calibration at ``path``; ``image_sizes`` (from the media) select and size cameras,
+    of those named in ``keep`` (None: all)."""
     file = _file(path)
     text = file.read_text(encoding="utf-8", errors="replace")
     if re.search(r"<!(DOCTYPE|ENTITY)", text):  # a calibration needs no entities; they can expand without bound
@@ -121,7 +122,7 @@ def load(path: Path, image_sizes: dict[str, tuple[int, int]] | None) -> Rig:
         name = element.get("serial")
         if not name:
             raise InputError(f"{where}: no serial attribute, expected the camera's serial number (its name)")
-        if element.get("active", "1").strip() == "0":
+        if element.get("active", "1").strip() == "0" or (keep is not None and name not in keep):
             continue
         if sizes and name not in sizes:
             skipped.append(name)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 import re
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 from types import ModuleType
 
@@ -21,6 +21,8 @@ FORMATS = ("colmap", "opencv", "anipose", "projection", "qualisys")
 #: Formats whose readers take the image sizes of the media: opencv and projection store none, qualisys the
 #: sensor's (the videos may be recorded smaller, and marker-only cameras have none).
 SIZELESS_FORMATS = ("opencv", "projection", "qualisys")
+#: How their readers' errors begin for a camera whose media are missing, so that a caller can say how to leave it out.
+NO_IMAGE_SIZE = "no image size for camera"
 
 
 _DIGITS = re.compile(r"(\d+)")
@@ -43,7 +45,8 @@ def _check_format(fmt: str) -> None:
         raise InputError(f"calibration format {fmt!r} is unknown, expected one of {', '.join(FORMATS)}")
 
 
-def load_rig(fmt: str, path: str | Path, *, image_sizes: Mapping[str, tuple[int, int]] | None = None) -> Rig:
+def load_rig(fmt: str, path: str | Path, *, image_sizes: Mapping[str, tuple[int, int]] | None = None,
+             cameras: Collection[str] | None = None) -> Rig:
     """The rig stored at ``path`` in format ``fmt``, cameras in the file's order.
 
     Parameters
@@ -58,19 +61,29 @@ def load_rig(fmt: str, path: str | Path, *, image_sizes: Mapping[str, tuple[int,
         Sizes read from the media. opencv files (EasyMocap's ``W_``/``H_`` keys aside) and projection
         matrices do not store sizes, so they come from here. Formats that store sizes must agree with the given ones:
         intrinsics calibrated at another resolution would silently misproject.
+    cameras : collection of str, optional
+        The cameras to keep (default all), each of which must be in the file; the others are not read further (a
+        camera left out needs no image size).
     """
     _check_format(fmt)
     path = Path(path)
     sizes = dict(image_sizes or {})
+    keep = None if cameras is None else set(cameras)
     if fmt in SIZELESS_FORMATS:
-        return _reader(fmt).load(path, sizes)
-    rig = _reader(fmt).load(path)
-    for camera in rig:
-        if camera.name in sizes and tuple(sizes[camera.name]) != camera.size:
-            raise InputError(
-                f"{path}: camera {camera.name!r} is calibrated for {camera.size[0]}x{camera.size[1]} images,"
-                f" but its media are {sizes[camera.name][0]}x{sizes[camera.name][1]}; expected the same size"
-            )
+        rig = _reader(fmt).load(path, sizes, keep)
+    else:
+        rig = _reader(fmt).load(path)
+        if keep is not None:
+            rig = Rig(tuple(camera for camera in rig if camera.name in keep))
+        for camera in rig:
+            if camera.name in sizes and tuple(sizes[camera.name]) != camera.size:
+                raise InputError(
+                    f"{path}: camera {camera.name!r} is calibrated for {camera.size[0]}x{camera.size[1]} images,"
+                    f" but its media are {sizes[camera.name][0]}x{sizes[camera.name][1]}; expected the same size"
+                )
+    absent = sorted((keep or set()) - set(rig.names))
+    if absent:
+        raise InputError(f"{path}: no camera {absent[0]!r} in this calibration (expected the names of its cameras)")
     return rig
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import pickle
 import re
+import shutil
 import types
 
 import numpy as np
@@ -162,3 +163,33 @@ def test_the_capture_and_the_tracker_accept_the_same_subject_heights(tiny_captur
         Capture.open(tiny_capture)
     with pytest.raises(InputError, match="tracking.height_m"):
         TrackerParams(height_m=height)
+
+
+@pytest.mark.parametrize("fmt", ["anipose", "opencv", "projection"])
+def test_cameras_selects_calibrated_cameras_and_the_others_need_no_media(tmp_path, fmt):
+    root = make_capture(tmp_path / "c", fmt=fmt, backgrounds=True, silhouettes=True)
+    whole = Capture.open(root)
+    shutil.rmtree(root / "images" / "cam1")  # a camera whose recording failed
+    (root / "background" / "cam1.png").unlink()
+    with pytest.raises(InputError, match="'cam1'.*`cameras:` in capture.yaml lists the ones to use"):
+        Capture.open(root)
+    write_config(root, cameras=["cam2", "cam0"])
+    capture = Capture.open(root)
+    assert capture.rig.names == ("cam0", "cam2")  # in the calibration's order
+    kept = {"cam0", "cam2"}
+    assert set(capture.camera_media) == set(capture.background_paths) == set(capture.silhouette_media) == kept
+    for name in capture.rig.names:
+        np.testing.assert_allclose(capture.rig[name].P, whole.rig[name].P, atol=1e-9)
+    assert capture.fingerprint("config") != whole.fingerprint("config")
+
+
+@pytest.mark.parametrize(("cameras", "message"), [
+    (["cam0", "cam9"], "no camera 'cam9' in this calibration"),
+    (["cam0", "cam0"], "cameras names 'cam0' twice"),
+    ([], "cameras is []"),
+    ("cam0", "expected a list of camera names"),
+])
+def test_cameras_naming_an_unknown_or_repeated_camera_is_refused(tiny_capture, cameras, message):
+    write_config(tiny_capture, cameras=cameras)
+    with pytest.raises(InputError, match=re.escape(message)):
+        Capture.open(tiny_capture)

@@ -1,4 +1,5 @@
-"""The silhouette and reconstruction stages' worker side: chunking of videos, the per-worker background cache, given masks."""
+"""The silhouette and reconstruction stages' worker side: chunking of videos, the per-worker background cache, the
+given masks."""
 
 from __future__ import annotations
 

@@ -16,7 +16,7 @@ from stages.joints import SUBJECT_HEIGHT_RANGE_M
 
 CALIBRATION_FORMATS = ("colmap", "opencv", "anipose", "projection", "qualisys")
 
-_TOP_LEVEL_KEYS = ("fps", "calibration", "subject", "volume", "frames")
+_TOP_LEVEL_KEYS = ("fps", "calibration", "cameras", "subject", "volume", "frames")
 _CALIBRATION_KEYS = ("format", "path", "units", "up")
 
 
@@ -35,8 +35,10 @@ def _read_config(path: Path) -> dict:
     if volume is not None:
         volume = _check_volume(volume, path)
     frames = _check_frames(raw.get("frames") or {}, path)
-    return {"fps": float(fps), "calibration": calibration, "subject": subject, "volume": volume,
-            "frames": frames}
+    config = {"fps": float(fps), "calibration": calibration, "subject": subject, "volume": volume, "frames": frames}
+    if "cameras" in raw:  # only when given: the config's fingerprint (cache keys) stays that of a capture without it
+        config["cameras"] = _check_cameras(raw["cameras"], path)
+    return config
 
 
 def _read_mapping(path: Path) -> dict:
@@ -110,6 +112,17 @@ def _check_frames(frames: Any, path: Path) -> dict:
         raise InputError(f"{path}: frames.stop {frames['stop']} is not after frames.start {frames['start']} "
                          "(expected start < stop)")
     return frames
+
+
+def _check_cameras(cameras: Any, path: Path) -> list[str]:
+    """The ``cameras:`` list: the calibrated cameras to use, by name, at least one and each once."""
+    if (not isinstance(cameras, list) or not cameras
+            or not all(isinstance(name, str) and name.strip() for name in cameras)):
+        raise InputError(f"{path}: cameras is {cameras!r} (expected a list of camera names, such as [cam1, cam2])")
+    repeated = sorted({name for name in cameras if cameras.count(name) > 1})
+    if repeated:
+        raise InputError(f"{path}: cameras names {repeated[0]!r} twice (expected each camera once)")
+    return list(cameras)
 
 
 def _is_number(value: Any) -> bool:

@@ -33,7 +33,7 @@ import numpy as np
 
 from calib.camera import Rig
 from calib.errors import InputError
-from calib.formats import load_rig
+from calib.formats import NO_IMAGE_SIZE, load_rig
 from calib.sanity import check_intrinsics, check_rig_size
 from calib.world import WorldTransform, fixed_transform
 from pipeline.io import frames_io
@@ -122,9 +122,14 @@ class Capture:
         background_paths = _find_backgrounds(root / "background")
         if media == "silhouettes":
             camera_media = silhouette_media
+        chosen = config.get("cameras")
+        if chosen is not None:  # the other cameras' media are left alone, as if they were not there
+            camera_media, silhouette_media, background_paths = (
+                {name: source for name, source in found.items() if name in chosen}
+                for found in (camera_media, silhouette_media, background_paths))
         sizes = {name: _first_frame_size(source, name) for name, source in camera_media.items()}
 
-        rig = _load_calibration(calibration["format"], calibration_path, sizes)
+        rig = _load_calibration(calibration["format"], calibration_path, sizes, chosen)
         _check_media_cameras(rig, root, media, camera_media, {"silhouettes": silhouette_media,
                                                               "background": background_paths}, sizes)
         calibration_rig = Rig(tuple(camera.with_size(*sizes[camera.name]) for camera in rig))
@@ -299,13 +304,16 @@ def _lies_in(path: Path, root: Path) -> bool:
     return path == root or root in path.parents
 
 
-def _load_calibration(fmt: str, path: Path, sizes: Mapping[str, tuple[int, int]]) -> Rig:
-    """Load the calibration; ``sizes`` (from the media) fill in formats that do not store them and
-    must agree with those that do."""
+def _load_calibration(fmt: str, path: Path, sizes: Mapping[str, tuple[int, int]],
+                      cameras: Sequence[str] | None = None) -> Rig:
+    """Load the calibration, only its ``cameras`` when given (capture.yaml's ``cameras:``); ``sizes`` (from the media)
+    fill in formats that do not store them and must agree with those that do."""
     try:
-        return load_rig(fmt, path, image_sizes=dict(sizes))
+        return load_rig(fmt, path, image_sizes=dict(sizes), cameras=cameras)
     except InputError as error:
         message = str(error)
+        if NO_IMAGE_SIZE in message:  # a calibrated camera without media
+            message += "; `cameras:` in capture.yaml lists the ones to use"
         raise InputError(message if str(path) in message else f"{path}: {message}") from None
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise InputError(f"{path}: cannot read the {fmt} calibration ({type(error).__name__}: {error}) "
@@ -319,7 +327,8 @@ def _check_same_cameras(rig: Rig, names: set[str], *, where: Path) -> None:
                          f"(expected one of {', '.join(rig.names)})")
     if calibrated - names:
         raise InputError(f"{where}: calibrated camera {sorted(calibrated - names)[0]!r} has no media here "
-                         f"(expected a file or folder for each of {', '.join(rig.names)})")
+                         f"(expected a file or folder for each of {', '.join(rig.names)}; `cameras:` in capture.yaml "
+                         "lists the ones to use)")
 
 
 def capture_summary(capture: Capture) -> dict:
