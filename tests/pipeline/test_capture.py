@@ -193,3 +193,12 @@ def test_cameras_naming_an_unknown_or_repeated_camera_is_refused(tiny_capture, c
     write_config(tiny_capture, cameras=cameras)
     with pytest.raises(InputError, match=re.escape(message)):
         Capture.open(tiny_capture)
+
+
+def test_videos_stating_another_frame_rate_than_capture_yaml_are_reported(tmp_path, caplog):
+    root = make_capture(tmp_path / "c", media="videos")  # written at 25 frames/s, as capture.yaml says
+    Capture.open(root)
+    assert "the videos say otherwise" not in caplog.text
+    write_config(root, fps=30.0)
+    Capture.open(root)
+    assert "capture.yaml: fps is 30, but the videos say otherwise (frames/s: cam0 25, cam1 25, cam2 25)" in caplog.text

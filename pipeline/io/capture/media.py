@@ -5,6 +5,7 @@ decoding (one ``cv2.VideoCapture`` per pass, sequential reads)."""
 from __future__ import annotations
 
 import logging
+import math
 import re
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
@@ -25,6 +26,8 @@ FRAME_FILE = re.compile(r"^(\d{6,})(\.[A-Za-z]+)$")
 
 #: Seeking is slower than decoding a few frames; skip ahead by decoding up to this many frames.
 MAX_FRAMES_DECODED_TO_SKIP = 8
+#: A video whose stated frame rate departs from capture.yaml's fps by more than this share is reported.
+VIDEO_RATE_TOLERANCE = 0.01
 
 
 @dataclass(frozen=True)
@@ -132,6 +135,28 @@ def _video_frame_count(path: Path) -> int:
         return int(video.get(cv2.CAP_PROP_FRAME_COUNT))
     finally:
         video.release()
+
+
+def _video_rate(path: Path) -> float:
+    """Frames per second a video's container states (0 when it states none)."""
+    video = cv2.VideoCapture(str(path))
+    try:
+        rate = video.get(cv2.CAP_PROP_FPS) if video.isOpened() else 0.0
+    finally:
+        video.release()
+    return float(rate) if math.isfinite(rate) and rate > 0 else 0.0
+
+
+def _warn_other_rates(camera_media: Mapping[str, _CameraMedia], fps: float, config_path: Path) -> None:
+    """One warning for the videos whose stated frame rate is not capture.yaml's ``fps`` (to a part in a hundred):
+    the exports' times and rates follow capture.yaml, so a wrong ``fps`` would stretch the motion unnoticed. A
+    rate a container does not state, or states loosely (a phone's variable rate), is not a mistake to report."""
+    rates = {name: _video_rate(source.path) for name, source in camera_media.items()}
+    other = {name: rate for name, rate in rates.items() if rate and abs(rate - fps) > VIDEO_RATE_TOLERANCE * fps}
+    if other:
+        stated = ", ".join(f"{name} {rate:.4g}" for name, rate in sorted(other.items()))
+        log.warning("%s: fps is %.4g, but the videos say otherwise (frames/s: %s): the exports' times follow "
+                    "capture.yaml", config_path, fps, stated)
 
 
 def _iter_video(path: Path, frames: Iterable[int], *, reuse: bool = False) -> Iterator[tuple[int, np.ndarray]]:

@@ -47,6 +47,7 @@ from pipeline.io.capture.media import (
     _image_size,
     _iter_video,
     _selected_frames,
+    _warn_other_rates,
 )
 from pipeline.io.capture.volume import working_volume
 from pipeline.io.digest import DIGEST_HEX, canonical_json, text_digest
@@ -140,6 +141,8 @@ class Capture:
         check_intrinsics(rig, where=str(calibration_path))
 
         frame_numbers = _selected_frames(camera_media, media, root, config["frames"], root / "capture.yaml")
+        if media == "videos":
+            _warn_other_rates(camera_media, float(config["fps"]), root / "capture.yaml")
         _check_given_files(frame_numbers, silhouette_media, background_paths, sizes)
         subject = config["subject"] or {}
         capture = cls(root=root, config=config, fps=float(config["fps"]), rig=rig, volume=np.zeros((2, 3)),
