@@ -202,3 +202,13 @@ def test_videos_stating_another_frame_rate_than_capture_yaml_are_reported(tmp_pa
     write_config(root, fps=30.0)
     Capture.open(root)
     assert "capture.yaml: fps is 30, but the videos say otherwise (frames/s: cam0 25, cam1 25, cam2 25)" in caplog.text
+
+
+def test_a_declared_up_axis_the_cameras_contradict_is_reported_with_the_likely_one(tmp_path, caplog):
+    root = make_capture(tmp_path / "c", up="-y")  # the calibration's world has its up along -y
+    Capture.open(root)
+    assert "calibration.up" not in caplog.text
+    write_config(root, calibration={"format": "anipose", "path": "calibration/calibration.toml", "up": "+z"})
+    Capture.open(root)
+    assert "calibration.up is +z, but the cameras, which studios mount level, make the world's up about -y" in (
+        caplog.text)

@@ -35,7 +35,7 @@ from calib.camera import Rig
 from calib.errors import InputError
 from calib.formats import NO_IMAGE_SIZE, load_rig
 from calib.sanity import check_intrinsics, check_rig_size
-from calib.world import WorldTransform, fixed_transform
+from calib.world import WorldTransform, fixed_transform, rig_vertical
 from pipeline.io import frames_io
 from pipeline.io.capture.config import _read_config
 from pipeline.io.capture.media import (
@@ -137,6 +137,8 @@ class Capture:
         auto = calibration["up"] == "auto"  # then the vertical and floor come after the frames are known
         world = fixed_transform(units=calibration["units"], up="+z" if auto else calibration["up"])
         rig = world.apply(calibration_rig)
+        if not auto:
+            _warn_other_up(rig, world, calibration["up"], root / "capture.yaml")
         check_rig_size(rig, units=calibration["units"], where=str(calibration_path))
         check_intrinsics(rig, where=str(calibration_path))
 
@@ -321,6 +323,32 @@ def _load_calibration(fmt: str, path: Path, sizes: Mapping[str, tuple[int, int]]
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise InputError(f"{path}: cannot read the {fmt} calibration ({type(error).__name__}: {error}) "
                          f"(expected a valid {fmt} calibration, see CAPTURE_FORMAT.md)") from None
+
+
+#: A declared up axis further than this (degrees) from the vertical the cameras' horizon gives is reported: a
+#: level studio rig agrees within a few degrees, a wrong axis is a quarter or half turn away.
+UP_DISAGREEMENT_DEG = 45.0
+_AXES = ("x", "y", "z")
+
+
+def _warn_other_up(rig: Rig, world: WorldTransform, declared: str, config_path: Path) -> None:
+    """One warning when the cameras of ``rig`` (in the pipeline's world, converted with ``declared`` as up) make
+    the vertical another axis of the calibration (:func:`calib.world.rig_vertical`: studio cameras do not roll):
+    with a wrong ``calibration.up`` the floor, the working volume and the shadows' test are all askew, and what
+    the run shows is a cascade of lost frames. A rig of cameras turned on their side would disagree as well,
+    hence a warning, not an error."""
+    if len(rig) < 2:
+        return
+    vertical, _ = rig_vertical(rig)
+    angle = float(np.degrees(np.arccos(np.clip(vertical[2], -1.0, 1.0))))
+    if angle <= UP_DISAGREEMENT_DEG:
+        return
+    in_calibration = world.A.T @ vertical  # the same direction in the calibration's own axes
+    axis = int(np.argmax(np.abs(in_calibration)))
+    likely = f"{'+' if in_calibration[axis] > 0 else '-'}{_AXES[axis]}"
+    log.warning("%s: calibration.up is %s, but the cameras, which studios mount level, make the world's up about %s "
+                "(%.0f degrees away): expected the calibration's up axis there (or up: auto)", config_path,
+                declared, likely, angle)
 
 
 def _check_same_cameras(rig: Rig, names: set[str], *, where: Path) -> None:
