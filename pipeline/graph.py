@@ -34,6 +34,7 @@ writing each frame's file atomically and using ``ctx.pending_frames`` to resume.
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import dataclasses
 import functools
 import logging
@@ -45,6 +46,7 @@ import numpy as np
 
 from calib.formats import save_rig
 from pipeline.engine.context import StageContext
+from pipeline.engine.executors import usable_cpus
 from pipeline.engine.stage import Stage
 from pipeline.frame_tasks import reconstruction_task, silhouettes_task
 from pipeline.io import atomic, frames_io, run_layout
@@ -68,6 +70,7 @@ from pipeline.io.run_layout import (
 from pipeline.io.tracking_io import read_tracking
 from pipeline.report.page import write_report
 from stages.background import BackgroundEstimate, estimate_backgrounds, sample_camera, sample_count, working_size
+from stages.background.plates import MIN_PLATE_MATCH, PLATE_SHIFT_PX, PlateFit, plate_fit, shifted_plate
 from stages.export import ExportParams
 from stages.export.quality import FrameQuality
 from stages.joints import JOINT_NAMES
@@ -104,9 +107,10 @@ MAX_VIDEO_CHUNK_FRAMES = 200
 UNRESOLVED_WARNING_SHARE = 0.001
 
 
-def estimated_backgrounds(capture: Capture, params: SilhouetteParams) -> dict[str, BackgroundEstimate]:
+def estimated_backgrounds(capture: Capture, params: SilhouetteParams,
+                          plates: dict[str, np.ndarray]) -> dict[str, BackgroundEstimate]:
     """Every camera's background, estimated from frames sampled over the whole capture when a camera has no
-    clean plate (:func:`stages.background.estimate_backgrounds`; the cameras with a plate keep theirs).
+    clean plate in ``plates`` (:func:`stages.background.estimate_backgrounds`; the cameras with one keep it).
 
     The samples of one camera at full resolution are held at a time; each camera's video is decoded once.
     Logs what was done, and warns for each camera where part of the image was never seen without the subject.
@@ -115,13 +119,13 @@ def estimated_backgrounds(capture: Capture, params: SilhouetteParams) -> dict[st
     picks = spread_frames(frames, min(sample_count(len(frames), (height, width, 3))
                                       for width, height in (camera.size for camera in capture.rig)))
     samples = [sample_camera((image for _, image in capture.iter_images(camera.name, picks)), working_size(camera.size),
-                             plate=capture.background(camera.name), downsample=params.downsample)
+                             plate=plates.get(camera.name), downsample=params.downsample)
                for camera in capture.rig]
     estimates = estimate_backgrounds(samples, list(capture.rig), capture.volume, params)
     found = dict(zip(capture.rig.names, estimates, strict=True))
     missing = [name for name, s in zip(capture.rig.names, samples, strict=True) if not s.plate]
     first = estimates[0]
-    log.info("silhouettes: no clean plate for camera(s) %s; backgrounds from %d frames spread over the capture, "
+    log.info("silhouettes: no usable clean plate for camera(s) %s; backgrounds from %d frames spread over the capture, "
              "the subject left out where the cameras' visual hull puts him (%d rounds)", ", ".join(missing), len(picks),
              first.rounds)
     if first.ghost_samples:
@@ -142,35 +146,68 @@ def estimated_backgrounds(capture: Capture, params: SilhouetteParams) -> dict[st
 
 
 def _backgrounds(ctx: StageContext) -> dict[str, float]:
-    """Write one background image per camera: its clean plate, else :func:`estimated_backgrounds`; and the
-    estimated ones' noise floors (JSON). Returns the noise floors.
+    """Write one background image per camera: its clean plate (:func:`checked_plates`), else
+    :func:`estimated_backgrounds`; and the estimated ones' noise floors (JSON). Returns the noise floors.
 
     Computed once in this process, before the per-frame work, so every worker reads the same model.
-    A clean plate that is a PNG already is copied byte for byte: decoding and encoding it again would
-    only cost time, once per camera.
+    A clean plate that is a PNG already and needs no shift is copied byte for byte: decoding and encoding it
+    again would only cost time, once per camera.
     """
     capture = ctx.capture
-    estimated = [camera for camera in capture.rig.names if camera not in capture.background_paths]
+    plates, shifted = checked_plates(capture)
+    estimated = [camera for camera in capture.rig.names if camera not in plates]
     floors_path = noise_floors_path(ctx.out_dir)
     pending = [camera for camera in capture.rig.names if not _intact(background_path(ctx.out_dir, camera))]
     if estimated and not _intact(floors_path):
         pending = list(capture.rig.names)  # the floors come with the estimate (which is deterministic)
     if not pending:  # all kept from an interrupted run, intact
         return frames_io.read_json(floors_path) if estimated else {}
-    estimates = estimated_backgrounds(capture, ctx.params) if estimated else {}  # every camera votes: all sampled
+    estimates = estimated_backgrounds(capture, ctx.params, plates) if estimated else {}  # every camera votes
     for camera in pending:
         path = background_path(ctx.out_dir, camera)
-        plate = capture.background_paths.get(camera)
-        if plate is not None and plate.suffix.lower() == ".png":
-            atomic.write_bytes(path, plate.read_bytes())
-        elif plate is not None:
-            frames_io.write_image(path, capture.background(camera))
-        else:
+        given = capture.background_paths.get(camera)
+        if camera in estimates:
             frames_io.write_image(path, estimates[camera].image)
+        elif given.suffix.lower() == ".png" and camera not in shifted:
+            atomic.write_bytes(path, given.read_bytes())
+        else:
+            frames_io.write_image(path, plates[camera])
     floors = {camera: estimates[camera].noise for camera in estimated}
     if estimated:
         frames_io.write_json(floors_path, floors)
     return floors
+
+
+def checked_plates(capture: Capture) -> tuple[dict[str, np.ndarray], set[str]]:
+    """The clean plates of ``capture`` that are pictures of their cameras' frames, each shifted onto them where
+    it lies :data:`~stages.background.plates.PLATE_SHIFT_PX` or more off (:mod:`stages.background.plates`, against
+    the capture's first frame), by camera; and the cameras whose plate was shifted. One warning per plate shifted or
+    left out (another view's: the camera's background is then estimated from the frames, as without a plate)."""
+    first = capture.frame_numbers[0]
+
+    def fit(camera: str) -> tuple[np.ndarray, PlateFit]:
+        plate = capture.background(camera)
+        return plate, plate_fit(plate, next(capture.iter_images(camera, [first]))[1])
+
+    with cf.ThreadPoolExecutor(usable_cpus()) as pool:  # OpenCV's decoding and transforms let go of the GIL
+        fits = dict(zip(capture.background_paths, pool.map(fit, capture.background_paths), strict=True))
+    plates, shifted = {}, set()
+    for camera, (plate, fit) in fits.items():
+        path = capture.background_paths[camera]
+        if fit.match < MIN_PLATE_MATCH:
+            log.warning("%s: the clean plate does not show camera %s's view (its phase correlation with frame %d "
+                        "peaks at %.2f, expected above %.2f: another camera's plate, or another room's?); that "
+                        "camera's background is estimated from the frames instead", path, camera, first, fit.match,
+                        MIN_PLATE_MATCH)
+            continue
+        if fit.distance_px >= PLATE_SHIFT_PX:
+            log.warning("%s: the clean plate lies %.1f pixels off camera %s's frames (x %+.1f, y %+.1f: the camera "
+                        "moved after it was taken?); it is used shifted onto them", path, fit.distance_px, camera,
+                        *fit.shift)
+            plate = shifted_plate(plate, fit.shift)
+            shifted.add(camera)
+        plates[camera] = plate
+    return plates, shifted
 
 
 def _intact(path: Path) -> bool:

@@ -17,6 +17,7 @@ from pipeline import graph
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
 from pipeline.io.run_layout import background_path, noise_floors_path
+from stages.background.plates import shifted_plate
 from stages.silhouettes import SilhouetteParams
 
 
@@ -43,7 +44,7 @@ def test_a_subject_who_stood_still_leaves_no_ghost_and_the_log_says_how(tmp_path
     root, rooms = _write_capture(tmp_path / "capture", scene.still_then_moving())
     capture = Capture.open(root)
     with caplog.at_level(logging.INFO, logger="pipeline.graph"):
-        estimates = graph.estimated_backgrounds(capture, SilhouetteParams())
+        estimates = graph.estimated_backgrounds(capture, SilhouetteParams(), {})
     for camera, room in zip(capture.rig, rooms, strict=True):
         ghost = scene.subject_mask(camera, (0.0, 0.0)) > 0
         assert np.abs(estimates[camera.name].image.astype(int) - room)[ghost].max(axis=1).mean() < 4
@@ -54,7 +55,7 @@ def test_a_subject_who_never_leaves_his_spot_is_a_warning_naming_each_camera(tmp
     swaying = np.column_stack([0.15 * np.sin(np.arange(24)), np.zeros(24)])
     capture = Capture.open(_write_capture(tmp_path / "capture", swaying)[0])
     with caplog.at_level(logging.WARNING, logger="pipeline.graph"):
-        graph.estimated_backgrounds(capture, SilhouetteParams())
+        graph.estimated_backgrounds(capture, SilhouetteParams(), {})
     warned = [record.getMessage() for record in caplog.records if "could not be separated" in record.getMessage()]
     assert {message.split(":")[1].strip().split()[1] for message in warned} == set(capture.rig.names)
 
@@ -62,7 +63,7 @@ def test_a_subject_who_never_leaves_his_spot_is_a_warning_naming_each_camera(tmp
 def test_a_subject_who_never_moves_is_a_warning(tmp_path, caplog):
     capture = Capture.open(_write_capture(tmp_path / "capture", np.zeros((12, 2)))[0])
     with caplog.at_level(logging.WARNING, logger="pipeline.graph"):
-        graph.estimated_backgrounds(capture, SilhouetteParams())
+        graph.estimated_backgrounds(capture, SilhouetteParams(), {})
     assert "no subject found in any of the 12 sampled frames" in caplog.text
 
 
@@ -84,3 +85,22 @@ def test_the_stage_writes_backgrounds_and_the_noise_floors_of_estimated_ones(tmp
     assert all(0.5 <= floor <= 6.0 for floor in floors.values())
     monkeypatch.setattr(graph, "estimated_backgrounds", None)  # a resumed run reads what is there
     assert graph._backgrounds(context) == floors
+
+
+def test_a_plate_off_its_frames_is_shifted_onto_them_and_another_views_plate_is_left_out(tmp_path, caplog):
+    root, rooms = _write_capture(tmp_path / "capture", scene.still_then_moving(16, 6), plates=True)
+    names = Capture.open(root).rig.names
+    moved = root / "background" / f"{names[0]}.png"  # taken before the camera was knocked 3 pixels aside
+    cv2.imwrite(str(moved), shifted_plate(rooms[0], (3.0, -2.0)))
+    (root / "background" / f"{names[1]}.png").write_bytes((root / "background" / f"{names[2]}.png").read_bytes())
+    out = tmp_path / "run"
+    context = SimpleNamespace(capture=Capture.open(root), out_dir=out, params=SilhouetteParams())
+    with caplog.at_level(logging.WARNING, logger="pipeline.graph"):
+        floors = graph._backgrounds(context)
+    assert f"the clean plate lies 3.6 pixels off camera {names[0]}'s frames (x -3.1, y +1.8" in caplog.text
+    inner = (slice(4, -4), slice(4, -4))  # the strip the shift uncovered holds the plate's edge pixels
+    background = frames_io.read_image(background_path(out, names[0])).astype(int)
+    assert np.abs(background - rooms[0])[inner].mean() < 1.0
+    assert f"the clean plate does not show camera {names[1]}'s view" in caplog.text
+    assert set(floors) == {names[1]}  # estimated from the frames, as without a plate
+    assert frames_io.read_image(background_path(out, names[2])).tobytes() == rooms[2].tobytes()

@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pytest
 import still_scene as scene
@@ -12,6 +13,7 @@ from stages.background import (
     working_camera,
     working_size,
 )
+from stages.background.plates import MIN_PLATE_MATCH, plate_fit, shifted_plate
 from stages.silhouettes import SilhouetteParams, median_background
 
 
@@ -146,3 +148,18 @@ def test_samples_of_different_sizes_or_counts_are_refused():
     samples = [sample_camera([image] * (3 if index else 2), (160, 120)) for index in range(4)]
     with pytest.raises(InputError, match="same frames"):
         estimate_backgrounds(samples, list(rig), scene.VOLUME, SilhouetteParams())
+
+
+def test_a_plate_fit_finds_the_shift_between_plate_and_frame_and_tells_another_view():
+    rng = np.random.default_rng(3)
+    room = cv2.GaussianBlur(rng.uniform(0, 255, (290, 390, 3)).astype(np.uint8), (0, 0), 1.0)
+    room = cv2.resize(room, (780, 580), interpolation=cv2.INTER_CUBIC)  # texture a few pixels across
+    frame = shifted_plate(room, (2.5, -1.25))
+    cv2.rectangle(frame, (300, 150), (420, 520), (40, 60, 200), -1)  # the person, in the frame only
+    fit = plate_fit(room, frame)
+    assert fit.shift == pytest.approx((2.5, -1.25), abs=0.1) and fit.match > 0.3
+    assert plate_fit(room, room).distance_px < 0.01
+    aligned = shifted_plate(room, fit.shift).astype(int)
+    assert np.abs(aligned - frame)[10:140, 10:-10].mean() < 2.0  # the room above the person agrees
+    elsewhere = cv2.GaussianBlur(rng.uniform(0, 255, (580, 780, 3)).astype(np.uint8), (0, 0), 4.0)
+    assert plate_fit(elsewhere, frame).match < MIN_PLATE_MATCH
