@@ -30,6 +30,8 @@ def test_variants_spell_out_their_cameras_for_each_capture():
     assert _variant("one camera zoomed 1.8x").arguments(CAMERAS)["zoom"] == {"cam00": 1.8}
     assert _variant("compression").arguments(CAMERAS) == {"change": "compression", "seed": 0, "plates": True,
                                                           "cameras": (), "calibration_error_deg": 0.0, "zoom": None}
+    assert _variant("one plate 5 px off").arguments(CAMERAS)["plate_shift"] == {"cam00": (4.0, 3.0)}
+    assert "plate_shift" not in _variant("noise").arguments(CAMERAS)  # the other copies keep their cache keys
     assert _variant("calibration off 0.1°").slug == "calibration-off-0-1"
     assert len({variant.slug for variant in robustness.VARIANTS}) == len(robustness.VARIANTS)
     assert [variant.name for variant in robustness.variants(quick=True)] == list(robustness.QUICK_VARIANTS)

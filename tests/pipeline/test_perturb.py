@@ -218,3 +218,16 @@ def test_a_late_camera_shows_the_others_earlier_frames_and_its_true_masks_follow
     assert np.flatnonzero(steady.any(axis=1))[0] == 20  # the others keep their own
     with pytest.raises(InputError, match="whole number of frames"):
         perturb_capture(capture, tmp_path / "early", "none", late={"cam1": 0})
+
+
+def test_a_shifted_plate_is_moved_and_its_frames_are_not(capture, tmp_path):
+    out = perturb_capture(capture, tmp_path / "knocked", "none", plate_shift={"cam1": (2.0, 1.0)})
+    plate, before = (cv2.imread(str(root / "background" / "cam1.png")).astype(int) for root in (out, capture))
+    np.testing.assert_allclose(plate[10:40, 10:50], before[9:39, 8:48], atol=2)  # content moved 2 right, 1 down
+    assert (out / "background" / "cam0.png").read_bytes() == (capture / "background" / "cam0.png").read_bytes()
+    np.testing.assert_allclose(_frames(out / "videos" / "cam1.mp4")[0], _frames(capture / "videos" / "cam1.mp4")[0],
+                               atol=3)
+    with pytest.raises(InputError, match="two finite numbers"):
+        perturb_capture(capture, tmp_path / "bad", "none", plate_shift={"cam1": (float("nan"), 1.0)})
+    with pytest.raises(SystemExit):
+        main([str(capture), "--change", "none", "--plate-shift", "cam1:2", "--out", str(tmp_path / "x")])

@@ -50,6 +50,12 @@ repeated before it), and their true masks move alike. The capture format has no 
 pipeline takes the frames as simultaneous.
 
     python -m pipeline.lab.bench.perturb ../shared/foreign/frontkick --change none --late cam02:1 --out runs/late
+
+With ``--plate-shift NAME:DX:DY,...`` those cameras' clean plates are moved by (DX, DY) pixels (their frames
+unchanged): a plate taken before the camera was knocked or re-aimed a little.
+
+    python -m pipeline.lab.bench.perturb ../shared/foreign/taekwondo --change none --plate-shift cam00:4:3 \
+        --out runs/knocked
 """
 
 from __future__ import annotations
@@ -69,6 +75,7 @@ from calib.camera import Camera, Rig
 from calib.errors import InputError
 from calib.formats import load_rig, save_rig
 from pipeline.io.capture import Capture
+from stages.background.plates import shifted_plate
 
 # What each change does to a frame (float32 8-bit levels, BGR), given a random generator and the camera's index.
 Change = Callable[[np.ndarray, np.random.Generator, int], np.ndarray]
@@ -117,12 +124,13 @@ def _to_uint8(frame: np.ndarray) -> np.ndarray:
 def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, plates: bool = True,
                     absent: range = range(0), cameras: tuple[str, ...] = (),
                     calibration_error_deg: float = 0.0, zoom: dict[str, float] | None = None,
-                    late: dict[str, int] | None = None) -> Path:
+                    late: dict[str, int] | None = None,
+                    plate_shift: dict[str, tuple[float, float]] | None = None) -> Path:
     """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
     to every frame of its videos, and the subject away on the frames ``absent``, seen by the ``cameras`` named
     (default: all) through a calibration whose cameras are each turned by ``calibration_error_deg``, the cameras
-    of ``zoom`` zoomed by its factors (:func:`zoomed`), those of ``late`` that many frames behind the others;
-    returns ``out``.
+    of ``zoom`` zoomed by its factors (:func:`zoomed`), those of ``late`` that many frames behind the others, the
+    clean plates of those of ``plate_shift`` moved by its (x, y) pixels; returns ``out``.
 
     capture.yaml, the calibration and the background plates (unless ``plates`` is False) are copied, the ground
     truth (when there is one) linked, or rewritten without the ``absent`` frames and the cameras left out
@@ -135,8 +143,8 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     InputError
         An unknown change, ``out`` already there, a capture without videos, ``absent`` frames in a capture
         without a clean plate for every camera, a camera named that has no video, an angle that is not finite, a
-        zoom factor that is not a finite number of at least 1, or a delay that is not a whole number of frames of
-        at least 1.
+        zoom factor that is not a finite number of at least 1, a delay that is not a whole number of frames of
+        at least 1, or a plate shift that is not two finite numbers.
     """
     capture, out = Path(capture), Path(out)
     if change not in CHANGES:
@@ -154,7 +162,11 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     for name, frames in late.items():
         if not (isinstance(frames, int) and frames >= 1):
             raise InputError(f"delay of camera {name!r}: {frames} (expected a whole number of frames, at least 1)")
-    unknown = sorted((set(cameras) | set(zoom) | set(late)) - {video.stem for video in videos})
+    plate_shift = dict(plate_shift or {})
+    for name, shift in plate_shift.items():
+        if len(shift) != 2 or not np.all(np.isfinite(shift)):
+            raise InputError(f"plate shift of camera {name!r}: {shift} (expected two finite numbers of pixels)")
+    unknown = sorted((set(cameras) | set(zoom) | set(late) | set(plate_shift)) - {video.stem for video in videos})
     if unknown:
         raise InputError(f"{capture / 'videos'}: no video of camera(s) {', '.join(unknown)}")
     if cameras:
@@ -174,9 +186,11 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     if plates and (capture / "background").is_dir():
         (partial / "background").mkdir()
         for plate in (capture / "background").iterdir():
-            if plate.stem in zoom:
-                image = cv2.imread(str(plate), cv2.IMREAD_UNCHANGED)
-                cv2.imwrite(str(partial / "background" / plate.name), zoomed(image, zoom[plate.stem]))
+            if plate.stem in zoom or plate.stem in plate_shift:
+                image = zoomed(cv2.imread(str(plate), cv2.IMREAD_UNCHANGED), zoom.get(plate.stem, 1.0))
+                if plate.stem in plate_shift:
+                    image = shifted_plate(image, plate_shift[plate.stem])
+                cv2.imwrite(str(partial / "background" / plate.name), image)
             elif plate.stem in {video.stem for video in videos}:
                 shutil.copy2(plate, partial / "background" / plate.name)
     if (capture / "groundtruth").is_dir():
@@ -360,6 +374,19 @@ def _zooms(text: str) -> dict[str, float]:
     return _per_camera(text, float, "FACTOR")
 
 
+def _plate_shifts(text: str) -> dict[str, tuple[float, float]]:
+    """``NAME:DX:DY,...`` as {camera: (dx, dy)}."""
+    shifts = {}
+    for item in (part for part in text.split(",") if part):
+        name, _, rest = item.partition(":")
+        try:
+            dx, dy = (float(value) for value in rest.split(":"))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected NAME:DX:DY, a camera and two numbers, got {item!r}") from None
+        shifts[name] = (dx, dy)
+    return shifts
+
+
 def _delays(text: str) -> dict[str, int]:
     """``NAME:FRAMES,...`` as {camera: frames}."""
     return _per_camera(text, int, "FRAMES")
@@ -387,11 +414,13 @@ def main(argv: list[str] | None = None) -> int:
                              "then partly out of their view)")
     parser.add_argument("--late", type=_delays, default={}, metavar="NAME:FRAMES,...",
                         help="these cameras that many frames behind the others (no common clock)")
+    parser.add_argument("--plate-shift", type=_plate_shifts, default={}, metavar="NAME:DX:DY,...",
+                        help="these cameras' clean plates moved by (DX, DY) pixels (a camera knocked after its plate)")
     args = parser.parse_args(argv)
     try:
         perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates,
                         absent=args.absent, cameras=args.cameras, calibration_error_deg=args.calibration_error,
-                        zoom=args.zoom, late=args.late)
+                        zoom=args.zoom, late=args.late, plate_shift=args.plate_shift)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -3,10 +3,11 @@
 The foreign suite (:mod:`pipeline.lab.bench.foreign`) measures four captures as another program made them; a real
 studio differs from them in ways that each stage meets on its own: a codec that blocks, a noisy sensor, mains
 flicker, an automatic exposure acting before the camera's gamma, no clean plate, fewer cameras, a camera that does
-not frame the whole volume, a calibration slightly off. Each of :data:`VARIANTS` makes one such change to every
-foreign capture with :func:`~pipeline.lab.bench.perturb.perturb_capture` (seed 0), so that what it costs is read
-against the foreign suite's figures for the same capture (roughly: every copy's videos are also encoded a second
-time, which a copy with ``change="none"`` alone measures). The folder of foreign captures lives outside the
+not frame the whole volume, a calibration slightly off, a camera knocked after its clean plate was taken. Each of
+:data:`VARIANTS` makes one such change to every foreign capture with
+:func:`~pipeline.lab.bench.perturb.perturb_capture` (seed 0), so that what it costs is read against the foreign
+suite's figures for the same capture (roughly: every copy's videos are also encoded a second time, which a copy
+with ``change="none"`` alone measures). The folder of foreign captures lives outside the
 repository, so the suite is skipped with one line when it is absent.
 
 A copy takes a while to write (every frame of every video decoded, changed and encoded again) and depends only
@@ -60,8 +61,9 @@ class Variant:
     """One perturbation of the suite: its name and :func:`perturb_capture`'s keyword arguments.
 
     The arguments that name cameras cannot be written once for four rigs, so they are given relative to the
-    capture's cameras sorted by name: ``first_cameras`` keeps that many of the first (None: all of them) and
-    ``first_camera_zoom`` zooms the first by that factor (None: no zoom). :meth:`arguments` spells them out.
+    capture's cameras sorted by name: ``first_cameras`` keeps that many of the first (None: all of them),
+    ``first_camera_zoom`` zooms the first by that factor (None: no zoom) and ``first_plate_shift`` moves the first's
+    clean plate by those (x, y) pixels (None: no shift). :meth:`arguments` spells them out.
     """
 
     name: str
@@ -70,6 +72,7 @@ class Variant:
     first_cameras: int | None = None
     first_camera_zoom: float | None = None
     calibration_error_deg: float = 0.0
+    first_plate_shift: tuple[float, float] | None = None
 
     @property
     def slug(self) -> str:
@@ -77,11 +80,15 @@ class Variant:
         return re.sub(r"[^a-z0-9]+", "-", self.name.lower()).strip("-")
 
     def arguments(self, cameras: Sequence[str]) -> dict:
-        """:func:`perturb_capture`'s keyword arguments for a capture whose cameras are ``cameras`` (sorted)."""
-        return {"change": self.change, "seed": SEED, "plates": self.plates,
-                "cameras": tuple(cameras[:self.first_cameras]) if self.first_cameras is not None else (),
-                "calibration_error_deg": self.calibration_error_deg,
-                "zoom": {cameras[0]: self.first_camera_zoom} if self.first_camera_zoom is not None else None}
+        """:func:`perturb_capture`'s keyword arguments for a capture whose cameras are ``cameras`` (sorted); a plate
+        shift only when there is one, so that the other copies keep their cache keys (:func:`cache_key`)."""
+        arguments = {"change": self.change, "seed": SEED, "plates": self.plates,
+                     "cameras": tuple(cameras[:self.first_cameras]) if self.first_cameras is not None else (),
+                     "calibration_error_deg": self.calibration_error_deg,
+                     "zoom": {cameras[0]: self.first_camera_zoom} if self.first_camera_zoom is not None else None}
+        if self.first_plate_shift is not None:
+            arguments["plate_shift"] = {cameras[0]: self.first_plate_shift}
+        return arguments
 
 
 VARIANTS = (
@@ -93,6 +100,7 @@ VARIANTS = (
     Variant("4 cameras", first_cameras=4),
     Variant("one camera zoomed 1.8x", first_camera_zoom=1.8),
     Variant("calibration off 0.1°", calibration_error_deg=0.1),
+    Variant("one plate 5 px off", first_plate_shift=(4.0, 3.0)),
 )
 #: The variants of a quick run (a smoke test): one that changes the frames, one that changes the rig and the truth.
 QUICK_VARIANTS = ("compression", "4 cameras")

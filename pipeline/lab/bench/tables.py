@@ -311,7 +311,9 @@ ROBUSTNESS_NOTES = (
     "frames' levels are a curve of the plates', not a multiple), no plates (the clean plates "
     "left out: the background estimated from the frames), 4 cameras (the first four by name), one camera zoomed "
     "1.8x (the first by name: the subject partly out of its view), calibration off 0.1° (each camera turned by "
-    "0.1° about an axis of its own, about 1.7 pixels at a focal length of 1000). The copies are made once into "
+    "0.1° about an axis of its own, about 1.7 pixels at a focal length of 1000), one plate 5 px off (the first "
+    "camera's clean plate moved by 4 pixels across and 3 down, its frames unchanged: a camera knocked after its "
+    "plate was taken). The copies are made once into "
     "`<captures>/robustness/<capture>-<change>-<key>/`, the key a hash of the change's arguments and of the "
     "capture's capture.yaml. Each copy is processed by `python -m pipeline run` (2 workers) and scored by "
     "`pipeline.evaluate.evaluate_run` against its ground truth (the original's, or rewritten for the cameras kept "
@@ -322,8 +324,9 @@ ROBUSTNESS_NOTES = (
     "`python -m pipeline bench --out runs/bench --suite robustness` measures it; one copy by hand: "
     "`python -m pipeline.lab.bench.perturb ../shared/foreign/walk --change compression --out runs/walk-compression` "
     "(`--change gamma_dark`, or `--change none` with `--no-plates`, `--cameras cam00,cam01,cam02,cam03`, "
-    "`--zoom cam00:1.8` or "
-    "`--calibration-error 0.1` for the others), then `python -m pipeline run runs/walk-compression --out "
+    "`--zoom cam00:1.8`, "
+    "`--calibration-error 0.1` or `--plate-shift cam00:4:3` for the others), then "
+    "`python -m pipeline run runs/walk-compression --out "
     "runs/walk-compression-run` and `python -m pipeline eval runs/walk-compression-run --truth "
     "runs/walk-compression/groundtruth/joints.csv`.")
 EXPORTS_NOTES = (
