@@ -231,3 +231,12 @@ def test_a_shifted_plate_is_moved_and_its_frames_are_not(capture, tmp_path):
         perturb_capture(capture, tmp_path / "bad", "none", plate_shift={"cam1": (float("nan"), 1.0)})
     with pytest.raises(SystemExit):
         main([str(capture), "--change", "none", "--plate-shift", "cam1:2", "--out", str(tmp_path / "x")])
+
+
+def test_a_monochrome_copy_has_grey_frames_and_plates(capture, tmp_path):
+    out = perturb_capture(capture, tmp_path / "grey", "none", monochrome=True)
+    frame = _frames(out / "videos" / "cam0.mp4")[0].astype(int)
+    assert np.abs(frame[:, :, 0] - frame[:, :, 2]).max() <= 3  # the codec's rounding only
+    plate = cv2.imread(str(out / "background" / "cam0.png"), cv2.IMREAD_UNCHANGED)
+    colour = cv2.imread(str(capture / "background" / "cam0.png"))
+    assert plate.ndim == 2 and np.array_equal(plate, cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY))

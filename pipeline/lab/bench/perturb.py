@@ -51,6 +51,11 @@ pipeline takes the frames as simultaneous.
 
     python -m pipeline.lab.bench.perturb ../shared/foreign/frontkick --change none --late cam02:1 --out runs/late
 
+With ``--monochrome`` every camera records grey levels only (machine-vision and infrared studio cameras): the
+frames and the plates are turned to grey (OpenCV's luma), the frames still written in three equal channels.
+
+    python -m pipeline.lab.bench.perturb ../shared/foreign/walk --change none --monochrome --out runs/walk-grey
+
 With ``--plate-shift NAME:DX:DY,...`` those cameras' clean plates are moved by (DX, DY) pixels (their frames
 unchanged): a plate taken before the camera was knocked or re-aimed a little.
 
@@ -117,6 +122,12 @@ def _jpeg(frame: np.ndarray, quality: int) -> np.ndarray:
     return cv2.imdecode(encoded, cv2.IMREAD_COLOR).astype(np.float32)
 
 
+def _grey(frame: np.ndarray) -> np.ndarray:
+    """A float32 BGR frame as a monochrome camera records it: its luma in all three channels."""
+    return cv2.cvtColor(cv2.cvtColor(np.clip(frame, 0.0, 255.0).astype(np.float32), cv2.COLOR_BGR2GRAY),
+                        cv2.COLOR_GRAY2BGR)
+
+
 def _to_uint8(frame: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(frame), 0, 255).astype(np.uint8)
 
@@ -125,12 +136,13 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
                     absent: range = range(0), cameras: tuple[str, ...] = (),
                     calibration_error_deg: float = 0.0, zoom: dict[str, float] | None = None,
                     late: dict[str, int] | None = None,
-                    plate_shift: dict[str, tuple[float, float]] | None = None) -> Path:
+                    plate_shift: dict[str, tuple[float, float]] | None = None, monochrome: bool = False) -> Path:
     """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
     to every frame of its videos, and the subject away on the frames ``absent``, seen by the ``cameras`` named
     (default: all) through a calibration whose cameras are each turned by ``calibration_error_deg``, the cameras
     of ``zoom`` zoomed by its factors (:func:`zoomed`), those of ``late`` that many frames behind the others, the
-    clean plates of those of ``plate_shift`` moved by its (x, y) pixels; returns ``out``.
+    clean plates of those of ``plate_shift`` moved by its (x, y) pixels, and every frame and plate in grey levels
+    with ``monochrome``; returns ``out``.
 
     capture.yaml, the calibration and the background plates (unless ``plates`` is False) are copied, the ground
     truth (when there is one) linked, or rewritten without the ``absent`` frames and the cameras left out
@@ -186,10 +198,12 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     if plates and (capture / "background").is_dir():
         (partial / "background").mkdir()
         for plate in (capture / "background").iterdir():
-            if plate.stem in zoom or plate.stem in plate_shift:
+            if plate.stem in zoom or plate.stem in plate_shift or monochrome:
                 image = zoomed(cv2.imread(str(plate), cv2.IMREAD_UNCHANGED), zoom.get(plate.stem, 1.0))
                 if plate.stem in plate_shift:
                     image = shifted_plate(image, plate_shift[plate.stem])
+                if monochrome and image.ndim == 3:
+                    image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
                 cv2.imwrite(str(partial / "background" / plate.name), image)
             elif plate.stem in {video.stem for video in videos}:
                 shutil.copy2(plate, partial / "background" / plate.name)
@@ -204,7 +218,8 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
                     factor: float = zoom.get(video.stem, 1.0)):
             if index in absent:
                 frame = plate + rng.normal(0.0, ABSENT_NOISE, plate.shape)
-            return apply(zoomed(frame, factor), rng, camera)
+            frame = apply(zoomed(frame, factor), rng, camera)
+            return _grey(frame) if monochrome else frame
 
         _rewrite(video, partial / "videos" / (video.stem + ".mp4"), changed, late.get(video.stem, 0))
     partial.rename(out)
@@ -414,13 +429,15 @@ def main(argv: list[str] | None = None) -> int:
                              "then partly out of their view)")
     parser.add_argument("--late", type=_delays, default={}, metavar="NAME:FRAMES,...",
                         help="these cameras that many frames behind the others (no common clock)")
+    parser.add_argument("--monochrome", action="store_true",
+                        help="every frame and plate in grey levels (monochrome cameras)")
     parser.add_argument("--plate-shift", type=_plate_shifts, default={}, metavar="NAME:DX:DY,...",
                         help="these cameras' clean plates moved by (DX, DY) pixels (a camera knocked after its plate)")
     args = parser.parse_args(argv)
     try:
         perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates,
                         absent=args.absent, cameras=args.cameras, calibration_error_deg=args.calibration_error,
-                        zoom=args.zoom, late=args.late, plate_shift=args.plate_shift)
+                        zoom=args.zoom, late=args.late, plate_shift=args.plate_shift, monochrome=args.monochrome)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
