@@ -39,7 +39,7 @@ import dataclasses
 import functools
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -108,9 +108,10 @@ UNRESOLVED_WARNING_SHARE = 0.001
 
 
 def estimated_backgrounds(capture: Capture, params: SilhouetteParams,
-                          plates: dict[str, np.ndarray]) -> dict[str, BackgroundEstimate]:
+                          plates: Mapping[str, PlateFit]) -> dict[str, BackgroundEstimate]:
     """Every camera's background, estimated from frames sampled over the whole capture when a camera has no
-    clean plate in ``plates`` (:func:`stages.background.estimate_backgrounds`; the cameras with one keep it).
+    clean plate in ``plates`` (:func:`checked_plates`; :func:`stages.background.estimate_backgrounds`; the cameras
+    with one keep it).
 
     The samples of one camera at full resolution are held at a time; each camera's video is decoded once.
     Logs what was done, and warns for each camera where part of the image was never seen without the subject.
@@ -119,7 +120,8 @@ def estimated_backgrounds(capture: Capture, params: SilhouetteParams,
     picks = spread_frames(frames, min(sample_count(len(frames), (height, width, 3))
                                       for width, height in (camera.size for camera in capture.rig)))
     samples = [sample_camera((image for _, image in capture.iter_images(camera.name, picks)), working_size(camera.size),
-                             plate=plates.get(camera.name), downsample=params.downsample)
+                             plate=plate_image(capture, camera.name, plates[camera.name]) if camera.name in plates
+                             else None, downsample=params.downsample)
                for camera in capture.rig]
     estimates = estimate_backgrounds(samples, list(capture.rig), capture.volume, params)
     found = dict(zip(capture.rig.names, estimates, strict=True))
@@ -154,7 +156,7 @@ def _backgrounds(ctx: StageContext) -> dict[str, float]:
     again would only cost time, once per camera.
     """
     capture = ctx.capture
-    plates, shifted = checked_plates(capture)
+    plates = checked_plates(capture)
     estimated = [camera for camera in capture.rig.names if camera not in plates]
     floors_path = noise_floors_path(ctx.out_dir)
     pending = [camera for camera in capture.rig.names if not _intact(background_path(ctx.out_dir, camera))]
@@ -168,46 +170,50 @@ def _backgrounds(ctx: StageContext) -> dict[str, float]:
         given = capture.background_paths.get(camera)
         if camera in estimates:
             frames_io.write_image(path, estimates[camera].image)
-        elif given.suffix.lower() == ".png" and camera not in shifted:
+        elif given.suffix.lower() == ".png" and plates[camera].distance_px < PLATE_SHIFT_PX:
             atomic.write_bytes(path, given.read_bytes())
         else:
-            frames_io.write_image(path, plates[camera])
+            frames_io.write_image(path, plate_image(capture, camera, plates[camera]))
     floors = {camera: estimates[camera].noise for camera in estimated}
     if estimated:
         frames_io.write_json(floors_path, floors)
     return floors
 
 
-def checked_plates(capture: Capture) -> tuple[dict[str, np.ndarray], set[str]]:
-    """The clean plates of ``capture`` that are pictures of their cameras' frames, each shifted onto them where
-    it lies :data:`~stages.background.plates.PLATE_SHIFT_PX` or more off (:mod:`stages.background.plates`, against
-    the capture's first frame), by camera; and the cameras whose plate was shifted. One warning per plate shifted or
-    left out (another view's: the camera's background is then estimated from the frames, as without a plate)."""
+def checked_plates(capture: Capture) -> dict[str, PlateFit]:
+    """How the clean plates of ``capture`` that are pictures of their cameras' views lie against their frames
+    (:mod:`stages.background.plates`, against the capture's first frame), by camera. One warning per plate that
+    lies :data:`~stages.background.plates.PLATE_SHIFT_PX` or more off (:func:`plate_image` shifts it onto them) or
+    that is left out (another view's: the camera's background is then estimated from the frames, as without a
+    plate)."""
     first = capture.frame_numbers[0]
 
-    def fit(camera: str) -> tuple[np.ndarray, PlateFit]:
-        plate = capture.background(camera)
-        return plate, plate_fit(plate, next(capture.iter_images(camera, [first]))[1])
+    def fitted(camera: str) -> PlateFit:
+        return plate_fit(capture.background(camera), next(capture.iter_images(camera, [first]))[1])
 
     with cf.ThreadPoolExecutor(usable_cpus()) as pool:  # OpenCV's decoding and transforms let go of the GIL
-        fits = dict(zip(capture.background_paths, pool.map(fit, capture.background_paths), strict=True))
-    plates, shifted = {}, set()
-    for camera, (plate, fit) in fits.items():
+        fits = dict(zip(capture.background_paths, pool.map(fitted, capture.background_paths), strict=True))
+    for camera, fit in list(fits.items()):
         path = capture.background_paths[camera]
         if fit.match < MIN_PLATE_MATCH:
             log.warning("%s: the clean plate does not show camera %s's view (its phase correlation with frame %d "
                         "peaks at %.2f, expected above %.2f: another camera's plate, or another room's?); that "
                         "camera's background is estimated from the frames instead", path, camera, first, fit.match,
                         MIN_PLATE_MATCH)
-            continue
-        if fit.distance_px >= PLATE_SHIFT_PX:
+            del fits[camera]
+        elif fit.distance_px >= PLATE_SHIFT_PX:
             log.warning("%s: the clean plate lies %.1f pixels off camera %s's frames (x %+.1f, y %+.1f: the camera "
                         "moved after it was taken?); it is used shifted onto them", path, fit.distance_px, camera,
                         *fit.shift)
-            plate = shifted_plate(plate, fit.shift)
-            shifted.add(camera)
-        plates[camera] = plate
-    return plates, shifted
+    return fits
+
+
+def plate_image(capture: Capture, camera: str, fit: PlateFit) -> np.ndarray:
+    """The camera's clean plate (H, W, 3) uint8, shifted onto its frames when ``fit`` (:func:`checked_plates`) says
+    it lies :data:`~stages.background.plates.PLATE_SHIFT_PX` or more off them. Read when needed, one camera at a
+    time: a large rig's plates would not all fit in memory at once."""
+    plate = capture.background(camera)
+    return shifted_plate(plate, fit.shift) if fit.distance_px >= PLATE_SHIFT_PX else plate
 
 
 def _intact(path: Path) -> bool:
