@@ -41,6 +41,12 @@ def up_rotation(up: str) -> np.ndarray:
     return np.array(_UP_ROTATIONS[up], dtype=np.float64)
 
 
+def nearest_up_axis(direction) -> str:
+    """The declared up axis (``"+z"``, ``"-y"``, ...) nearest the ``direction`` (3,), in the calibration's frame."""
+    direction = np.asarray(direction, dtype=np.float64)
+    return max(_UP_ROTATIONS, key=lambda up: float(up_rotation(up)[2] @ direction))
+
+
 def _unit_scale(units: str) -> float:
     if units not in UNIT_SCALE:
         raise InputError(f"units: unknown unit {units!r}; expected one of {', '.join(UNIT_SCALE)}")

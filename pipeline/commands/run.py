@@ -76,7 +76,7 @@ def unusable_result(export_dir: Path, frames: int) -> str | None:
     lost the subject (out of view, silhouettes that disagree, a working volume that cuts them off).
     """
     joints = export_dir / JOINTS_FILE
-    if joints.is_file() and len(joints.read_text(encoding="utf-8").split()) <= 1:
+    if joints.is_file() and len(joints.read_text(encoding="utf-8").strip().splitlines()) <= 1:
         # Its header alone, and no motion file beside it: the cause, not the missing files, is what to say.
         return (f"{joints}: no frame estimated (the subject was lost on every frame: the warnings above and "
                 "the report say why)")

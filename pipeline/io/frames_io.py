@@ -87,8 +87,8 @@ def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None) -> n
     """Read a silhouette mask as ``(H, W) uint8`` with values exactly 0 or 255.
 
     Person is what lies above :data:`MASK_THRESHOLD` (an anti-aliased or JPEG mask of 0 and 255), or, in a mask
-    of exactly two grey levels whose brighter one is below it, that level (:func:`_person_level`): a mask saved
-    as 0 and 1, as many tools write a boolean array, or a palette image whose person colour is dark.
+    of exactly two grey levels whose brighter one is below it, that level (:func:`_person_threshold`): a mask
+    saved as 0 and 1, as many tools write a boolean array, or a palette image whose person colour is dark.
 
     A PNG must pass its chunk CRCs (:func:`png_problem`), and with ``size`` ``(width, height)`` the mask
     must have that size; otherwise :class:`DamagedFileError`.
@@ -103,24 +103,24 @@ def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None) -> n
         grey = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
         if grey is None:
             raise InputError(f"{path}: not a readable mask image (expected a PNG, 0 = background, 255 = person)")
-        mask = cv2.threshold(grey, _person_level(grey) - 1, 255, cv2.THRESH_BINARY)[1]
+        mask = cv2.threshold(grey, _person_threshold(grey), 255, cv2.THRESH_BINARY)[1]
     if size is not None and (mask.shape[1], mask.shape[0]) != tuple(size):
         raise DamagedFileError(path, f"mask is {mask.shape[1]}x{mask.shape[0]} pixels, not the camera's "
                                f"{size[0]}x{size[1]}")
     return mask
 
 
-def _person_level(grey: np.ndarray) -> int:
-    """The lowest grey level of ``grey`` (H, W) uint8 that marks the person: above :data:`MASK_THRESHOLD`, unless
-    the mask holds exactly two levels, 0 and a dimmer one, which then marks him.
+def _person_threshold(grey: np.ndarray) -> int:
+    """The grey level of ``grey`` (H, W) uint8 above which a pixel is person: :data:`MASK_THRESHOLD`, unless the
+    mask holds exactly two levels, 0 and a dimmer one, which then marks him.
 
     Only a two-level mask is read so: an empty mask saved as JPEG carries a few dim levels of compression noise,
     which must stay background.
     """
     brightest = int(grey.max())
     if 0 < brightest <= MASK_THRESHOLD and cv2.countNonZero(grey) == np.count_nonzero(grey == brightest):
-        return brightest
-    return MASK_THRESHOLD + 1
+        return brightest - 1
+    return MASK_THRESHOLD
 
 
 def png_problem(data: bytes) -> str | None:

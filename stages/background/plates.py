@@ -4,10 +4,10 @@ A plate is taken before or after the recording, and the camera may have moved in
 camera re-aimed): every edge of the room then differs from the frames by the shift, and background subtraction
 takes those edges for the person, in every frame. Or the plate is another camera's, or another session's. Both
 show in the phase correlation of the plate with a frame of its camera (:func:`plate_fit`): the peak's position is
-the shift between them, exact to a tenth of a pixel on textured rooms, and its height how much of the two images
-is the same picture moved (a plate of the same view scores from about 0.3 to 0.8, whatever the person, the
-noise, flicker and compression of the frame; another view's about 0.01). The person is a small part of a frame
-and does not move the peak.
+the shift between them, to a fraction of a pixel on a textured room, and its height how much of the two images is
+the same picture moved: a plate of the same view scores several times :data:`MIN_PLATE_MATCH` whatever the
+person, the noise, flicker and compression of the frame, another view's next to nothing. The person is a small
+part of a frame and does not move the peak.
 
 A camera that pans or tilts by a fraction of a degree moves its image by a nearly uniform shift, which
 :func:`shifted_plate` undoes; a roll about the optical axis would need a rotation as well, and is rarer on a
@@ -44,9 +44,9 @@ class PlateFit:
 def plate_fit(plate: np.ndarray, frame: np.ndarray) -> PlateFit:
     """The :class:`PlateFit` of a clean ``plate`` against a ``frame`` of the same camera, (H, W, 3) uint8 each.
 
-    On grey levels at full resolution (at half, aliasing moved a plate that fits by over half a pixel), on the
-    largest middle part whose sides the Fourier transform is fast on (:func:`_fast_length`: 768 x 576 of a
-    780 x 580 image, at two thirds of the cost), windowed (Hann) so that its borders make no edge of their own.
+    On grey levels at full resolution (at a reduced one, aliasing biases the peak's position), on the largest
+    middle part whose sides the Fourier transform is fast on (:func:`_fast_length`: 768 x 576 of a 780 x 580
+    image), windowed (Hann) so that its borders make no edge of their own.
     """
     height, width = plate.shape[:2]
     size = (_fast_length(width), _fast_length(height))

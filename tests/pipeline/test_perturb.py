@@ -240,3 +240,6 @@ def test_a_monochrome_copy_has_grey_frames_and_plates(capture, tmp_path):
     plate = cv2.imread(str(out / "background" / "cam0.png"), cv2.IMREAD_UNCHANGED)
     colour = cv2.imread(str(capture / "background" / "cam0.png"))
     assert plate.ndim == 2 and np.array_equal(plate, cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY))
+    _colmap_calibration(capture)  # a smaller rig rewrites the calibration
+    smaller = perturb_capture(capture, tmp_path / "grey-one", "none", monochrome=True, cameras=("cam0",))
+    assert [path.name for path in (smaller / "background").iterdir()] == ["cam0.png"]  # no plate of a camera left out

@@ -127,24 +127,25 @@ def _first_frame_size(source: _CameraMedia, camera: str) -> tuple[int, int]:
     raise AssertionError("unreachable: _iter_video yields or raises")
 
 
-def _video_frame_count(path: Path) -> int:
+def _video_property(path: Path, prop: int) -> float:
+    """A property (``cv2.CAP_PROP_...``) of the video at ``path``, as its container states it."""
     video = cv2.VideoCapture(str(path))
     try:
         if not video.isOpened():
             raise InputError(f"{path}: not a readable video (expected a file OpenCV can decode)")
-        return int(video.get(cv2.CAP_PROP_FRAME_COUNT))
+        return float(video.get(prop))
     finally:
         video.release()
+
+
+def _video_frame_count(path: Path) -> int:
+    return int(_video_property(path, cv2.CAP_PROP_FRAME_COUNT))
 
 
 def _video_rate(path: Path) -> float:
     """Frames per second a video's container states (0 when it states none)."""
-    video = cv2.VideoCapture(str(path))
-    try:
-        rate = video.get(cv2.CAP_PROP_FPS) if video.isOpened() else 0.0
-    finally:
-        video.release()
-    return float(rate) if math.isfinite(rate) and rate > 0 else 0.0
+    rate = _video_property(path, cv2.CAP_PROP_FPS)
+    return rate if math.isfinite(rate) and rate > 0 else 0.0
 
 
 def _warn_other_rates(camera_media: Mapping[str, _CameraMedia], fps: float, config_path: Path) -> None:

@@ -35,7 +35,7 @@ from calib.camera import Rig
 from calib.errors import InputError
 from calib.formats import NO_IMAGE_SIZE, load_rig
 from calib.sanity import check_intrinsics, check_rig_size
-from calib.world import WorldTransform, fixed_transform, rig_vertical
+from calib.world import WorldTransform, fixed_transform, nearest_up_axis, rig_vertical
 from pipeline.io import frames_io
 from pipeline.io.capture.config import _read_config
 from pipeline.io.capture.media import (
@@ -328,7 +328,6 @@ def _load_calibration(fmt: str, path: Path, sizes: Mapping[str, tuple[int, int]]
 #: A declared up axis further than this (degrees) from the vertical the cameras' horizon gives is reported: a
 #: level studio rig agrees within a few degrees, a wrong axis is a quarter or half turn away.
 UP_DISAGREEMENT_DEG = 45.0
-_AXES = ("x", "y", "z")
 
 
 def _warn_other_up(rig: Rig, world: WorldTransform, declared: str, config_path: Path) -> None:
@@ -343,9 +342,7 @@ def _warn_other_up(rig: Rig, world: WorldTransform, declared: str, config_path: 
     angle = float(np.degrees(np.arccos(np.clip(vertical[2], -1.0, 1.0))))
     if angle <= UP_DISAGREEMENT_DEG:
         return
-    in_calibration = world.A.T @ vertical  # the same direction in the calibration's own axes
-    axis = int(np.argmax(np.abs(in_calibration)))
-    likely = f"{'+' if in_calibration[axis] > 0 else '-'}{_AXES[axis]}"
+    likely = nearest_up_axis(world.A.T @ vertical)  # the same direction in the calibration's own axes
     log.warning("%s: calibration.up is %s, but the cameras, which studios mount level, make the world's up about %s "
                 "(%.0f degrees away): expected the calibration's up axis there (or up: auto)", config_path,
                 declared, likely, angle)

@@ -197,7 +197,10 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         shutil.copytree(capture / "calibration", partial / "calibration")
     if plates and (capture / "background").is_dir():
         (partial / "background").mkdir()
+        kept = {video.stem for video in videos}
         for plate in (capture / "background").iterdir():
+            if plate.stem not in kept:
+                continue
             if plate.stem in zoom or plate.stem in plate_shift or monochrome:
                 image = zoomed(cv2.imread(str(plate), cv2.IMREAD_UNCHANGED), zoom.get(plate.stem, 1.0))
                 if plate.stem in plate_shift:
@@ -205,7 +208,7 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
                 if monochrome and image.ndim == 3:
                     image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
                 cv2.imwrite(str(partial / "background" / plate.name), image)
-            elif plate.stem in {video.stem for video in videos}:
+            else:
                 shutil.copy2(plate, partial / "background" / plate.name)
     if (capture / "groundtruth").is_dir():
         if absent or cameras or zoom or late:
@@ -372,15 +375,15 @@ def _frame_span(text: str) -> range:
     return span
 
 
-def _per_camera(text: str, kind: type, what: str) -> dict:
-    """``NAME:VALUE,...`` as {camera: kind(value)}; ``what`` names the value in the error."""
+def _per_camera(text: str, kind: Callable[[str], object], what: str) -> dict:
+    """``NAME:VALUE,...`` as {camera: kind(value)}; ``what`` spells the value out in the error."""
     values = {}
     for item in (part for part in text.split(",") if part):
         name, _, value = item.partition(":")
         try:
             values[name] = kind(value)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected NAME:{what}, a camera and a number, got {item!r}") from None
+            raise argparse.ArgumentTypeError(f"expected NAME:{what}, a camera and its numbers, got {item!r}") from None
     return values
 
 
@@ -391,15 +394,13 @@ def _zooms(text: str) -> dict[str, float]:
 
 def _plate_shifts(text: str) -> dict[str, tuple[float, float]]:
     """``NAME:DX:DY,...`` as {camera: (dx, dy)}."""
-    shifts = {}
-    for item in (part for part in text.split(",") if part):
-        name, _, rest = item.partition(":")
-        try:
-            dx, dy = (float(value) for value in rest.split(":"))
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected NAME:DX:DY, a camera and two numbers, got {item!r}") from None
-        shifts[name] = (dx, dy)
-    return shifts
+    return _per_camera(text, _pair, "DX:DY")
+
+
+def _pair(text: str) -> tuple[float, float]:
+    """``DX:DY`` as two numbers (ValueError otherwise)."""
+    dx, dy = (float(value) for value in text.split(":"))
+    return dx, dy
 
 
 def _delays(text: str) -> dict[str, int]:
