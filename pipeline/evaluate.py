@@ -13,6 +13,7 @@ definitions are in :mod:`stages.export.metrics`; the scored joints are ``SCORED_
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 from pathlib import Path
 
@@ -21,9 +22,12 @@ import numpy as np
 from calib.errors import InputError
 from pipeline.io import frames_io
 from pipeline.io.export_io import read_joints_csv
-from pipeline.io.run_layout import RunLayout
+from pipeline.io.run_layout import MARKER, RunLayout
 from pipeline.terminal import printable
 from stages.export.metrics import JointMetrics, evaluate_joints, mask_iou
+from stages.joints import JOINT_NAMES
+
+log = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -102,14 +106,40 @@ def score_joints(out_dir: str | os.PathLike, truth: str | os.PathLike) -> JointM
     layout = RunLayout(out_dir)
     estimate = read_joints_csv(layout.joints)
     true_frames, true_names, true_joints = read_joints_csv(truth)
+    check_truth(truth, true_names, true_joints)
     summary_path = layout.capture_summary
     capture = frames_io.read_json(summary_path) if summary_path.is_file() else {}
     processed = capture.get("frames")
     if processed is not None:
         kept = np.isin(true_frames, processed)
+        if len(true_frames) and not kept.any():
+            raise InputError(f"{truth}: frames {true_frames.min()}..{true_frames.max()}, none of them processed by "
+                             f"the run (frames {min(processed)}..{max(processed)}; expected the capture's numbering)")
         true_frames, true_joints = true_frames[kept], true_joints[kept]
     fps = capture.get("fps")
     return evaluate_joints(*estimate, true_frames, true_names, true_joints, frame_time_s=1.0 / fps if fps else None)
+
+
+#: Largest extent of one frame's joints (metres) a person can have, arms spread: a truth whose joints spread
+#: wider in most frames is not in metres.
+MAX_BODY_EXTENT_M = 3.0
+
+
+def check_truth(path: str | os.PathLike, names: tuple[str, ...], joints: np.ndarray) -> None:
+    """Refuse a truth that is not in metres; warn about joints of no known name, which are not scored.
+
+    A truth in millimetres scored as metres gives an MPJPE of kilometres without a word of the cause; a joint
+    named otherwise than the contract's (``hips`` for ``pelvis``) silently drops out of the scores.
+    """
+    extent = np.nanmax(joints, axis=1) - np.nanmin(joints, axis=1) if joints.size else np.zeros((0, 3))
+    widest = np.nanmax(extent, axis=1) if len(extent) else extent
+    if len(widest) and np.nanmedian(widest) > MAX_BODY_EXTENT_M:
+        raise InputError(f"{path}: the joints of a frame spread over {np.nanmedian(widest):.4g} units (median), "
+                         f"expected metres (a person spans at most {MAX_BODY_EXTENT_M:g} m; millimetres?)")
+    unknown = [name for name in names if name not in JOINT_NAMES]
+    if unknown:
+        log.warning("%s: joints %s are none of the 17 the contract names (%s), left out of the scores",
+                    path, ", ".join(unknown), ", ".join(JOINT_NAMES))
 
 
 def evaluate_run(out_dir: str | os.PathLike, *, truth: str | os.PathLike | None = None) -> dict:
@@ -128,6 +158,10 @@ def evaluate_run(out_dir: str | os.PathLike, *, truth: str | os.PathLike | None 
     estimate_path = layout.joints
     if not estimate_path.is_file():
         raise InputError(f"{estimate_path}: not found (expected a run whose export stage has finished)")
+    if (layout.stage_dir("export") / MARKER).is_file() and not layout.manifest("export").is_file():
+        # A run began the export and did not finish it: these joints need not be the run's.
+        raise InputError(f"{layout.manifest('export')}: missing, the last run did not finish its export "
+                         "(expected a finished run: run the pipeline again on this output folder)")
     truth_path = Path(truth) if truth is not None else default_truth(out_dir)
     metrics = score_joints(out_dir, truth_path)
     summary = {"estimate": str(estimate_path), "truth": str(truth_path), **metrics.summary(),

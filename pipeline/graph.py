@@ -184,8 +184,8 @@ def checked_plates(capture: Capture) -> dict[str, PlateFit]:
     """How the clean plates of ``capture`` that are pictures of their cameras' views lie against their frames
     (:mod:`stages.background.plates`, against the capture's first frame), by camera. One warning per plate that
     lies :data:`~stages.background.plates.PLATE_SHIFT_PX` or more off (:func:`plate_image` shifts it onto them) or
-    that is left out (another view's: the camera's background is then estimated from the frames, as without a
-    plate)."""
+    that is left out (another view's, or a colour view's without its colour: the camera's background is then
+    estimated from the frames, as without a plate)."""
     first = capture.frame_numbers[0]
 
     def fitted(camera: str) -> PlateFit:
@@ -200,6 +200,10 @@ def checked_plates(capture: Capture) -> dict[str, PlateFit]:
                         "peaks at %.2f, expected above %.2f: another camera's plate, or another room's?); that "
                         "camera's background is estimated from the frames instead", path, camera, first, fit.match,
                         MIN_PLATE_MATCH)
+            del fits[camera]
+        elif fit.colourless:
+            log.warning("%s: the clean plate has no colour while camera %s's frames have (a grey-level copy?); that "
+                        "camera's background is estimated from the frames instead", path, camera)
             del fits[camera]
         elif fit.distance_px >= PLATE_SHIFT_PX:
             log.warning("%s: the clean plate lies %.1f pixels off camera %s's frames (x %+.1f, y %+.1f: the camera "

@@ -142,7 +142,8 @@ def update_capture_yaml(path: Path, block: dict) -> str:
     try:
         parsed = plain_yaml.load(text, str(path))
     except yaml.YAMLError as error:
-        raise InputError(f"{path}: not valid YAML ({str(error).splitlines()[0]}); expected a capture.yaml") from None
+        raise InputError(f"{path}: not valid YAML ({plain_yaml.describe_error(error)}); "
+                         "expected a capture.yaml") from None
     if parsed is not None and not isinstance(parsed, dict):
         raise InputError(f"{path}: top level is {type(parsed).__name__}, expected a mapping")
     old = text.splitlines()

@@ -31,6 +31,7 @@ from pipeline.io.export_io import check_cutoff, read_joints_csv
 from pipeline.io.run_layout import BVH_FILE, C3D_FILE, JOINTS_FILE, RunLayout
 from pipeline.report.tracking_summary import read_frame_statuses, summary_line
 from pipeline.terminal import printable
+from stages.reconstruction import check_tolerated_views
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -155,6 +156,7 @@ def run_capture(capture_dir: Path, out: Path, params: Mapping[str, Any], workers
             capture = Capture.open(capture_dir, allow_outside_paths=allow_outside_paths)
             step = capture.frame_numbers[1] - capture.frame_numbers[0] if len(capture.frame_numbers) > 1 else 1
             check_cutoff(params["export"].filter_cutoff_hz, capture.fps / step)  # before any work
+            check_tolerated_views(params["reconstruction"].tolerated_views, len(capture.rig))
             runner = Runner(graph.STAGES, capture, params, out, workers, show_progress,  # refuses --out in the capture
                             record_facts={"allow_outside_paths": allow_outside_paths})
             with output_lock(out):

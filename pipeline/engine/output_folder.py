@@ -123,7 +123,10 @@ def storage_error(error: OSError, output_root: Path) -> InputError | None:
     expected = STORAGE_ERRORS.get(error.errno)
     if expected is None:
         return None
-    return InputError(f"{error.filename or output_root}: {error.strerror} (expected {expected})")
+    where = os.fspath(error.filename) if error.filename else ""
+    if not os.path.isabs(where):  # a name relative to a folder being emptied (shutil.rmtree's), or none
+        where = f"{output_root}{f' ({where})' if where else ''}"
+    return InputError(f"{where}: {error.strerror} (expected {expected})")
 
 
 def write_run_record(output_root: Path, capture: Capture, params: Mapping[str, Any], state: str, *,

@@ -44,8 +44,7 @@ def read_config(path: str | Path) -> dict:
         raise InputError(f"{path}: cannot read ({error.strerror}) "
                          "(expected a YAML file of parameters)") from None
     except (yaml.YAMLError, UnicodeDecodeError) as error:
-        first_line = str(error).splitlines()[0] if str(error) else type(error).__name__
-        raise InputError(f"{path}: not valid YAML ({first_line}) "
+        raise InputError(f"{path}: not valid YAML ({plain_yaml.describe_error(error)}) "
                          "(expected stage: {param: value})") from None
     if config is None:
         return {}

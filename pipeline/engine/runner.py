@@ -49,6 +49,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import logging
+import shutil
 import time
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -123,10 +124,11 @@ class Runner:
         again with that stage selected too, which computes the file again as it resumes (each file is
         repaired once; a second failure is raised).
 
-        A run that fails after it began to change the folder leaves nothing that looks finished: every
-        stage downstream of one left incomplete loses its manifest too (:meth:`_invalidate`), and
-        ``run.json`` records the failure; a warning names those stages. Their files stay, so that the
-        next run resumes from them.
+        A run that fails after it began to change the folder leaves nothing that looks finished: a stage it
+        left incomplete keeps the frames it wrote, without a manifest, so that the next run resumes from
+        them; a finished stage downstream of one is removed (:meth:`_invalidate`), its results having been
+        made from files the failed run replaced; ``run.json`` records the failure and names the stages left
+        incomplete.
         """
         selected = set(selected) if selected is not None else {stage.name for stage in self.stages}
         forced = set(selected) if force else set()
@@ -173,16 +175,24 @@ class Runner:
             log.warning("%s: could not record the failure (%s)", self.output_root / RUN_RECORD, failure)
 
     def _invalidate(self) -> list[str]:
-        """Take the manifest from every stage that has one while one of its upstreams has none (its result
-        was made from files the failed run replaced or left unfinished); return the stages of the folder
-        that are incomplete (a marker, no manifest), in order."""
+        """Remove every finished stage folder one of whose upstreams is unfinished; return the stages of the
+        folder that are incomplete (a marker, no manifest), in order.
+
+        Such a stage's results were made from files the failed run replaced or left unfinished: kept without
+        their manifest, they would still look like this capture's results to whoever opens them (a report,
+        a joints.csv that ``pipeline eval`` scores), and the next run, whose inputs differ, could not resume
+        from them anyway.
+        """
         complete: dict[str, bool] = {}
         incomplete = []
         for stage in self.stages:
             folder = self.output_root / stage.name
             has_manifest = (folder / MANIFEST).is_file()
             if has_manifest and not all(complete.get(name, False) for name in stage.inputs):
-                (folder / MANIFEST).unlink()
+                with contextlib.suppress(OSError):  # the run's own error is the one to show
+                    if written_by_runner(folder):
+                        shutil.rmtree(folder)
+                (folder / MANIFEST).unlink(missing_ok=True)
                 has_manifest = False
             complete[stage.name] = has_manifest
             if not has_manifest and written_by_runner(folder):

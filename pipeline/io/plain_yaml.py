@@ -45,3 +45,14 @@ def load(text: str, source: str) -> Any:
         return loader.get_single_data()
     finally:
         loader.dispose()
+
+
+def describe_error(error: yaml.YAMLError | UnicodeDecodeError) -> str:
+    """One line for a YAML (or text decoding) error: what is wrong and where, ``line L, column C`` of the text,
+    so that a user finds the typo without a traceback (the error's own text spreads over several lines)."""
+    problem = getattr(error, "problem", None) or getattr(error, "context", None)
+    mark = getattr(error, "problem_mark", None) or getattr(error, "context_mark", None)
+    if problem and mark is not None:
+        return f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__

@@ -26,6 +26,11 @@ import numpy as np
 PLATE_SHIFT_PX = 0.5
 #: A plate whose phase correlation with its frames peaks below this is not a picture of their view.
 MIN_PLATE_MATCH = 0.1
+#: A plate with less colour than this share of its frames' (`colour_level`) is a grey-level copy of a colour view:
+#: every coloured part of the room would differ from it as much as the person does.
+MIN_PLATE_COLOUR = 0.25
+#: Frames with less colour than this (grey levels) are a monochrome camera's, for which a plate has none either.
+MONOCHROME_LEVELS = 2.0
 
 
 @dataclass(frozen=True)
@@ -35,6 +40,7 @@ class PlateFit:
 
     shift: tuple[float, float]
     match: float
+    colourless: bool = False
 
     @property
     def distance_px(self) -> float:
@@ -42,7 +48,8 @@ class PlateFit:
 
 
 def plate_fit(plate: np.ndarray, frame: np.ndarray) -> PlateFit:
-    """The :class:`PlateFit` of a clean ``plate`` against a ``frame`` of the same camera, (H, W, 3) uint8 each.
+    """The :class:`PlateFit` of a clean ``plate`` against a ``frame`` of the same camera, (H, W, 3) uint8 each;
+    ``colourless`` when the frame has colour (`MONOCHROME_LEVELS`) and the plate next to none (`MIN_PLATE_COLOUR`).
 
     On grey levels at full resolution (at a reduced one, aliasing biases the peak's position), on the largest
     middle part whose sides the Fourier transform is fast on (:func:`_fast_length`: 768 x 576 of a 780 x 580
@@ -55,7 +62,16 @@ def plate_fit(plate: np.ndarray, frame: np.ndarray) -> PlateFit:
                               .astype(np.float32) for image in (plate, frame))
     window = cv2.createHanningWindow(size, cv2.CV_32F)
     (dx, dy), match = cv2.phaseCorrelate(plate_grey, frame_grey, window)
-    return PlateFit((float(dx), float(dy)), float(match))
+    frame_colour = colour_level(frame)
+    colourless = frame_colour > MONOCHROME_LEVELS and colour_level(plate) < MIN_PLATE_COLOUR * frame_colour
+    return PlateFit((float(dx), float(dy)), float(match), colourless)
+
+
+def colour_level(image: np.ndarray) -> float:
+    """How coloured an (H, W, 3) uint8 image is: the mean of |B − G| + |G − R| (grey levels; 0 for a grey one),
+    over every fourth pixel of every fourth row."""
+    sample = image[::4, ::4].astype(np.int16)
+    return float(np.mean(np.abs(sample[..., 0] - sample[..., 1]) + np.abs(sample[..., 1] - sample[..., 2])))
 
 
 def _fast_length(length: int) -> int:

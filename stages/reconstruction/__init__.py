@@ -107,6 +107,20 @@ class Observations:
         return len(self.points)
 
 
+def check_tolerated_views(tolerated_views: int, n_cameras: int) -> None:
+    """Refuse a `ReconstructionParams.tolerated_views` that leaves fewer than two views to agree on a point: the
+    hull would then hold what a single camera sees, its whole viewing cone.
+
+    Raises
+    ------
+    InputError
+        Naming the parameter, the rig's camera count and the largest tolerance it allows.
+    """
+    if tolerated_views > n_cameras - 2:
+        raise InputError(f"reconstruction.tolerated_views={tolerated_views}: the rig has {n_cameras} cameras "
+                         f"(expected at most {max(n_cameras - 2, 0)}: at least two views must agree on every point)")
+
+
 def reconstruct(masks: Sequence[np.ndarray], rig: Rig, volume, params: ReconstructionParams) -> Observations:
     """Points and outward normals of the person seen in ``masks``, inside the working ``volume``.
 

@@ -212,3 +212,20 @@ def test_a_declared_up_axis_the_cameras_contradict_is_reported_with_the_likely_o
     Capture.open(root)
     assert "calibration.up is +z, but the cameras, which studios mount level, make the world's up about -y" in (
         caplog.text)
+
+
+def test_one_camera_is_refused_and_two_are_reported(tiny_capture, caplog):
+    write_config(tiny_capture, cameras=["cam1"])
+    with pytest.raises(InputError, match=re.escape("1 camera (expected at least 2")):
+        Capture.open(tiny_capture)
+    write_config(tiny_capture, cameras=["cam0", "cam2"])
+    Capture.open(tiny_capture)
+    assert "2 cameras: two views bound the body from two sides only" in caplog.text
+
+
+def test_a_camera_without_a_clean_plate_is_reported_and_keeps_the_others(tmp_path, caplog):
+    root = make_capture(tmp_path / "c", backgrounds=True)
+    (root / "background" / "cam1.png").unlink()
+    capture = Capture.open(root)
+    assert set(capture.background_paths) == {"cam0", "cam2"} and capture.background("cam1") is None
+    assert "no clean plate for camera cam1; its background is estimated from the frames" in caplog.text

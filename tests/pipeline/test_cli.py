@@ -179,7 +179,15 @@ def test_missing_capture_yaml(tiny_capture, tmp_path, capsys):
 
 def test_malformed_capture_yaml(tiny_capture, tmp_path, capsys):
     (tiny_capture / "capture.yaml").write_text("fps: [25\ncalibration: {")
-    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "capture.yaml: not valid YAML")
+    expect_error(capsys, run_argv(tiny_capture, tmp_path / "out"), "capture.yaml: not valid YAML",
+                 "at line 2, column 12")
+
+
+def test_a_tolerance_leaving_one_view_to_agree_is_refused_before_any_work(tiny_capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    expect_error(capsys, run_argv(tiny_capture, out, "--set", "reconstruction.tolerated_views=2"),
+                 "reconstruction.tolerated_views=2: the rig has 3 cameras (expected at most 1")
+    assert not out.exists()
 
 
 def test_capture_yaml_not_a_mapping(tiny_capture, tmp_path, capsys):
@@ -491,12 +499,22 @@ def test_a_failed_rerun_marks_what_it_left_incomplete(tiny_capture, tmp_path, ca
     (tiny_capture / "images" / "cam1" / "000002.png").write_bytes(b"not a png")  # read only by the stage
     expect_error(capsys, run_argv(tiny_capture, out), "000002.png: not a readable image")
     assert [path.parent.name for path in out.rglob(MANIFEST)] == ["calibration"]
-    assert (out / "export" / "joints.csv").exists()  # kept for a resume, but without a manifest
+    # The silhouettes keep the frames they wrote, to resume from; what was made from the old ones is gone.
+    assert (out / "silhouettes").is_dir()
+    assert not any((out / stage).exists() for stage in ("reconstruction", "tracking", "export"))
     assert not (out / ".lock").exists()
     assert run_cli("stages", out) == 0
     status = capsys.readouterr().out
-    assert re.search(r"export\s+incomplete", status) and "the last run failed: " in status
+    assert re.search(r"silhouettes\s+incomplete", status) and "the last run failed: " in status
     assert "000002.png: not a readable image" in status.splitlines()[-1]
+
+
+def test_eval_refuses_the_joints_of_an_unfinished_export(tiny_capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert run_cli(*run_argv(tiny_capture, out)) == 0
+    (out / "export" / MANIFEST).unlink()  # what a run killed while it rewrote the export leaves
+    expect_error(capsys, ["eval", str(out), "--truth", str(tiny_capture / "groundtruth" / "joints.csv")],
+                 "export/manifest.json: missing, the last run did not finish its export")
 
 
 def test_a_fresh_output_folder_is_gone_after_a_run_refused_at_once(tiny_capture, tmp_path, capsys):

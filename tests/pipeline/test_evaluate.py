@@ -69,3 +69,24 @@ def test_eval_without_export_is_a_usage_error(tmp_path, capsys):
 
 def test_silhouette_iou_is_none_without_masks(tmp_path):
     assert silhouette_iou(tmp_path / "a", tmp_path / "b") is None
+
+
+def test_a_truth_in_millimetres_or_of_other_frames_is_refused(run, tmp_path, capsys):
+    out, capture = run
+    truth = _truth(10)
+    write_joints_csv(tmp_path / "mm.csv", np.arange(10), 1000.0 * truth)
+    assert cli.main(["eval", str(out), "--truth", str(tmp_path / "mm.csv")]) == 2
+    assert "mm.csv: the joints of a frame spread over" in capsys.readouterr().err
+    frames_io.write_json(out / "calibration" / "capture.json", {"fps": 25.0, "frames": list(range(10))})
+    write_joints_csv(tmp_path / "late.csv", np.arange(100, 110), truth)
+    assert cli.main(["eval", str(out), "--truth", str(tmp_path / "late.csv")]) == 2
+    assert "late.csv: frames 100..109, none of them processed by the run (frames 0..9" in capsys.readouterr().err
+
+
+def test_truth_joints_of_unknown_names_are_reported(run, tmp_path, caplog):
+    out, capture = run
+    names = ("hips",) + JOINT_NAMES[1:]
+    write_joints_csv(tmp_path / "named.csv", np.arange(10), _truth(10), names=names)
+    metrics = evaluate_run(out, truth=tmp_path / "named.csv")
+    assert "named.csv: joints hips are none of the 17 the contract names" in caplog.text
+    assert "pelvis" not in metrics["per_joint_mpjpe_mm"] and len(metrics["per_joint_mpjpe_mm"]) == 14

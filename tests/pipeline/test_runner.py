@@ -338,14 +338,14 @@ def test_a_failed_rerun_leaves_nothing_that_looks_finished(setup, monkeypatch, c
     with pytest.raises(RuntimeError, match="simulated crash at frame 2"):
         run({"per_frame": {"scale": 3.0}})
     assert not (out / "per_frame" / MANIFEST).exists()
-    assert not (out / "summary" / MANIFEST).exists()  # made from the per_frame files the run replaced
-    assert (out / "source" / MANIFEST).exists() and (out / "summary" / "total.json").exists()  # kept
+    assert not (out / "summary").exists()  # made from the per_frame files the run replaced
+    assert (out / "source" / MANIFEST).exists()
     record = frames_io.read_json(out / RUN_RECORD)
     assert record["state"] == "failed" and record["params"]["per_frame"] == {"scale": 3.0}
-    assert record["failure"] == {"error": "simulated crash at frame 2", "incomplete": ["per_frame", "summary"]}
-    assert "the run failed; per_frame, summary left incomplete" in caplog.text
+    assert record["failure"] == {"error": "simulated crash at frame 2", "incomplete": ["per_frame"]}
+    assert "the run failed; per_frame left incomplete" in caplog.text
     statuses = {s.name: s.state for s in graph_status(STAGES, capture, default_params(STAGES), out)}
-    assert statuses == {"source": "up to date", "per_frame": "incomplete", "summary": "incomplete"}
+    assert statuses == {"source": "up to date", "per_frame": "incomplete", "summary": "not run"}
     monkeypatch.delenv(FAIL_AT)
     assert run({"per_frame": {"scale": 3.0}}) == {"source": "up to date", "per_frame": "ran", "summary": "ran"}
     assert work() == ["per_frame 2", "per_frame 3", "summary"]

@@ -163,3 +163,11 @@ def test_a_plate_fit_finds_the_shift_between_plate_and_frame_and_tells_another_v
     assert np.abs(aligned - frame)[10:140, 10:-10].mean() < 2.0  # the room above the person agrees
     elsewhere = cv2.GaussianBlur(rng.uniform(0, 255, (580, 780, 3)).astype(np.uint8), (0, 0), 4.0)
     assert plate_fit(elsewhere, frame).match < MIN_PLATE_MATCH
+
+
+def test_a_plate_without_the_colour_of_its_frames_is_told():
+    rng = np.random.default_rng(4)
+    room = cv2.GaussianBlur(rng.uniform(0, 255, (580, 780, 3)).astype(np.uint8), (0, 0), 2.0)
+    grey = cv2.cvtColor(cv2.cvtColor(room, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
+    assert plate_fit(grey, room).colourless and not plate_fit(room, room).colourless
+    assert not plate_fit(grey, grey).colourless  # a monochrome camera's plate and frames

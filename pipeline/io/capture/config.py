@@ -49,8 +49,8 @@ def _read_mapping(path: Path) -> dict:
     try:
         raw = plain_yaml.load(path.read_text(encoding="utf-8"), str(path))
     except (yaml.YAMLError, UnicodeDecodeError) as error:
-        first_line = str(error).splitlines()[0] if str(error) else type(error).__name__
-        raise InputError(f"{path}: not valid YAML ({first_line}) (expected a mapping of keys)") from None
+        raise InputError(f"{path}: not valid YAML ({plain_yaml.describe_error(error)}) "
+                         "(expected a mapping of keys)") from None
     if raw is None:
         raise InputError(f"{path}: empty (expected a mapping with at least fps and calibration: {{format, path}}, "
                          "see CAPTURE_FORMAT.md)")

@@ -131,6 +131,7 @@ class Capture:
         sizes = {name: _first_frame_size(source, name) for name, source in camera_media.items()}
 
         rig = _load_calibration(calibration["format"], calibration_path, sizes, chosen)
+        _check_camera_count(rig, root / "capture.yaml" if chosen is not None else calibration_path)
         _check_media_cameras(rig, root, media, camera_media, {"silhouettes": silhouette_media,
                                                               "background": background_paths}, sizes)
         calibration_rig = Rig(tuple(camera.with_size(*sizes[camera.name]) for camera in rig))
@@ -276,11 +277,17 @@ def _calibration_path(root: Path, relative: str, allow_outside_paths: bool) -> P
 def _check_media_cameras(rig: Rig, root: Path, media: str, camera_media: Mapping[str, _CameraMedia],
                          folders: Mapping[str, Mapping], sizes: Mapping[str, tuple[int, int]]) -> None:
     """The media's cameras, and those of the given ``folders`` (silhouettes/, background/), are the
-    calibration's, and the media's image sizes are those it calibrated."""
+    calibration's, and the media's image sizes are those it calibrated. Clean plates are optional per camera
+    (CAPTURE_FORMAT.md): a camera without one is reported, its background estimated from the frames."""
     _check_same_cameras(rig, set(camera_media), where=root / media)
     for folder, names in folders.items():
-        if names:
-            _check_same_cameras(rig, set(names), where=root / folder)
+        if not names:
+            continue
+        unplated = [name for name in rig.names if name not in names] if folder == "background" else []
+        _check_same_cameras(rig, set(names) | set(unplated), where=root / folder)
+        if unplated:
+            log.warning("%s: no clean plate for camera %s; %s background is estimated from the frames",
+                        root / folder, ", ".join(unplated), "its" if len(unplated) == 1 else "their")
     for camera in rig:
         if tuple(camera.size) != sizes[camera.name]:
             raise InputError(
@@ -328,6 +335,19 @@ def _load_calibration(fmt: str, path: Path, sizes: Mapping[str, tuple[int, int]]
 #: A declared up axis further than this (degrees) from the vertical the cameras' horizon gives is reported: a
 #: level studio rig agrees within a few degrees, a wrong axis is a quarter or half turn away.
 UP_DISAGREEMENT_DEG = 45.0
+
+
+def _check_camera_count(rig: Rig, where: Path) -> None:
+    """Refuse a rig of one camera and warn about one of two: the visual shape is where every view's silhouette
+    agrees, and two views bound the body from two sides only (measured in docs/results_by_hand.md, "Few
+    cameras")."""
+    if len(rig) < 2:
+        raise InputError(f"{where}: {len(rig)} camera (expected at least 2, better 3 or more around the subject: "
+                         "one view gives a silhouette, not a 3-D shape)")
+    if len(rig) == 2:
+        log.warning("%s: 2 cameras: two views bound the body from two sides only; expect joints several "
+                    "centimetres off and many doubtful frames (3 or more cameras around the subject do far better)",
+                    where)
 
 
 def _warn_other_up(rig: Rig, world: WorldTransform, declared: str, config_path: Path) -> None:
