@@ -101,6 +101,18 @@ def output_files(folder: Path) -> list[Path]:
                   and not path.name.startswith(atomic.TEMP_PREFIX))
 
 
+def unrecorded_files(folder: Path) -> list[str]:
+    """The files (relative paths) of a finished stage folder that its manifest does not list: not the stage's
+    results, but put there since (a user's notes); none for a folder without a manifest, whose files are those
+    of a run that did not finish."""
+    manifest = read_manifest(folder) if (folder / MANIFEST).is_file() else None
+    if manifest is None:
+        return []
+    recorded = manifest["outputs"]["contents"]
+    names = (path.relative_to(folder).as_posix() for path in output_files(folder))
+    return [name for name in names if name not in recorded]
+
+
 def output_contents(folder: Path) -> dict[str, str]:
     """Relative path -> content hash of each of the stage's result files.
 

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from calib.errors import InputError
+from pipeline.engine.cache import unrecorded_files
 from pipeline.engine.params import params_to_dict
 from pipeline.io import atomic, frames_io
 from pipeline.io.capture import Capture
@@ -43,12 +44,17 @@ def fresh_stage_folder(folder: Path, key: str) -> None:
 
     An existing folder is deleted only when it holds a marker: the runner writes one in every stage
     folder it makes, before any result, so a folder without one (or a file, or a link) is not the
-    runner's to delete.
+    runner's to delete; nor is a finished stage's folder holding files its manifest does not list.
     """
     if (folder.exists() or folder.is_symlink()) and not written_by_runner(folder):
         raise InputError(f"{folder}: not a stage folder written by the pipeline (no {MARKER} in it); "
                          "refusing to delete it (expected only the pipeline's own folders in --out; "
                          "move it away or choose another --out)")
+    unrecorded = unrecorded_files(folder) if folder.exists() else []
+    if unrecorded:
+        raise InputError(f"{folder / unrecorded[0]}: not written by the pipeline ({len(unrecorded)} such file(s) in "
+                         f"{folder.name}/), refusing to delete it with the stage's old results (expected only the "
+                         "pipeline's files in its stage folders: move it out)")
     if folder.exists():
         shutil.rmtree(folder)
     folder.mkdir(parents=True)

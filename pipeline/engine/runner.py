@@ -67,6 +67,7 @@ from pipeline.engine.cache import (
     output_changes,
     read_manifest,
     streamed_key,
+    unrecorded_files,
 )
 from pipeline.engine.context import StageContext
 from pipeline.engine.executors import Workers
@@ -189,6 +190,8 @@ class Runner:
             folder = self.output_root / stage.name
             has_manifest = (folder / MANIFEST).is_file()
             if has_manifest and not all(complete.get(name, False) for name in stage.inputs):
+                if unrecorded_files(folder):  # a user's file: the next run refuses to delete it, and says so
+                    continue
                 with contextlib.suppress(OSError):  # the run's own error is the one to show
                     if written_by_runner(folder):
                         shutil.rmtree(folder)

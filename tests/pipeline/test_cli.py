@@ -581,3 +581,15 @@ def test_a_run_whose_result_is_not_usable_exits_3_with_one_line(tmp_path):
     assert UNUSABLE_RESULT == 3
     (export / "joints.csv").write_text("frame,joint,x,y,z\n")  # the export of a run that lost every frame
     assert "joints.csv: no frame estimated" in unusable_result(export, 10)
+
+
+def test_a_file_the_user_put_in_a_stage_folder_is_never_deleted(tiny_capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert run_cli(*run_argv(tiny_capture, out)) == 0
+    notes = out / "export" / "notes.txt"
+    notes.write_text("mine")
+    expect_error(capsys, run_argv(tiny_capture, out, "--set", "export.bvh_units=m"),
+                 "export/notes.txt: not written by the pipeline (1 such file(s) in export/)", "move it out")
+    assert notes.read_text() == "mine"
+    notes.rename(tmp_path / "notes.txt")
+    assert run_cli(*run_argv(tiny_capture, out, "--set", "export.bvh_units=m")) == 0

@@ -229,9 +229,19 @@ def test_a_stage_folder_the_runner_did_not_write_is_never_deleted(setup, tmp_pat
 def test_a_stage_folder_the_runner_wrote_is_emptied_for_a_fresh_start(setup):
     _, out, run, _ = setup
     run()
+    (out / "per_frame" / MANIFEST).unlink()  # a run that did not finish: its files are the runner's
     (out / "per_frame" / "extra.txt").write_text("left over")
     run({"per_frame": {"scale": 3.0}})
     assert not (out / "per_frame" / "extra.txt").exists()
+
+
+def test_a_file_a_finished_stage_did_not_write_is_not_deleted(setup):
+    _, out, run, _ = setup
+    run()
+    (out / "per_frame" / "extra.txt").write_text("the user's")
+    with pytest.raises(InputError, match=r"per_frame/extra.txt: not written by the pipeline"):
+        run({"per_frame": {"scale": 3.0}})
+    assert (out / "per_frame" / "extra.txt").read_text() == "the user's"
 
 
 def test_the_runner_refuses_an_output_folder_in_the_capture(setup):
