@@ -122,6 +122,9 @@ class TrackerState:
         Running level (the likelihood level's exponential average) of the largest standard deviation of the
         fitted Σ (metres) over the tracked frames that passed the checks, and its running variance (m²): how
         wide a good fit of this capture's data is (`spread_limit`); NaN until such a frame sets them.
+    start_level : float
+        Log-likelihood per observation of the fit of the initialisation that started the track (nats); NaN when
+        it failed the checks, and after the first tracked frame (`tracker._as_likely_as_usual`).
     """
 
     pose: np.ndarray
@@ -146,6 +149,7 @@ class TrackerState:
     exchange_wait: np.ndarray | None = None
     spread_level: float = np.nan
     spread_variance: float = np.nan
+    start_level: float = np.nan
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (strict JSON: an unknown likelihood level is null, not NaN)."""
@@ -157,7 +161,8 @@ class TrackerState:
                 "velocity_variance": _listed(self.velocity_variance),
                 "search_misses": _listed(self.search_misses), "search_wait": _listed(self.search_wait),
                 "exchange_misses": _listed(self.exchange_misses), "exchange_wait": _listed(self.exchange_wait),
-                "spread_level": _finite(self.spread_level), "spread_variance": _finite(self.spread_variance)}
+                "spread_level": _finite(self.spread_level), "spread_variance": _finite(self.spread_variance),
+                "start_level": _finite(self.start_level)}
 
     @staticmethod
     def from_dict(data: dict) -> TrackerState:
@@ -181,7 +186,8 @@ class TrackerState:
                             measured_height_m=None if data.get("measured_height_m") is None
                             else float(data["measured_height_m"]),
                             spread_level=_unknown_nan(data.get("spread_level")),
-                            spread_variance=_unknown_nan(data.get("spread_variance")))
+                            spread_variance=_unknown_nan(data.get("spread_variance")),
+                            start_level=_unknown_nan(data.get("start_level")))
 
 
 #: A tracked fit's Σ is as wide as usual within this many standard deviations of the track's usual spread.

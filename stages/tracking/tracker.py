@@ -18,7 +18,8 @@ is handled here:
 - a frame far worse than usual even after more EM iterations is also fitted from the last pose
   without velocity (`restart_drop`), the better fit kept;
 - failure detection: an outlier fraction above `max_outlier_fraction`, or a Σ wider than both
-  `failure_sigma_m` and what this capture's good fits usually are (`spread_limit`), or held at the
+  `failure_sigma_m` and what this capture's good fits usually are (`spread_limit`) in a fit less likely
+  than usual (on the first frame after an initialisation, than that initialisation's fit), or held at the
   `max_sigma_m` ceiling, triggers a re-initialisation, and the better of the two fits (by likelihood) is
   kept; a frame that was fitted is never dropped:
   when both fail the checks, the better one is the estimate, flagged `doubtful`; after a doubtful
@@ -270,7 +271,9 @@ class Tracker:
         `searches` and the legs' `exchanges` in a row that kept the fit and their waits (`limbs.search_backoff`).
 
         The DOFs of limbs a search or an exchange `moved` get no velocity: their change over this frame is a
-        correction, not motion, and carried on it would throw the limb as far again at the next frame."""
+        correction, not motion, and carried on it would throw the limb as far again at the next frame. For the
+        same reason no DOF gets any on the first frame after an initialisation: its change is mostly the EM's
+        correction of the search's coarse pose."""
         per_obs = tracked.log_likelihood[-1] / observations
         height, lengths, weight = state.height_m, state.length_factors, state.height_weight
         if learning:  # running mean of the per-frame estimates of ln ℓ
@@ -284,7 +287,8 @@ class Tracker:
         elif state.segment_shares is not None:
             shares = (1 - _LEVEL_RATE) * state.segment_shares + _LEVEL_RATE * shares
         # A doubtful fit's motion is not carried on: the next frame starts from it at rest.
-        moving = state.frames_without_fit == 0 and not doubtful
+        after_initialisation = not np.isfinite(state.likelihood_level) or state.recheck
+        moving = state.frames_without_fit == 0 and not doubtful and not after_initialisation
         velocity = tracked.pose - state.pose if moving else np.zeros_like(state.velocity)
         for dofs in moved:
             velocity[dofs] = 0.0
@@ -419,7 +423,8 @@ class Tracker:
                             likelihood_level=state.likelihood_level if doubtful else np.nan,
                             frames_without_fit=0, lost=False, since_initialisation=0, segment_shares=None,
                             recheck=doubtful, search_misses=None, search_wait=None,
-                            exchange_misses=None, exchange_wait=None)
+                            exchange_misses=None, exchange_wait=None,
+                            start_level=np.nan if doubtful else fitted.log_likelihood[-1] / len(y))
         result = FrameResult(pose=fitted.pose, joints=fitted.joints,
                              log_likelihood=fitted.log_likelihood[-1], iterations=fitted.iterations,
                              outlier_fraction=fitted.outlier_fraction, status="initialised", height_m=init.height_m,
@@ -486,9 +491,17 @@ def _worse_than_usual(result: FitResult, observations: int, state: TrackerState,
 
 
 def _as_likely_as_usual(result: FitResult, observations: int, state: TrackerState, params: TrackerParams) -> bool:
-    """Whether a fit's log-likelihood per observation is within `refit_drop` of the track's level (never while the
-    level is unknown: the frames after an initialisation have no track's fits to be judged by)."""
-    return bool(np.isfinite(state.likelihood_level)) and not _worse_than_usual(result, observations, state, params)
+    """Whether a fit's log-likelihood per observation is within `refit_drop` of the track's level or, on the first
+    frame after an initialisation that passed the checks, of that initialisation's fit (`TrackerState.start_level`);
+    never when neither is known.
+
+    That first frame has no track's fits to be judged by, and its EM, started from the initialisation's Σ grown by
+    the prediction error and stopped after a few iterations, often leaves Σ wider than `failure_sigma_m` on data
+    whose good fits are wide: explaining its data about as well as the initialisation explained the frame before,
+    it is no failure, and judged one it cost a second initialisation and a doubtful flag.
+    """
+    level = state.likelihood_level if np.isfinite(state.likelihood_level) else state.start_level
+    return bool(np.isfinite(level) and result.log_likelihood[-1] / observations >= level - params.refit_drop)
 
 
 def _search_counts(misses: np.ndarray | None, wait: np.ndarray | None, count: int) -> tuple[np.ndarray, np.ndarray]:

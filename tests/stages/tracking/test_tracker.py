@@ -460,16 +460,17 @@ def test_the_prediction_carries_on_the_changes_the_track_found_smooth(body):
     rng = np.random.default_rng(5)
     walking = _walk(body.scaled(1.75), 12)
     driven = [body.dof_names.index(name) for name in ("l_thigh.flex", "r_thigh.flex", "l_forearm.flex")] + [1]
-    gains = {}
-    for name, poses in (("walk", walking), ("still", [walking[0]] * 12)):
+    gains, moved = {}, {}
+    for name, poses in (("walk", walking), ("still", [walking[0]] * 20)):
         the_tracker, state = Tracker(PARAMS, VOLUME), None
         for pose in poses:
             _, state = the_tracker.track(state, _obs(body, pose, rng))
         gains[name] = np.broadcast_to(velocity_gain(state), state.pose.shape)
+        moved[name] = state.velocity_variance > 0  # a DOF held at a limit never changes: nothing to carry on
         assert TrackerState.from_dict(json.loads(json.dumps(state.to_dict()))).velocity_variance.tolist() == \
             state.velocity_variance.tolist()
     assert gains["walk"][driven].min() > 0.9
-    assert gains["still"].max() < 0.3
+    assert moved["still"].sum() > len(moved["still"]) // 2 and gains["still"][moved["still"]].max() < 0.3
     first_frame = the_tracker.track(None, _obs(body, walking[0], rng))[1]
     assert velocity_gain(first_frame) == 1.0  # nothing measured yet: the whole change, as the paper's prediction
 
