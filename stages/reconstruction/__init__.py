@@ -41,7 +41,8 @@ class ReconstructionParams:
         when the silhouettes do not support that many.
     tolerated_views : int
         A point still counts as inside the hull when it falls outside this many silhouettes (real
-        silhouettes have holes; a camera may miss a hand). 0 = the exact visual hull.
+        silhouettes have holes; a camera may miss a hand). 0 = the exact visual hull; at most the cameras
+        less two (`check_tolerated_views`).
     rim_placement : {"osculating", "midpoint"}
         Where the visual shape puts the rim point on its viewing edge: from the other cones' tangent
         planes at the edge's ends (see ``visual_shape.py``), or the edge's midpoint.
