@@ -165,7 +165,10 @@ class Runner:
         """Mark what a failed run left incomplete (:meth:`_invalidate`), in ``run.json`` and the debug log: the
         run's own one-line error is what the terminal shows, ``pipeline stages`` reports the rest."""
         incomplete = self._invalidate()
-        message = str(error).splitlines()[0] if str(error).strip() else type(error).__name__
+        if isinstance(error, KeyboardInterrupt):
+            message = "interrupted (Ctrl-C)"
+        else:
+            message = str(error).splitlines()[0] if str(error).strip() else type(error).__name__
         log.debug("the run failed; %s left incomplete (no manifest; their files are kept and the next run "
                     "resumes from them; `python -m pipeline stages %s` lists them)",
                     ", ".join(incomplete) or "no stage", self.output_root)

@@ -534,6 +534,7 @@ def test_a_streaming_stage_killed_after_its_upstream_finished_resumes_on_its_own
     with pytest.raises(KeyboardInterrupt):
         run(stages=RESUMING)
     assert (out / "per_frame" / MANIFEST).exists() and not (out / "follower" / MANIFEST).exists()
+    assert frames_io.read_json(out / RUN_RECORD)["failure"]["error"] == "interrupted (Ctrl-C)"
     monkeypatch.delenv(FOLLOWER_FAIL_AT)
     assert run(stages=RESUMING) == {"source": "up to date", "per_frame": "up to date", "follower": "ran"}
     assert work() == [f"follower {f}" for f in frames[2:]]
