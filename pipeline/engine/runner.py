@@ -185,7 +185,8 @@ class Runner:
         Such a stage's results were made from files the failed run replaced or left unfinished: kept without
         their manifest, they would still look like this capture's results to whoever opens them (a report,
         a joints.csv that ``pipeline eval`` scores), and the next run, whose inputs differ, could not resume
-        from them anyway.
+        from them anyway. A folder holding a file its manifest does not list (a user's) is left as it is: the run
+        that must redo the stage names that file (`fresh_stage_folder`).
         """
         complete: dict[str, bool] = {}
         incomplete = []
