@@ -26,7 +26,7 @@ import numpy as np
 PLATE_SHIFT_PX = 0.5
 #: A plate whose phase correlation with its frames peaks below this is not a picture of their view.
 MIN_PLATE_MATCH = 0.1
-#: A plate with less colour than this share of its frames' (`colour_level`) is a grey-level copy of a colour view:
+#: A plate with less colour than this share of its frames' (:func:`colour_level`) is a grey-level copy of a colour view:
 #: every coloured part of the room would differ from it as much as the person does.
 MIN_PLATE_COLOUR = 0.25
 #: Frames with less colour than this (grey levels) are a monochrome camera's, for which a plate has none either.
@@ -68,10 +68,11 @@ def plate_fit(plate: np.ndarray, frame: np.ndarray) -> PlateFit:
 
 
 def colour_level(image: np.ndarray) -> float:
-    """How coloured an (H, W, 3) uint8 image is: the mean of |B − G| + |G − R| (grey levels; 0 for a grey one),
-    over every fourth pixel of every fourth row."""
-    sample = image[::4, ::4].astype(np.int16)
-    return float(np.mean(np.abs(sample[..., 0] - sample[..., 1]) + np.abs(sample[..., 1] - sample[..., 2])))
+    """How coloured an (H, W, 3) uint8 image is: the standard deviations of B − G and G − R over it, summed (grey
+    levels), on every fourth pixel of every fourth row. A grey image has none, and neither has a monochrome
+    camera's video, whose codec may leave the channels a constant step apart."""
+    sample = image[::4, ::4].astype(np.float32)
+    return float(np.std(sample[..., 0] - sample[..., 1]) + np.std(sample[..., 1] - sample[..., 2]))
 
 
 def _fast_length(length: int) -> int:

@@ -171,3 +171,5 @@ def test_a_plate_without_the_colour_of_its_frames_is_told():
     grey = cv2.cvtColor(cv2.cvtColor(room, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
     assert plate_fit(grey, room).colourless and not plate_fit(room, room).colourless
     assert not plate_fit(grey, grey).colourless  # a monochrome camera's plate and frames
+    offset = np.clip(grey.astype(int) + [0, 2, 5], 0, 255).astype(np.uint8)  # its video's channels a step apart
+    assert not plate_fit(grey, offset).colourless
