@@ -243,3 +243,19 @@ def test_a_monochrome_copy_has_grey_frames_and_plates(capture, tmp_path):
     _colmap_calibration(capture)  # a smaller rig rewrites the calibration
     smaller = perturb_capture(capture, tmp_path / "grey-one", "none", monochrome=True, cameras=("cam0",))
     assert [path.name for path in (smaller / "background").iterdir()] == ["cam0.png"]  # no plate of a camera left out
+
+
+def test_a_longer_shutter_blends_each_frame_with_the_one_before(capture, tmp_path):
+    levels = (40, 120, 200, 80)
+    writer = cv2.VideoWriter(str(capture / "videos" / "cam1.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 25, (WIDTH, HEIGHT))
+    for level in levels:
+        writer.write(np.full((HEIGHT, WIDTH, 3), level, np.uint8))
+    writer.release()
+    out = perturb_capture(capture, tmp_path / "smear", "none", shutter=0.25)
+    control = perturb_capture(capture, tmp_path / "control", "none")  # the codec's second generation alone
+    plain = [float(frame.mean()) for frame in _frames(control / "videos" / "cam1.mp4")]
+    shown = [float(frame.mean()) for frame in _frames(out / "videos" / "cam1.mp4")]
+    expected = [plain[0]] + [0.75 * now + 0.25 * before for before, now in zip(plain, plain[1:])]
+    np.testing.assert_allclose(shown, expected, atol=2)
+    with pytest.raises(InputError, match="shutter 1.0"):
+        perturb_capture(capture, tmp_path / "bad", "none", shutter=1.0)

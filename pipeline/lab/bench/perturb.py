@@ -61,6 +61,13 @@ unchanged): a plate taken before the camera was knocked or re-aimed a little.
 
     python -m pipeline.lab.bench.perturb ../shared/foreign/taekwondo --change none --plate-shift cam00:4:3 \
         --out runs/knocked
+
+With ``--shutter SHARE`` every camera's shutter stays open longer: each frame is (1 − SHARE) of itself and SHARE
+of the frame before (the first frame unchanged), what an exposure over the whole frame interval records of a
+moving subject, sampled at its two ends: a limb that moves fast shows twice, the earlier image faint (a kick's
+foot crosses several of its widths from one frame to the next). The ground truth stays that of the frame's end.
+
+    python -m pipeline.lab.bench.perturb ../shared/foreign/frontkick --change none --shutter 0.5 --out runs/smear
 """
 
 from __future__ import annotations
@@ -136,13 +143,14 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
                     absent: range = range(0), cameras: tuple[str, ...] = (),
                     calibration_error_deg: float = 0.0, zoom: dict[str, float] | None = None,
                     late: dict[str, int] | None = None,
-                    plate_shift: dict[str, tuple[float, float]] | None = None, monochrome: bool = False) -> Path:
+                    plate_shift: dict[str, tuple[float, float]] | None = None, monochrome: bool = False,
+                    shutter: float = 0.0) -> Path:
     """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
     to every frame of its videos, and the subject away on the frames ``absent``, seen by the ``cameras`` named
     (default: all) through a calibration whose cameras are each turned by ``calibration_error_deg``, the cameras
     of ``zoom`` zoomed by its factors (:func:`zoomed`), those of ``late`` that many frames behind the others, the
-    clean plates of those of ``plate_shift`` moved by its (x, y) pixels, and every frame and plate in grey levels
-    with ``monochrome``; returns ``out``.
+    clean plates of those of ``plate_shift`` moved by its (x, y) pixels, every frame and plate in grey levels
+    with ``monochrome``, and each frame blended with the one before in the share ``shutter``; returns ``out``.
 
     capture.yaml, the calibration and the background plates (unless ``plates`` is False) are copied, the ground
     truth (when there is one) linked, or rewritten without the ``absent`` frames and the cameras left out
@@ -156,13 +164,15 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         An unknown change, ``out`` already there, a capture without videos, ``absent`` frames in a capture
         without a clean plate for every camera, a camera named that has no video, an angle that is not finite, a
         zoom factor that is not a finite number of at least 1, a delay that is not a whole number of frames of
-        at least 1, or a plate shift that is not two finite numbers.
+        at least 1, a plate shift that is not two finite numbers, or a shutter share outside [0, 1).
     """
     capture, out = Path(capture), Path(out)
     if change not in CHANGES:
         raise InputError(f"unknown change {change!r} (expected one of {', '.join(CHANGES)})")
     if out.exists():
         raise InputError(f"{out}: already exists (give a new folder; nothing is overwritten)")
+    if not 0.0 <= shutter < 1.0:
+        raise InputError(f"shutter {shutter}: expected the share of the frame before, at least 0 and below 1")
     if not np.isfinite(calibration_error_deg):
         raise InputError(f"calibration error {calibration_error_deg}: expected a finite angle in degrees")
     zoom = dict(zoom or {})
@@ -224,7 +234,7 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
             frame = apply(zoomed(frame, factor), rng, camera)
             return _grey(frame) if monochrome else frame
 
-        _rewrite(video, partial / "videos" / (video.stem + ".mp4"), changed, late.get(video.stem, 0))
+        _rewrite(video, partial / "videos" / (video.stem + ".mp4"), changed, late.get(video.stem, 0), shutter)
     partial.rename(out)
     return out
 
@@ -332,14 +342,17 @@ def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], 
             (target / path.name).symlink_to(path.resolve(), target_is_directory=path.is_dir())
 
 
-def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray, int], np.ndarray], late: int = 0) -> None:
+def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray, int], np.ndarray], late: int = 0,
+             shutter: float = 0.0) -> None:
     """Decode ``source``, change every frame (as float32, with its index) and encode the result to ``target``;
-    ``late``: each frame t is the source's t - late (its first frame before that), as many frames as the source."""
+    ``late``: each frame t is the source's t - late (its first frame before that), as many frames as the source;
+    ``shutter``: each frame, before the change, is (1 - shutter) of itself and ``shutter`` of the one before."""
     reader = cv2.VideoCapture(str(source))
     fps = reader.get(cv2.CAP_PROP_FPS)
     writer = None
     index = 0
     recent: list[np.ndarray] = []  # the source's last late + 1 frames
+    previous = None  # the last frame taken, for the shutter
     try:
         while True:
             ok, frame = reader.read()
@@ -353,7 +366,10 @@ def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray, int], np.
                                          (frame.shape[1], frame.shape[0]))
                 if not writer.isOpened():
                     raise InputError(f"{target}: OpenCV cannot write an MPEG-4 video here")
-            writer.write(_to_uint8(change(frame.astype(np.float32), index)))
+            taken = frame.astype(np.float32)
+            exposed = taken if previous is None else (1.0 - shutter) * taken + shutter * previous
+            previous = taken
+            writer.write(_to_uint8(change(exposed, index)))
             index += 1
     finally:
         reader.release()
@@ -434,11 +450,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="every frame and plate in grey levels (monochrome cameras)")
     parser.add_argument("--plate-shift", type=_plate_shifts, default={}, metavar="NAME:DX:DY,...",
                         help="these cameras' clean plates moved by (DX, DY) pixels (a camera knocked after its plate)")
+    parser.add_argument("--shutter", type=float, default=0.0, metavar="SHARE",
+                        help="each frame blended with the one before in this share (a longer exposure: moving "
+                             "limbs smeared)")
     args = parser.parse_args(argv)
     try:
         perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates,
                         absent=args.absent, cameras=args.cameras, calibration_error_deg=args.calibration_error,
-                        zoom=args.zoom, late=args.late, plate_shift=args.plate_shift, monochrome=args.monochrome)
+                        zoom=args.zoom, late=args.late, plate_shift=args.plate_shift, monochrome=args.monochrome,
+                        shutter=args.shutter)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
