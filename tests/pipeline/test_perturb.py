@@ -11,6 +11,7 @@ import pytest
 from calib.camera import Camera, Rig
 from calib.errors import InputError
 from calib.formats import load_rig, save_rig
+from pipeline.io.export_io import read_joints_csv, write_joints_csv
 from pipeline.lab.bench.perturb import main, perturb_capture
 
 FRAMES, HEIGHT, WIDTH = 4, 48, 64
@@ -251,11 +252,22 @@ def test_a_longer_shutter_blends_each_frame_with_the_one_before(capture, tmp_pat
     for level in levels:
         writer.write(np.full((HEIGHT, WIDTH, 3), level, np.uint8))
     writer.release()
+    write_joints_csv(capture / "groundtruth" / "joints.csv", np.arange(FRAMES), np.zeros((FRAMES, 17, 3)))
     out = perturb_capture(capture, tmp_path / "smear", "none", shutter=0.25)
     control = perturb_capture(capture, tmp_path / "control", "none")  # the codec's second generation alone
     plain = [float(frame.mean()) for frame in _frames(control / "videos" / "cam1.mp4")]
     shown = [float(frame.mean()) for frame in _frames(out / "videos" / "cam1.mp4")]
-    expected = [plain[0]] + [0.75 * now + 0.25 * before for before, now in zip(plain, plain[1:])]
+    expected = [plain[0]] + [0.75 * now + 0.25 * before for before, now in zip(plain[:-1], plain[1:], strict=True)]
     np.testing.assert_allclose(shown, expected, atol=2)
     with pytest.raises(InputError, match="shutter 1.0"):
         perturb_capture(capture, tmp_path / "bad", "none", shutter=1.0)
+
+
+def test_a_longer_shutter_times_the_true_joints_at_the_exposures_mean(capture, tmp_path):
+    truth = np.arange(3 * 17 * 3, dtype=float).reshape(3, 17, 3) / 100.0
+    write_joints_csv(capture / "groundtruth" / "joints.csv", np.array([0, 1, 3]), truth)  # frame 2 missing
+    out = perturb_capture(capture, tmp_path / "smear", "none", shutter=0.25)
+    frames, _, joints = read_joints_csv(out / "groundtruth" / "joints.csv")
+    assert frames.tolist() == [0, 1, 3] and not (out / "groundtruth").is_symlink()
+    np.testing.assert_allclose(joints[[0, 2]], truth[[0, 2]], atol=1e-6)  # no frame before them
+    np.testing.assert_allclose(joints[1], 0.75 * truth[1] + 0.25 * truth[0], atol=1e-6)

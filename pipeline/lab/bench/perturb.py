@@ -65,7 +65,9 @@ unchanged): a plate taken before the camera was knocked or re-aimed a little.
 With ``--shutter SHARE`` every camera's shutter stays open longer: each frame is (1 − SHARE) of itself and SHARE
 of the frame before (the first frame unchanged), what an exposure over the whole frame interval records of a
 moving subject, sampled at its two ends: a limb that moves fast shows twice, the earlier image faint (a kick's
-foot crosses several of its widths from one frame to the next). The ground truth stays that of the frame's end.
+foot crosses several of its widths from one frame to the next). The copy's true joints are those of the exposure's
+mean time, (1 − SHARE) of the frame's and SHARE of the frame before's (the pose such a frame shows, to which its two
+images are equally near when SHARE is 0.5); its true masks stay the frame's own.
 
     python -m pipeline.lab.bench.perturb ../shared/foreign/frontkick --change none --shutter 0.5 --out runs/smear
 """
@@ -87,6 +89,7 @@ from calib.camera import Camera, Rig
 from calib.errors import InputError
 from calib.formats import load_rig, save_rig
 from pipeline.io.capture import Capture
+from pipeline.io.export_io import read_joints_csv, write_joints_csv
 from stages.background.plates import shifted_plate
 
 # What each change does to a frame (float32 8-bit levels, BGR), given a random generator and the camera's index.
@@ -221,9 +224,9 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
             else:
                 shutil.copy2(plate, partial / "background" / plate.name)
     if (capture / "groundtruth").is_dir():
-        if absent or cameras or zoom or late:
+        if absent or cameras or zoom or late or shutter:
             _truth_without(capture / "groundtruth", partial / "groundtruth", absent, {video.stem for video in videos},
-                           zoom, late)
+                           zoom, late, shutter)
         else:
             (partial / "groundtruth").symlink_to((capture / "groundtruth").resolve(), target_is_directory=True)
     for camera, (video, plate) in enumerate(zip(videos, empty_room, strict=True)):
@@ -309,14 +312,22 @@ def _plate(capture: Path, camera: str) -> np.ndarray:
 
 
 def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], zoom: dict[str, float],
-                   late: dict[str, int]) -> None:
+                   late: dict[str, int], shutter: float = 0.0) -> None:
     """``target``, the ground truth at ``truth`` without the ``absent`` frames, seen by ``cameras``: the absent
     frames' joints.csv rows left out and their masks empty, the other cameras' masks left out, the masks of the
     cameras of ``zoom`` zoomed (:func:`zoomed`), those of the cameras of ``late`` the earlier frame's (the other
-    masks and files linked)."""
+    masks and files linked); with a ``shutter``, each frame's joints moved that share of the way back to the frame
+    before's (the exposure's mean time)."""
     target.mkdir()
     for path in sorted(truth.iterdir()):
-        if path.name == "joints.csv":
+        if path.name == "joints.csv" and shutter:
+            frames, names, joints = read_joints_csv(path)
+            follows = np.flatnonzero(np.diff(frames) == 1) + 1  # frames whose frame before is in the truth
+            exposed = joints.copy()
+            exposed[follows] = (1.0 - shutter) * joints[follows] + shutter * joints[follows - 1]
+            kept = ~np.isin(frames, list(absent))
+            write_joints_csv(target / path.name, frames[kept], exposed[kept], names)
+        elif path.name == "joints.csv":
             with path.open(newline="") as source, (target / path.name).open("w", newline="") as copy:
                 rows = csv.reader(source)
                 writer = csv.writer(copy)

@@ -73,6 +73,7 @@ class Variant:
     first_camera_zoom: float | None = None
     calibration_error_deg: float = 0.0
     first_plate_shift: tuple[float, float] | None = None
+    shutter: float = 0.0
 
     @property
     def slug(self) -> str:
@@ -81,13 +82,15 @@ class Variant:
 
     def arguments(self, cameras: Sequence[str]) -> dict:
         """:func:`perturb_capture`'s keyword arguments for a capture whose cameras are ``cameras`` (sorted); a plate
-        shift only when there is one, so that the other copies keep their cache keys (:func:`cache_key`)."""
+        shift and a shutter only when there are, so that the other copies keep their cache keys (:func:`cache_key`)."""
         arguments = {"change": self.change, "seed": SEED, "plates": self.plates,
                      "cameras": tuple(cameras[:self.first_cameras]) if self.first_cameras is not None else (),
                      "calibration_error_deg": self.calibration_error_deg,
                      "zoom": {cameras[0]: self.first_camera_zoom} if self.first_camera_zoom is not None else None}
         if self.first_plate_shift is not None:
             arguments["plate_shift"] = {cameras[0]: self.first_plate_shift}
+        if self.shutter:
+            arguments["shutter"] = self.shutter
         return arguments
 
 
@@ -101,6 +104,7 @@ VARIANTS = (
     Variant("one camera zoomed 1.8x", first_camera_zoom=1.8),
     Variant("calibration off 0.1°", calibration_error_deg=0.1),
     Variant("one plate 5 px off", first_plate_shift=(4.0, 3.0)),
+    Variant("shutter open the whole frame", shutter=0.5),
 )
 #: The variants of a quick run (a smoke test): one that changes the frames, one that changes the rig and the truth.
 QUICK_VARIANTS = ("compression", "4 cameras")
