@@ -26,6 +26,14 @@ def _frames(video: Path) -> list[np.ndarray]:
     return frames
 
 
+def _write_flat_video(path: Path, levels: tuple[int, ...]) -> None:
+    """A video of uniform frames, one grey level each: what a change did to a frame shows in its mean."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 25, (WIDTH, HEIGHT))
+    for level in levels:
+        writer.write(np.full((HEIGHT, WIDTH, 3), level, np.uint8))
+    writer.release()
+
+
 @pytest.fixture
 def capture(tmp_path) -> Path:
     """A capture folder with two short videos of smooth colours, a plate per camera, a calibration and truth."""
@@ -197,11 +205,7 @@ def test_a_zoomed_camera_sees_the_middle_of_its_image_enlarged_and_its_calibrati
 
 
 def test_a_late_camera_shows_the_others_earlier_frames_and_its_true_masks_follow(capture, tmp_path):
-    levels = (40, 90, 140, 190)
-    writer = cv2.VideoWriter(str(capture / "videos" / "cam1.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 25, (WIDTH, HEIGHT))
-    for level in levels:
-        writer.write(np.full((HEIGHT, WIDTH, 3), level, np.uint8))
-    writer.release()
+    _write_flat_video(capture / "videos" / "cam1.mp4", (40, 90, 140, 190))
     for camera in ("cam0", "cam1"):
         (capture / "groundtruth" / "masks" / camera).mkdir(parents=True)
         for frame in range(FRAMES):
@@ -247,11 +251,7 @@ def test_a_monochrome_copy_has_grey_frames_and_plates(capture, tmp_path):
 
 
 def test_a_longer_shutter_blends_each_frame_with_the_one_before(capture, tmp_path):
-    levels = (40, 120, 200, 80)
-    writer = cv2.VideoWriter(str(capture / "videos" / "cam1.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 25, (WIDTH, HEIGHT))
-    for level in levels:
-        writer.write(np.full((HEIGHT, WIDTH, 3), level, np.uint8))
-    writer.release()
+    _write_flat_video(capture / "videos" / "cam1.mp4", (40, 120, 200, 80))
     write_joints_csv(capture / "groundtruth" / "joints.csv", np.arange(FRAMES), np.zeros((FRAMES, 17, 3)))
     out = perturb_capture(capture, tmp_path / "smear", "none", shutter=0.25)
     control = perturb_capture(capture, tmp_path / "control", "none")  # the codec's second generation alone
