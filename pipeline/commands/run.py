@@ -20,7 +20,7 @@ from calib.errors import InputError
 from pipeline import graph
 from pipeline.engine import run_warnings
 from pipeline.engine.executors import Workers, make_executor, usable_cpus
-from pipeline.engine.output_folder import output_lock, storage_error
+from pipeline.engine.output_folder import check_own_files, output_lock, storage_error
 from pipeline.engine.params import apply_all, default_params, read_overrides
 from pipeline.engine.runner import Runner, StageOutcome, format_summary
 from pipeline.engine.stage import select_stages
@@ -160,6 +160,7 @@ def run_capture(capture_dir: Path, out: Path, params: Mapping[str, Any], workers
             runner = Runner(graph.STAGES, capture, params, out, workers, show_progress,  # refuses --out in the capture
                             record_facts={"allow_outside_paths": allow_outside_paths})
             with output_lock(out):
+                check_own_files(out)
                 warnings.attach(out)
                 outcomes = runner.run(selected, force=force)
     except OSError as error:  # a full or read-only disk, from this process or a worker: the user's to fix

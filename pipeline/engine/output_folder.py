@@ -18,7 +18,7 @@ from pipeline.engine.cache import unrecorded_files
 from pipeline.engine.params import params_to_dict
 from pipeline.io import atomic, frames_io
 from pipeline.io.capture import Capture
-from pipeline.io.run_layout import LOCK, MARKER, RUN_RECORD
+from pipeline.io.run_layout import LOCK, MARKER, RUN_RECORD, WARNINGS_FILE
 
 
 def check_output_folder(output_root: Path, capture_root: Path) -> None:
@@ -59,6 +59,23 @@ def fresh_stage_folder(folder: Path, key: str) -> None:
         shutil.rmtree(folder)
     folder.mkdir(parents=True)
     atomic.write_text(folder / MARKER, key + "\n")
+
+
+def check_own_files(output_root: Path) -> None:
+    """Refuse an output folder whose ``run.json`` or ``warnings.json`` the pipeline did not write: a run rewrites
+    both, and a user's files of those names would be lost."""
+    for name, ours in ((RUN_RECORD, lambda data: isinstance(data, dict) and {"capture", "state"} <= data.keys()),
+                       (WARNINGS_FILE, lambda data: isinstance(data, dict) and isinstance(data.get("warnings"), list))):
+        path = output_root / name
+        if not path.is_file():
+            continue
+        try:
+            written = ours(frames_io.read_json(path))
+        except (OSError, frames_io.DamagedFileError):
+            written = False
+        if not written:
+            raise InputError(f"{path}: not written by the pipeline, which keeps its own record under this name "
+                             "(expected an output folder without it: move it away or choose another --out)")
 
 
 @contextlib.contextmanager

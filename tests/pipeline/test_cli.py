@@ -593,3 +593,15 @@ def test_a_file_the_user_put_in_a_stage_folder_is_never_deleted(tiny_capture, tm
     assert notes.read_text() == "mine"
     notes.rename(tmp_path / "notes.txt")
     assert run_cli(*run_argv(tiny_capture, out, "--set", "export.bvh_units=m")) == 0
+
+
+@pytest.mark.parametrize("name", ["run.json", "warnings.json"])
+def test_a_users_file_named_like_the_runs_own_record_is_not_overwritten(tiny_capture, tmp_path, capsys, name):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / name).write_text('{"my": "own"}')
+    expect_error(capsys, run_argv(tiny_capture, out), f"{name}: not written by the pipeline")
+    assert (out / name).read_text() == '{"my": "own"}'
+    (out / name).unlink()
+    assert run_cli(*run_argv(tiny_capture, out)) == 0
+    assert run_cli(*run_argv(tiny_capture, out)) == 0  # its own files pass
