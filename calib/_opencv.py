@@ -16,8 +16,7 @@ import numpy as np
 
 from calib import _parse
 from calib.camera import Rig
-from calib.errors import InputError
-from calib.formats import NO_IMAGE_SIZE
+from calib.errors import InputError, NoImageSize
 
 INTRINSICS = "intri.yml"
 EXTRINSICS = "extri.yml"
@@ -122,8 +121,8 @@ def load(path: Path, image_sizes: dict[str, tuple[int, int]] | None, keep: set[s
         elif intri.has(f"W_{name}") and intri.has(f"H_{name}"):
             size = (intri.integer(f"W_{name}"), intri.integer(f"H_{name}"))
         else:
-            raise InputError(
-                f"{intri_path}: {NO_IMAGE_SIZE} {name!r} (no W_{name}/H_{name} keys),"
+            raise NoImageSize(
+                f"{intri_path}: no image size for camera {name!r} (no W_{name}/H_{name} keys),"
                 " expected it from the camera's video or images"
             )
         cameras.append(

@@ -16,8 +16,8 @@ import scipy.linalg
 
 from calib import _parse
 from calib.camera import Rig
-from calib.errors import InputError
-from calib.formats import NO_IMAGE_SIZE, natural_key
+from calib.errors import InputError, NoImageSize
+from calib.formats import natural_key
 
 #: Extension the writer gives each camera's file (the name is everything before the first dot).
 FILE_SUFFIX = ".P.txt"
@@ -94,7 +94,7 @@ def load(path: Path, image_sizes: dict[str, tuple[int, int]], keep: set[str] | N
         if keep is not None and name not in keep:
             continue
         if name not in image_sizes:
-            raise InputError(f"{file}: {NO_IMAGE_SIZE} {name!r}, expected it from the camera's "
+            raise NoImageSize(f"{file}: no image size for camera {name!r}, expected it from the camera's "
                              "video or images")
         K, R, t = decompose(read_matrix(file))
         cameras.append(_parse.camera(str(file), name=name, K=K, dist=np.zeros(5), R=R, t=t,

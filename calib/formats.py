@@ -21,8 +21,6 @@ FORMATS = ("colmap", "opencv", "anipose", "projection", "qualisys")
 #: Formats whose readers take the image sizes of the media: opencv and projection store none, qualisys the
 #: sensor's (the videos may be recorded smaller, and marker-only cameras have none).
 SIZELESS_FORMATS = ("opencv", "projection", "qualisys")
-#: How their readers' errors begin for a camera whose media are missing, so that a caller can say how to leave it out.
-NO_IMAGE_SIZE = "no image size for camera"
 
 
 _DIGITS = re.compile(r"(\d+)")

@@ -131,10 +131,9 @@ def check_truth(path: str | os.PathLike, names: tuple[str, ...], joints: np.ndar
     A truth in millimetres scored as metres gives an MPJPE of kilometres without a word of the cause; a joint
     named otherwise than the contract's (``hips`` for ``pelvis``) silently drops out of the scores.
     """
-    extent = np.nanmax(joints, axis=1) - np.nanmin(joints, axis=1) if joints.size else np.zeros((0, 3))
-    widest = np.nanmax(extent, axis=1) if len(extent) else extent
-    if len(widest) and np.nanmedian(widest) > MAX_BODY_EXTENT_M:
-        raise InputError(f"{path}: the joints of a frame spread over {np.nanmedian(widest):.4g} units (median), "
+    widest = np.nanmedian(np.nanmax(np.nanmax(joints, axis=1) - np.nanmin(joints, axis=1), axis=1))
+    if widest > MAX_BODY_EXTENT_M:  # read_joints_csv refuses a file without rows: every frame has some joint
+        raise InputError(f"{path}: the joints of a frame spread over {widest:.4g} units (median), "
                          f"expected metres (a person spans at most {MAX_BODY_EXTENT_M:g} m; millimetres?)")
     unknown = [name for name in names if name not in JOINT_NAMES]
     if unknown:

@@ -105,7 +105,7 @@ def unrecorded_files(folder: Path) -> list[str]:
     """The files (relative paths) of a finished stage folder that its manifest does not list: not the stage's
     results, but put there since (a user's notes); none for a folder without a manifest, whose files are those
     of a run that did not finish."""
-    manifest = read_manifest(folder) if (folder / MANIFEST).is_file() else None
+    manifest = read_manifest(folder)
     if manifest is None:
         return []
     recorded = manifest["outputs"]["contents"]

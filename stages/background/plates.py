@@ -36,7 +36,8 @@ MONOCHROME_LEVELS = 2.0
 @dataclass(frozen=True)
 class PlateFit:
     """Where a plate lies against a frame of its camera: ``shift`` (x, y) pixels, the frame's content at the plate's
-    plus this, and ``match``, the height of the phase correlation's peak (0 to 1)."""
+    plus this, and ``match``, the height of the phase correlation's peak (0 to 1); and whether it is
+    ``colourless`` against a frame in colour (a grey-level copy, :data:`MIN_PLATE_COLOUR`)."""
 
     shift: tuple[float, float]
     match: float

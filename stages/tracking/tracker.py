@@ -483,11 +483,15 @@ def turned_around(pose: np.ndarray, previous: np.ndarray) -> bool:
     return bool(abs(np.angle(np.exp(1j * (pose[3] - previous[3])))) > np.pi / 2)
 
 
+def _below(level: float, result: FitResult, observations: int, params: TrackerParams) -> bool:
+    """Whether a fit's log-likelihood per observation is `refit_drop` below ``level`` (nats; never when NaN)."""
+    return bool(np.isfinite(level) and result.log_likelihood[-1] / observations < level - params.refit_drop)
+
+
 def _worse_than_usual(result: FitResult, observations: int, state: TrackerState, params: TrackerParams) -> bool:
     """Whether a fit's log-likelihood per observation is `refit_drop` below the track's level (never while the
     level is unknown): what gets more EM iterations, the legs' exchange, and the limbs' searches at once."""
-    level = state.likelihood_level
-    return bool(np.isfinite(level) and result.log_likelihood[-1] / observations < level - params.refit_drop)
+    return _below(state.likelihood_level, result, observations, params)
 
 
 def _as_likely_as_usual(result: FitResult, observations: int, state: TrackerState, params: TrackerParams) -> bool:
@@ -501,7 +505,7 @@ def _as_likely_as_usual(result: FitResult, observations: int, state: TrackerStat
     it is no failure, and judged one it cost a second initialisation and a doubtful flag.
     """
     level = state.likelihood_level if np.isfinite(state.likelihood_level) else state.start_level
-    return bool(np.isfinite(level) and result.log_likelihood[-1] / observations >= level - params.refit_drop)
+    return bool(np.isfinite(level)) and not _below(level, result, observations, params)
 
 
 def _search_counts(misses: np.ndarray | None, wait: np.ndarray | None, count: int) -> tuple[np.ndarray, np.ndarray]:

@@ -32,8 +32,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from calib.camera import Rig
-from calib.errors import InputError
-from calib.formats import NO_IMAGE_SIZE, load_rig
+from calib.errors import InputError, NoImageSize
+from calib.formats import load_rig
 from calib.sanity import check_intrinsics, check_rig_size
 from calib.world import WorldTransform, fixed_transform, nearest_up_axis, rig_vertical
 from pipeline.io import frames_io
@@ -281,13 +281,12 @@ def _check_media_cameras(rig: Rig, root: Path, media: str, camera_media: Mapping
     (CAPTURE_FORMAT.md): a camera without one is reported, its background estimated from the frames."""
     _check_same_cameras(rig, set(camera_media), where=root / media)
     for folder, names in folders.items():
-        if not names:
-            continue
-        unplated = [name for name in rig.names if name not in names] if folder == "background" else []
-        _check_same_cameras(rig, set(names) | set(unplated), where=root / folder)
-        if unplated:
-            log.warning("%s: no clean plate for camera %s; %s background is estimated from the frames",
-                        root / folder, ", ".join(unplated), "its" if len(unplated) == 1 else "their")
+        if names:
+            _check_same_cameras(rig, set(names), where=root / folder, every=folder != "background")
+    unplated = [name for name in rig.names if name not in folders["background"]]
+    if folders["background"] and unplated:
+        log.warning("%s: no clean plate for camera %s; %s background is estimated from the frames",
+                    root / "background", ", ".join(unplated), "its" if len(unplated) == 1 else "their")
     for camera in rig:
         if tuple(camera.size) != sizes[camera.name]:
             raise InputError(
@@ -324,7 +323,7 @@ def _load_calibration(fmt: str, path: Path, sizes: Mapping[str, tuple[int, int]]
         return load_rig(fmt, path, image_sizes=dict(sizes), cameras=cameras)
     except InputError as error:
         message = str(error)
-        if NO_IMAGE_SIZE in message:  # a calibrated camera without media
+        if isinstance(error, NoImageSize):  # a calibrated camera without media
             message += "; `cameras:` in capture.yaml lists the ones to use"
         raise InputError(message if str(path) in message else f"{path}: {message}") from None
     except (OSError, ValueError, KeyError, TypeError) as error:
@@ -332,15 +331,10 @@ def _load_calibration(fmt: str, path: Path, sizes: Mapping[str, tuple[int, int]]
                          f"(expected a valid {fmt} calibration, see CAPTURE_FORMAT.md)") from None
 
 
-#: A declared up axis further than this (degrees) from the vertical the cameras' horizon gives is reported: a
-#: level studio rig agrees within a few degrees, a wrong axis is a quarter or half turn away.
-UP_DISAGREEMENT_DEG = 45.0
-
-
 def _check_camera_count(rig: Rig, where: Path) -> None:
     """Refuse a rig of one camera and warn about one of two: the visual shape is where every view's silhouette
-    agrees, and two views bound the body from two sides only (measured in docs/results_by_hand.md, "Few
-    cameras")."""
+    agrees, and two views bound the body from two sides only (measured in docs/results_by_hand.md, "A user's bad
+    input, swept")."""
     if len(rig) < 2:
         raise InputError(f"{where}: {len(rig)} camera (expected at least 2, better 3 or more around the subject: "
                          "one view gives a silhouette, not a 3-D shape)")
@@ -350,14 +344,17 @@ def _check_camera_count(rig: Rig, where: Path) -> None:
                     where)
 
 
+#: A declared up axis further than this (degrees) from the vertical the cameras' horizon gives is reported: a
+#: level studio rig agrees within a few degrees, a wrong axis is a quarter or half turn away.
+UP_DISAGREEMENT_DEG = 45.0
+
+
 def _warn_other_up(rig: Rig, world: WorldTransform, declared: str, config_path: Path) -> None:
     """One warning when the cameras of ``rig`` (in the pipeline's world, converted with ``declared`` as up) make
     the vertical another axis of the calibration (:func:`calib.world.rig_vertical`: studio cameras do not roll):
     with a wrong ``calibration.up`` the floor, the working volume and the shadows' test are all askew, and what
     the run shows is a cascade of lost frames. A rig of cameras turned on their side would disagree as well,
     hence a warning, not an error."""
-    if len(rig) < 2:
-        return
     vertical, _ = rig_vertical(rig)
     angle = float(np.degrees(np.arccos(np.clip(vertical[2], -1.0, 1.0))))
     if angle <= UP_DISAGREEMENT_DEG:
@@ -368,12 +365,14 @@ def _warn_other_up(rig: Rig, world: WorldTransform, declared: str, config_path: 
                 declared, likely, angle)
 
 
-def _check_same_cameras(rig: Rig, names: set[str], *, where: Path) -> None:
+def _check_same_cameras(rig: Rig, names: set[str], *, where: Path, every: bool = True) -> None:
+    """Refuse ``names`` (of the cameras found ``where``) not in the calibration and, when ``every``, calibrated
+    cameras missing from them."""
     calibrated = set(rig.names)
     if names - calibrated:
         raise InputError(f"{where}: camera {sorted(names - calibrated)[0]!r} is not in the calibration "
                          f"(expected one of {', '.join(rig.names)})")
-    if calibrated - names:
+    if every and calibrated - names:
         raise InputError(f"{where}: calibrated camera {sorted(calibrated - names)[0]!r} has no media here "
                          f"(expected a file or folder for each of {', '.join(rig.names)}; `cameras:` in capture.yaml "
                          "lists the ones to use)")

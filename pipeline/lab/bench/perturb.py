@@ -324,7 +324,7 @@ def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], 
             frames, names, joints = read_joints_csv(path)
             follows = np.flatnonzero(np.diff(frames) == 1) + 1  # frames whose frame before is in the truth
             exposed = joints.copy()
-            exposed[follows] = (1.0 - shutter) * joints[follows] + shutter * joints[follows - 1]
+            exposed[follows] = _exposure(joints[follows], joints[follows - 1], shutter)
             kept = ~np.isin(frames, list(absent))
             write_joints_csv(target / path.name, frames[kept], exposed[kept], names)
         elif path.name == "joints.csv":
@@ -378,7 +378,7 @@ def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray, int], np.
                 if not writer.isOpened():
                     raise InputError(f"{target}: OpenCV cannot write an MPEG-4 video here")
             taken = frame.astype(np.float32)
-            exposed = taken if previous is None else (1.0 - shutter) * taken + shutter * previous
+            exposed = taken if previous is None else _exposure(taken, previous, shutter)
             previous = taken
             writer.write(_to_uint8(change(exposed, index)))
             index += 1
@@ -388,6 +388,12 @@ def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray, int], np.
             writer.release()
     if writer is None:
         raise InputError(f"{source}: no frame could be decoded")
+
+
+def _exposure(now: np.ndarray, before: np.ndarray, shutter: float) -> np.ndarray:
+    """What a shutter open over ``shutter`` of the frame before as well records, of frames or of joints alike: the
+    blend (1 − shutter) now + shutter before."""
+    return (1.0 - shutter) * now + shutter * before
 
 
 def _frame_span(text: str) -> range:
