@@ -152,24 +152,25 @@ def _write_masks(out_dir: Path, names: Sequence[str], frame: int, masks: Sequenc
         frames_io.write_mask(silhouette_path(out_dir, camera, frame), mask)
 
 
-def reconstruction_task(chunk: Sequence[int], *, capture: Capture, params: ReconstructionParams,
+def reconstruction_task(chunk: Sequence[int], *, capture: Capture, rig: Rig, params: ReconstructionParams,
                         masks_dir: Path, out_dir: Path) -> None:
-    """Worker: points and normals of a chunk of frames from the silhouette stage's masks."""
+    """Worker: points and normals of a chunk of frames from the silhouette stage's masks, seen by ``rig`` (the
+    capture's cameras, or as the silhouettes refined them: `pipeline.graph.refined_rig`)."""
     from stages.reconstruction import reconstruct  # here rather than above: see the module's docstring
     from stages.reconstruction.views import subject_cut_off
 
     with single_threaded_opencv():
         for frame in chunk:
             masks = [frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame), camera.size)
-                     for camera in capture.rig]
-            empty = [camera for camera, mask in zip(capture.rig.names, masks, strict=True) if not mask.any()]
+                     for camera in rig]
+            empty = [camera for camera, mask in zip(rig.names, masks, strict=True) if not mask.any()]
             if empty:
                 log.warning("frame %d: empty silhouette in camera(s) %s", frame, ", ".join(empty))
-            for camera, mask in zip(capture.rig.names, masks, strict=True):
+            for camera, mask in zip(rig.names, masks, strict=True):
                 if subject_cut_off(mask):  # one message per camera: each folds over its frames
                     log.warning("frame %d: the subject reaches the image's border in camera %s (partly out of its "
                                 "view: that part comes from the other cameras)", frame, camera)
-            observations = reconstruct(masks, capture.rig, capture.volume, params)
+            observations = reconstruct(masks, rig, capture.volume, params)
             if len(observations) < FEW_OBSERVATIONS:
                 log.warning("frame %d: only %d observations (person out of view or silhouettes disagree)",
                             frame, len(observations))

@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calib.camera import Rig
 from calib.formats import save_rig
 from pipeline.engine.context import StageContext
 from pipeline.engine.executors import usable_cpus
@@ -62,9 +63,11 @@ from pipeline.io.run_layout import (
     RIG_FILE,
     background_path,
     calibration_check_path,
+    calibration_refinement_path,
     noise_floors_path,
     observations_path,
     overlay_video_name,
+    refined_rig_path,
     silhouette_path,
 )
 from pipeline.io.tracking_io import read_tracking
@@ -77,7 +80,14 @@ from stages.joints import JOINT_NAMES
 from stages.reconstruction import Observations, ReconstructionParams
 from stages.reconstruction.views import VOLUME_FACES, faces_reached
 from stages.silhouettes import SilhouetteParams
-from stages.tangency import camera_disagreement, cameras_at_fault, pair_disagreement, pair_medians
+from stages.tangency import (
+    camera_disagreement,
+    cameras_at_fault,
+    pair_disagreement,
+    pair_medians,
+    refine_turns,
+    turned,
+)
 from stages.tracking.params import TrackerParams
 from stages.tracking.results import BodyHeight, FrameResult, frame_record
 from stages.tracking.tracker import Tracker
@@ -306,10 +316,53 @@ def video_chunk_size(pending: int, workers: int) -> int:
 
 
 def run_reconstruction(ctx: StageContext) -> int:
-    """Per frame, sparse surface points with outward normals from all cameras' silhouettes."""
-    task = functools.partial(reconstruction_task, capture=ctx.capture, params=ctx.params,
-                             masks_dir=ctx.input_dir("silhouettes"), out_dir=ctx.out_dir)
+    """Per frame, sparse surface points with outward normals from all cameras' silhouettes, with the cameras'
+    orientations refined from the silhouettes first (``refine_calibration``, `refined_rig`)."""
+    masks_dir = ctx.input_dir("silhouettes")
+    rig = refined_rig(ctx.capture, masks_dir, ctx.out_dir) if ctx.params.refine_calibration else ctx.capture.rig
+    task = functools.partial(reconstruction_task, capture=ctx.capture, rig=rig, params=ctx.params,
+                             masks_dir=masks_dir, out_dir=ctx.out_dir)
     return ctx.map_frames(task, lambda frame: [observations_path(ctx.out_dir, frame)])
+
+
+#: Frames, spread over the capture, whose silhouettes refine the cameras' orientations.
+REFINEMENT_FRAMES = 30
+
+
+def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path) -> Rig:
+    """The capture's rig with each camera turned about its centre as the silhouettes' tangencies say
+    (`stages.tangency.refine_turns`), when that explains them clearly better; else the rig as given.
+
+    Writes what was measured and decided (`calibration_refinement_path`) and, when the turns are kept, the cameras
+    as the reconstruction uses them (`refined_rig_path`, anipose TOML: for the user's next run or other tools).
+    """
+    rig = capture.rig
+    if len(rig) < 3:  # two views' tangencies say nothing the calibration could be wrong about
+        return rig
+    frames = spread_frames(capture.frame_numbers, REFINEMENT_FRAMES)
+    masks = [[frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame)) for camera in rig]
+             for frame in frames]
+    refinement = refine_turns(masks, list(rig), capture.volume.mean(axis=0))
+    degrees = np.degrees(np.linalg.norm(refinement.turns, axis=1))
+    frames_io.write_json(calibration_refinement_path(out_dir), {
+        "method": "epipolar tangency", "frames": frames, "tangencies": refinement.tangencies,
+        "disagreement_before_m": _finite_or_none(refinement.before_m),
+        "disagreement_after_m": _finite_or_none(refinement.after_m), "kept": refinement.kept,
+        "turns_deg": {camera.name: float(turn) for camera, turn in zip(rig, degrees, strict=True)}})
+    if not refinement.kept:
+        return rig
+    refined = Rig(tuple(turned(camera, turn) for camera, turn in zip(rig, refinement.turns, strict=True)))
+    with atomic.atomic_output(refined_rig_path(out_dir)) as tmp:
+        save_rig(refined, "anipose", tmp)
+    log.info("calibration refined from the silhouettes: cameras turned by %s degrees about their centres (the "
+             "tangencies' median disagreement %.1f -> %.1f mm over %d frames; the cameras used: %s)",
+             ", ".join(f"{camera.name} {turn:.2f}" for camera, turn in zip(rig, degrees, strict=True)),
+             1000 * refinement.before_m, 1000 * refinement.after_m, len(frames), refined_rig_path(out_dir))
+    return refined
+
+
+def _finite_or_none(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
 
 
 #: Statuses of tracked frames that are exported (the others were only predicted).
@@ -449,8 +502,8 @@ STAGES: tuple[Stage, ...] = (
                 "pipeline.io.capture", "calib", *FILES_CODE)),
     Stage("reconstruction", run_reconstruction, inputs=("calibration", "silhouettes"),
           params_type=ReconstructionParams, capture_parts=("config", "frames"),
-          code=("stages.reconstruction", "stages.rays", "stages.checks", "pipeline.frame_tasks", "pipeline.io.capture",
-                "calib", *FILES_CODE)),
+          code=("stages.reconstruction", "stages.rays", "stages.checks", "stages.tangency", "pipeline.frame_tasks",
+                "pipeline.io.capture", "pipeline.io.backgrounds", "calib", *FILES_CODE)),
     Stage("tracking", run_tracking, inputs=("calibration", "reconstruction"), params_type=TrackerParams,
           capture_parts=("config", "frames"),
           code=("stages.tracking", "stages.checks", "stages.joints", "stages.reconstruction", "pipeline.frame_tasks",

@@ -88,6 +88,16 @@ def calibration_check_path(stage_dir: Path) -> Path:
     return stage_dir / "calibration_check.json"
 
 
+def calibration_refinement_path(stage_dir: Path) -> Path:
+    """The reconstruction stage's refinement of the cameras' orientations (JSON, `pipeline.graph.refined_rig`)."""
+    return stage_dir / "calibration_refinement.json"
+
+
+def refined_rig_path(stage_dir: Path) -> Path:
+    """The cameras as the reconstruction used them, when the refinement was kept (anipose TOML)."""
+    return stage_dir / "rig_refined.toml"
+
+
 def observations_path(stage_dir: Path, frame: int) -> Path:
     """A frame's points and normals in the reconstruction stage's folder."""
     return stage_dir / frame_name(frame, ".ply")
@@ -146,6 +156,10 @@ class RunLayout:
 
     def observations(self, frame: int) -> Path:
         return observations_path(self.stage_dir("reconstruction"), frame)
+
+    @property
+    def calibration_refinement(self) -> Path:
+        return calibration_refinement_path(self.stage_dir("reconstruction"))
 
     @property
     def tracking_dir(self) -> Path:

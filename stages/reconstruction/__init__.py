@@ -54,6 +54,11 @@ class ReconstructionParams:
         applied twice (twicing), so that it does not shrink thin limbs (`contours.outline`).
     voxel_size_m, coarse_voxel_size_m : float
         Visual hull: final voxel size and the size carving starts at (metres).
+    refine_calibration : bool
+        Turn each camera about its centre as the silhouettes' epipolar tangencies say, before reconstructing,
+        when that explains them clearly better (`stages.tangency.refine_turns`): a camera knocked or calibrated
+        a fraction of a degree off otherwise carves limbs away. The pipeline does it (it needs many frames'
+        silhouettes); `reconstruct` takes the rig it is given.
     """
 
     method: str = "visual_shape"
@@ -64,9 +69,13 @@ class ReconstructionParams:
     contour_smoothing_px: float = 2.0
     voxel_size_m: float = 0.01
     coarse_voxel_size_m: float = 0.08
+    refine_calibration: bool = True
 
     def __post_init__(self) -> None:
         check_choice("reconstruction.method", self.method, METHODS)
+        if not isinstance(self.refine_calibration, bool):
+            raise InputError("reconstruction.refine_calibration: expected true or false, "
+                             f"got {self.refine_calibration!r}")
         check_choice("reconstruction.rim_placement", self.rim_placement, RIM_PLACEMENTS)
         check_int("reconstruction.n_observations", self.n_observations, 50, 5000)
         check_int("reconstruction.tolerated_views", self.tolerated_views, 0)

@@ -103,6 +103,7 @@ VARIANTS = (
     Variant("4 cameras", first_cameras=4),
     Variant("one camera zoomed 1.8x", first_camera_zoom=1.8),
     Variant("calibration off 0.1°", calibration_error_deg=0.1),
+    Variant("calibration off 0.3°", calibration_error_deg=0.3),
     Variant("one plate 5 px off", first_plate_shift=(4.0, 3.0)),
     Variant("shutter open the whole frame", shutter=0.5),
 )

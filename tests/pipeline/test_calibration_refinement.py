@@ -1,0 +1,65 @@
+"""The reconstruction stage's refinement of the cameras' orientations from the silhouettes
+(`pipeline.graph.refined_rig`)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from calib.camera import Rig
+from calib.formats import load_rig, save_rig
+from pipeline.cli import main
+from pipeline.io.capture import Capture
+from stages.tangency import turned
+
+TINY = Path(__file__).resolve().parents[2] / "data_samples" / "tiny"
+
+
+def _with_turned_calibration(tmp_path: Path, degrees: float) -> Path:
+    """A copy of tiny whose calibration has every camera turned by ``degrees`` about an axis of its own."""
+    capture = tmp_path / "tiny"
+    shutil.copytree(TINY, capture)
+    rig = Capture.open(TINY).rig
+    axes = np.random.default_rng(0).normal(size=(len(rig), 3))
+    cameras = [turned(camera, np.radians(degrees) * axis / np.linalg.norm(axis))
+               for camera, axis in zip(rig, axes, strict=True)]
+    path = capture / yaml.safe_load((capture / "capture.yaml").read_text())["calibration"]["path"]
+    path.unlink()
+    save_rig(Rig(tuple(cameras)), "anipose", path)
+    return capture
+
+
+def test_cameras_turned_since_their_calibration_are_refined_and_written(tmp_path, capfd):
+    capture = _with_turned_calibration(tmp_path, 0.5)
+    out = tmp_path / "out"
+    assert main(["run", str(capture), "--out", str(out), "--to", "reconstruction"]) == 0
+    assert "calibration refined from the silhouettes: cameras turned by cam1 " in capfd.readouterr().err
+    refinement = json.loads((out / "reconstruction" / "calibration_refinement.json").read_text())
+    assert refinement["kept"] and refinement["disagreement_after_m"] < 0.7 * refinement["disagreement_before_m"]
+    assert all(0.0 < turn < 1.0 for turn in refinement["turns_deg"].values())
+    refined = load_rig("anipose", out / "reconstruction" / "rig_refined.toml")
+    given = Capture.open(capture).rig
+    assert refined.names == given.names
+    assert all(np.allclose(new.centre, old.centre) and not np.allclose(new.R, old.R)
+               for new, old in zip(refined, given, strict=True))
+
+
+def test_a_sound_calibration_is_used_as_it_is(tmp_path):
+    out = tmp_path / "out"
+    assert main(["run", str(TINY), "--out", str(out), "--to", "reconstruction", "-q"]) == 0
+    refinement = json.loads((out / "reconstruction" / "calibration_refinement.json").read_text())
+    assert not refinement["kept"] and refinement["tangencies"] > 0
+    assert not (out / "reconstruction" / "rig_refined.toml").exists()
+
+
+def test_the_refinement_can_be_turned_off(tmp_path):
+    capture = _with_turned_calibration(tmp_path, 0.5)
+    out = tmp_path / "out"
+    assert main(["run", str(capture), "--out", str(out), "--to", "reconstruction", "-q",
+                 "--set", "reconstruction.refine_calibration=false"]) == 0
+    assert not (out / "reconstruction" / "calibration_refinement.json").exists()
+    assert not (out / "reconstruction" / "rig_refined.toml").exists()
