@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.camera import Rig
-from calib.formats import save_rig
+from calib.formats import load_rig, save_rig
 from pipeline.engine.context import StageContext
 from pipeline.engine.executors import usable_cpus
 from pipeline.engine.stage import Stage
@@ -361,6 +361,12 @@ def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path) -> Rig:
     return refined
 
 
+def used_rig(capture: Capture, reconstruction_dir: Path) -> Rig:
+    """The cameras the reconstruction used: as the silhouettes refined them (`refined_rig`), or as given."""
+    path = refined_rig_path(reconstruction_dir)
+    return load_rig("anipose", path) if path.is_file() else capture.rig
+
+
 def _finite_or_none(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
@@ -459,6 +465,7 @@ def run_export(ctx: StageContext) -> None:
     """
     params: ExportParams = ctx.params
     capture = ctx.capture
+    rig = used_rig(capture, ctx.input_dir("reconstruction"))
     results = {frame: read_tracking(ctx.input_dir("tracking"), frame)[0] for frame in capture.frame_numbers}
     estimated = {frame: r.joints for frame, r in results.items() if r.status in EXPORTED_STATUSES}
     if len(estimated) < len(results):
@@ -475,7 +482,7 @@ def run_export(ctx: StageContext) -> None:
         write_joints_csv(ctx.out_dir / JOINTS_FILE, frames, np.zeros((0, len(JOINT_NAMES), 3)))
         write_quality_csv(ctx.out_dir / QUALITY_FILE, quality)
     if params.overlay_videos and capture.has_images and len(frames):  # before the report, which links them
-        for camera in capture.rig:
+        for camera in rig:
             write_overlay_video(capture.iter_images(camera.name, capture.frame_numbers), camera, estimated,
                                 ctx.out_dir / overlay_video_name(camera.name), capture.fps)
     if params.report:  # also when no frame was estimated: it says what happened
@@ -484,7 +491,7 @@ def run_export(ctx: StageContext) -> None:
             shown = frames if len(frames) else np.asarray(capture.frame_numbers)
             middle = int(shown[len(shown) // 2])
             images = {camera: next(capture.iter_images(camera, [middle])) for camera in capture.rig.names}
-        write_report(ctx.output_root, rig=capture.rig, images=images)
+        write_report(ctx.output_root, rig=rig, images=images)
 
 
 #: Modules every stage runs to write (and read) its files.
@@ -509,7 +516,7 @@ STAGES: tuple[Stage, ...] = (
           code=("stages.tracking", "stages.checks", "stages.joints", "stages.reconstruction", "pipeline.frame_tasks",
                 "pipeline.io.body_io", "pipeline.io.tracking_io", *FILES_CODE),
           streams=True),
-    Stage("export", run_export, inputs=("calibration", "tracking"), params_type=ExportParams,
+    Stage("export", run_export, inputs=("calibration", "reconstruction", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
           code=("stages.export", "stages.checks", "stages.joints", "stages.tracking.results", "pipeline.io.export_io",
                 "pipeline.io.tracking_io", "pipeline.io.overlay_video", "pipeline.report",

@@ -201,6 +201,7 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
     cameras = list(stills) or [str(name) for name in run.capture.get("cameras", []) or []]
     layout = RunLayout(run.out_dir)
     check = _calibration_check(layout.calibration_check)
+    refinement = _refinement(layout.calibration_refinement)
     rows = []
     for camera in cameras:
         frame = stills[camera][0] if camera in stills else None
@@ -218,7 +219,8 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
             figures += (f"<figure><video controls muted loop preload='metadata' src='{html.escape(video)}'></video>"
                         f"<figcaption><a href='{html.escape(video)}'>{html.escape(video)}</a></figcaption></figure>")
         if figures:
-            rows.append(f"<h3>{html.escape(camera)}</h3>{_agreement(check, camera)}<div class='stills'>{figures}</div>")
+            rows.append(f"<h3>{html.escape(camera)}</h3>{_agreement(check, camera)}{_turn(refinement, camera)}"
+                        f"<div class='stills'>{figures}</div>")
     if not rows:
         return ""
     drawn = [what for what, sequence in (("estimate in colour (subject's left blue, right red)", run.estimate),
@@ -236,6 +238,28 @@ def _calibration_check(path: Path) -> dict | None:
     except (OSError, InputError):
         return None
     return check if isinstance(check, dict) and isinstance(check.get("disagreement_m"), dict) else None
+
+
+def _refinement(path: Path) -> dict | None:
+    """The reconstruction stage's refinement of the cameras' orientations (`pipeline.graph.refined_rig`), when it
+    was kept; None otherwise, or when absent or unreadable."""
+    try:
+        refinement = frames_io.read_json(path)
+    except (OSError, InputError):
+        return None
+    if not (isinstance(refinement, dict) and refinement.get("kept") is True
+            and isinstance(refinement.get("turns_deg"), dict)):
+        return None
+    return refinement
+
+
+def _turn(refinement: dict | None, camera: str) -> str:
+    """A note on how far the camera was turned from its calibration to agree with the others' silhouettes."""
+    turn = refinement["turns_deg"].get(camera) if refinement else None
+    if not isinstance(turn, (int, float)):
+        return ""
+    return (f"<p class='note'>Calibration refined from the silhouettes: turned by {turn:.2f}° about its centre "
+            "(the cameras the reconstruction and these stills used: reconstruction/rig_refined.toml).</p>")
 
 
 def _agreement(check: dict | None, camera: str) -> str:

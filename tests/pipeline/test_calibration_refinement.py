@@ -36,7 +36,7 @@ def _with_turned_calibration(tmp_path: Path, degrees: float) -> Path:
 def test_cameras_turned_since_their_calibration_are_refined_and_written(tmp_path, capfd):
     capture = _with_turned_calibration(tmp_path, 0.5)
     out = tmp_path / "out"
-    assert main(["run", str(capture), "--out", str(out), "--to", "reconstruction"]) == 0
+    assert main(["run", str(capture), "--out", str(out)]) == 0
     assert "calibration refined from the silhouettes: cameras turned by cam1 " in capfd.readouterr().err
     refinement = json.loads((out / "reconstruction" / "calibration_refinement.json").read_text())
     assert refinement["kept"] and refinement["disagreement_after_m"] < 0.7 * refinement["disagreement_before_m"]
@@ -46,6 +46,9 @@ def test_cameras_turned_since_their_calibration_are_refined_and_written(tmp_path
     assert refined.names == given.names
     assert all(np.allclose(new.centre, old.centre) and not np.allclose(new.R, old.R)
                for new, old in zip(refined, given, strict=True))
+    # The report's stills are drawn with the cameras the reconstruction used, and say so.
+    report = (out / "export" / "report.html").read_text()
+    assert report.count("Calibration refined from the silhouettes: turned by") == len(given)
 
 
 def test_a_sound_calibration_is_used_as_it_is(tmp_path):
