@@ -74,6 +74,7 @@ from pipeline.io.tracking_io import read_tracking
 from pipeline.report.page import write_report
 from stages.background import BackgroundEstimate, estimate_backgrounds, sample_camera, sample_count, working_size
 from stages.background.plates import MIN_PLATE_MATCH, PLATE_SHIFT_PX, PlateFit, plate_fit, shifted_plate
+from stages.consistency import explained_share
 from stages.export import ExportParams
 from stages.export.quality import FrameQuality
 from stages.joints import JOINT_NAMES
@@ -319,22 +320,31 @@ def run_reconstruction(ctx: StageContext) -> int:
     """Per frame, sparse surface points with outward normals from all cameras' silhouettes, with the cameras'
     orientations refined from the silhouettes first (``refine_calibration``, `refined_rig`)."""
     masks_dir = ctx.input_dir("silhouettes")
-    rig = refined_rig(ctx.capture, masks_dir, ctx.out_dir) if ctx.params.refine_calibration else ctx.capture.rig
+    rig = (refined_rig(ctx.capture, masks_dir, ctx.out_dir, ctx.params.tolerated_views)
+           if ctx.params.refine_calibration else ctx.capture.rig)
     task = functools.partial(reconstruction_task, capture=ctx.capture, rig=rig, params=ctx.params,
                              masks_dir=masks_dir, out_dir=ctx.out_dir)
     return ctx.map_frames(task, lambda frame: [observations_path(ctx.out_dir, frame)])
 
 
-#: Frames, spread over the capture, whose silhouettes refine the cameras' orientations.
+#: Frames, spread over the capture, whose silhouettes refine the cameras' orientations, ...
 REFINEMENT_FRAMES = 30
+#: ... and, among them, the frames and the rays per view on which the refined cameras must explain more of the
+#: silhouettes than the given ones (`stages.consistency.explained_share`).
+COHERENCE_FRAMES = 10
+COHERENCE_RAYS = 100
 
 
-def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path) -> Rig:
+def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path, tolerated: int) -> Rig:
     """The capture's rig with each camera turned about its centre as the silhouettes' tangencies say
-    (`stages.tangency.refine_turns`), when that explains them clearly better; else the rig as given.
+    (`stages.tangency.refine_turns`), when that makes them agree clearly better and the visual hull (at most
+    ``tolerated`` views outside, as the reconstruction carves) explains more of the silhouettes; else as given.
 
-    Writes what was measured and decided (`calibration_refinement_path`) and, when the turns are kept, the cameras
-    as the reconstruction uses them (`refined_rig_path`, anipose TOML: for the user's next run or other tools).
+    The second test guards against an error that turns cannot mend: cameras whose positions are off by centimetres
+    give tangencies that turns bring closer while the rays through the silhouettes meet less well (foreign taekwondo
+    with every camera moved by 2 cm: docs/results_by_hand.md). Writes what was measured and decided
+    (`calibration_refinement_path`) and, when the turns are kept, the cameras as the reconstruction uses them
+    (`refined_rig_path`, anipose TOML: for the user's next run or other tools).
     """
     rig = capture.rig
     if len(rig) < 3:  # two views' tangencies say nothing the calibration could be wrong about
@@ -343,21 +353,35 @@ def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path) -> Rig:
     masks = [[frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame)) for camera in rig]
              for frame in frames]
     refinement = refine_turns(masks, list(rig), capture.volume.mean(axis=0))
+    refined = Rig(tuple(turned(camera, turn) for camera, turn in zip(rig, refinement.turns, strict=True)))
+    explained = (np.nan, np.nan)
+    if refinement.kept:
+        checked = [masks[frames.index(frame)] for frame in spread_frames(frames, COHERENCE_FRAMES)]
+        explained = tuple(float(np.nanmean([explained_share(views, list(cameras), capture.volume, tolerated=tolerated,
+                                                            rays_per_view=COHERENCE_RAYS) for views in checked]))
+                          for cameras in (rig, refined))
+    kept = refinement.kept and explained[1] > explained[0]
     degrees = np.degrees(np.linalg.norm(refinement.turns, axis=1))
     frames_io.write_json(calibration_refinement_path(out_dir), {
         "method": "epipolar tangency", "frames": frames, "tangencies": refinement.tangencies,
         "disagreement_before_m": _finite_or_none(refinement.before_m),
-        "disagreement_after_m": _finite_or_none(refinement.after_m), "kept": refinement.kept,
-        "turns_deg": {camera.name: float(turn) for camera, turn in zip(rig, degrees, strict=True)}})
-    if not refinement.kept:
+        "disagreement_after_m": _finite_or_none(refinement.after_m), "tangencies_agree": refinement.kept,
+        "explained_before": _finite_or_none(explained[0]), "explained_after": _finite_or_none(explained[1]),
+        "kept": kept, "turns_deg": {camera.name: float(turn) for camera, turn in zip(rig, degrees, strict=True)}})
+    turns = ", ".join(f"{camera.name} {turn:.2f}" for camera, turn in zip(rig, degrees, strict=True))
+    if refinement.kept and not kept:
+        log.info("calibration not refined: turning the cameras by %s degrees made the tangencies agree (%.1f -> "
+                 "%.1f mm) but the visual hull explain less of the silhouettes (%.1f -> %.1f %%): the calibration is "
+                 "off in a way turns cannot mend (the cameras' positions?)", turns, 1000 * refinement.before_m,
+                 1000 * refinement.after_m, 100 * explained[0], 100 * explained[1])
+    if not kept:
         return rig
-    refined = Rig(tuple(turned(camera, turn) for camera, turn in zip(rig, refinement.turns, strict=True)))
     with atomic.atomic_output(refined_rig_path(out_dir)) as tmp:
         save_rig(refined, "anipose", tmp)
     log.info("calibration refined from the silhouettes: cameras turned by %s degrees about their centres (the "
-             "tangencies' median disagreement %.1f -> %.1f mm over %d frames; the cameras used: %s)",
-             ", ".join(f"{camera.name} {turn:.2f}" for camera, turn in zip(rig, degrees, strict=True)),
-             1000 * refinement.before_m, 1000 * refinement.after_m, len(frames), refined_rig_path(out_dir))
+             "tangencies' median disagreement %.1f -> %.1f mm over %d frames, the silhouettes the visual hull explains "
+             "%.1f -> %.1f %%; the cameras used: %s)", turns, 1000 * refinement.before_m, 1000 * refinement.after_m,
+             len(frames), 100 * explained[0], 100 * explained[1], refined_rig_path(out_dir))
     return refined
 
 
@@ -509,8 +533,8 @@ STAGES: tuple[Stage, ...] = (
                 "pipeline.io.capture", "calib", *FILES_CODE)),
     Stage("reconstruction", run_reconstruction, inputs=("calibration", "silhouettes"),
           params_type=ReconstructionParams, capture_parts=("config", "frames"),
-          code=("stages.reconstruction", "stages.rays", "stages.checks", "stages.tangency", "pipeline.frame_tasks",
-                "pipeline.io.capture", "pipeline.io.backgrounds", "calib", *FILES_CODE)),
+          code=("stages.reconstruction", "stages.rays", "stages.checks", "stages.tangency", "stages.consistency",
+                "pipeline.frame_tasks", "pipeline.io.capture", "pipeline.io.backgrounds", "calib", *FILES_CODE)),
     Stage("tracking", run_tracking, inputs=("calibration", "reconstruction"), params_type=TrackerParams,
           capture_parts=("config", "frames"),
           code=("stages.tracking", "stages.checks", "stages.joints", "stages.reconstruction", "pipeline.frame_tasks",

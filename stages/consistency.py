@@ -79,6 +79,26 @@ def consistent_silhouettes(masks: Sequence[np.ndarray], cameras: Sequence[Camera
     return kept
 
 
+def explained_share(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volume: np.ndarray, *, tolerated: int,
+                    rays_per_view: int) -> float:
+    """The share of rays through the views' silhouettes that meet a point the other views see inside theirs (all
+    that see it but ``tolerated``, and at least two): how much of the silhouettes the visual hull explains, which is
+    what the reconstruction carves (Hernández, Schmitt & Cipolla's silhouette coherence, 2007). ``rays_per_view``
+    pixels of each silhouette are tested, spread evenly in raster order; NaN when every silhouette is empty."""
+    volume = np.asarray(volume, dtype=float)
+    explained, tested = 0, 0
+    for c, (mask, camera) in enumerate(zip(masks, cameras, strict=True)):
+        points = cv2.findNonZero(np.ascontiguousarray(mask, dtype=np.uint8))
+        if points is None:
+            continue
+        points = points.reshape(-1, 2)
+        uv = points[np.unique(np.linspace(0, len(points) - 1, rays_per_view).round().astype(int))].astype(float)
+        others = [(other, masks[o]) for o, other in enumerate(cameras) if o != c]
+        explained += int(_explained(camera, uv, others, volume, tolerated).sum())
+        tested += len(uv)
+    return explained / tested if tested else np.nan
+
+
 def _cells(mask: np.ndarray, cell: int) -> tuple[np.ndarray, tuple[int, int]]:
     """``(cells (h, w) uint8, corner (column, row))``: nonzero for the ``cell`` x ``cell`` blocks of ``mask`` that hold
     a foreground pixel (the last, partial blocks included), in the box of blocks around the foreground, whose

@@ -12,6 +12,7 @@ import yaml
 
 from calib.camera import Rig
 from calib.formats import load_rig, save_rig
+from pipeline import graph
 from pipeline.cli import main
 from pipeline.io.capture import Capture
 from stages.tangency import turned
@@ -40,6 +41,7 @@ def test_cameras_turned_since_their_calibration_are_refined_and_written(tmp_path
     assert "calibration refined from the silhouettes: cameras turned by cam1 " in capfd.readouterr().err
     refinement = json.loads((out / "reconstruction" / "calibration_refinement.json").read_text())
     assert refinement["kept"] and refinement["disagreement_after_m"] < 0.7 * refinement["disagreement_before_m"]
+    assert refinement["explained_after"] > refinement["explained_before"]
     assert all(0.0 < turn < 1.0 for turn in refinement["turns_deg"].values())
     refined = load_rig("anipose", out / "reconstruction" / "rig_refined.toml")
     given = Capture.open(capture).rig
@@ -66,3 +68,22 @@ def test_the_refinement_can_be_turned_off(tmp_path):
                  "--set", "reconstruction.refine_calibration=false"]) == 0
     assert not (out / "reconstruction" / "calibration_refinement.json").exists()
     assert not (out / "reconstruction" / "rig_refined.toml").exists()
+
+
+def test_turns_that_leave_the_silhouettes_less_explained_are_not_kept(tmp_path, monkeypatch, capfd):
+    # Cameras moved rather than turned: the tangencies can agree better after turns while the rays through the
+    # silhouettes meet less well. The visual hull's share of the silhouettes decides (here made to fall).
+    capture = _with_turned_calibration(tmp_path, 0.5)
+    out = tmp_path / "out"
+    assert main(["run", str(capture), "--out", str(out), "--to", "silhouettes", "-q"]) == 0
+    opened = Capture.open(capture)
+    given = opened.rig["cam1"].R
+    monkeypatch.setattr(graph, "explained_share",  # the rig as given explains 90 %, turned 80 %
+                        lambda masks, cameras, *args, **kwargs: 0.9 if np.array_equal(cameras[0].R, given) else 0.8)
+    (out / "reconstruction").mkdir()
+    assert graph.refined_rig(opened, out / "silhouettes", out / "reconstruction", 0) is opened.rig
+    refinement = json.loads((out / "reconstruction" / "calibration_refinement.json").read_text())
+    assert refinement["tangencies_agree"] and not refinement["kept"]
+    assert refinement["explained_before"] > refinement["explained_after"]
+    assert not (out / "reconstruction" / "rig_refined.toml").exists()
+    assert "calibration not refined: turning the cameras by cam1 " in capfd.readouterr().err

@@ -1,10 +1,12 @@
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
 from still_scene import VOLUME, ellipsoid_mask, ring
 
 from calib.errors import InputError
-from stages.consistency import consistent_silhouettes
+from stages.consistency import consistent_silhouettes, explained_share
 
 
 def render_spheres(camera, centres, radii):
@@ -53,3 +55,15 @@ def test_one_mask_per_camera():
     rig = ring(3)
     with pytest.raises(InputError, match="2 masks for 3 cameras"):
         consistent_silhouettes([np.zeros((120, 160), np.uint8)] * 2, list(rig), VOLUME, tolerated=0)
+
+
+def test_the_visual_hull_explains_the_silhouettes_of_a_consistent_rig_only(scene):
+    rig, masks = scene
+    cameras = list(rig)
+    assert explained_share(masks, cameras, VOLUME, tolerated=0, rays_per_view=100) > 0.95  # outline pixels may miss
+    turn, _ = cv2.Rodrigues(np.radians(2.0) * np.array([0.0, 0.6, 0.8]))
+    turned = [replace(camera, R=turn @ camera.R, t=-(turn @ camera.R) @ camera.centre) if index % 2 else camera
+              for index, camera in enumerate(cameras)]
+    assert explained_share(masks, turned, VOLUME, tolerated=0, rays_per_view=100) < 0.9
+    assert np.isnan(explained_share([np.zeros_like(mask) for mask in masks], cameras, VOLUME, tolerated=0,
+                                    rays_per_view=100))

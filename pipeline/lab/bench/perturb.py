@@ -88,6 +88,7 @@ import numpy as np
 from calib.camera import Camera, Rig
 from calib.errors import InputError
 from calib.formats import load_rig, save_rig
+from calib.world import UNIT_SCALE
 from pipeline.io.capture import Capture
 from pipeline.io.export_io import read_joints_csv, write_joints_csv
 from stages.background.plates import shifted_plate
@@ -144,16 +145,18 @@ def _to_uint8(frame: np.ndarray) -> np.ndarray:
 
 def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, plates: bool = True,
                     absent: range = range(0), cameras: tuple[str, ...] = (),
-                    calibration_error_deg: float = 0.0, zoom: dict[str, float] | None = None,
+                    calibration_error_deg: float = 0.0, position_error_m: float = 0.0,
+                    zoom: dict[str, float] | None = None,
                     late: dict[str, int] | None = None,
                     plate_shift: dict[str, tuple[float, float]] | None = None, monochrome: bool = False,
                     shutter: float = 0.0) -> Path:
     """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
     to every frame of its videos, and the subject away on the frames ``absent``, seen by the ``cameras`` named
-    (default: all) through a calibration whose cameras are each turned by ``calibration_error_deg``, the cameras
-    of ``zoom`` zoomed by its factors (:func:`zoomed`), those of ``late`` that many frames behind the others, the
-    clean plates of those of ``plate_shift`` moved by its (x, y) pixels, every frame and plate in grey levels
-    with ``monochrome``, and each frame blended with the one before in the share ``shutter``; returns ``out``.
+    (default: all) through a calibration whose cameras are each turned by ``calibration_error_deg`` and moved by
+    ``position_error_m``, the cameras of ``zoom`` zoomed by its factors (:func:`zoomed`), those of ``late`` that
+    many frames behind the others, the clean plates of those of ``plate_shift`` moved by its (x, y) pixels, every
+    frame and plate in grey levels with ``monochrome``, and each frame blended with the one before in the share
+    ``shutter``; returns ``out``.
 
     capture.yaml, the calibration and the background plates (unless ``plates`` is False) are copied, the ground
     truth (when there is one) linked, or rewritten without the ``absent`` frames and the cameras left out
@@ -165,9 +168,9 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     ------
     InputError
         An unknown change, ``out`` already there, a capture without videos, ``absent`` frames in a capture
-        without a clean plate for every camera, a camera named that has no video, an angle that is not finite, a
-        zoom factor that is not a finite number of at least 1, a delay that is not a whole number of frames of
-        at least 1, a plate shift that is not two finite numbers, or a shutter share outside [0, 1).
+        without a clean plate for every camera, a camera named that has no video, an angle or a distance that is
+        not finite, a zoom factor that is not a finite number of at least 1, a delay that is not a whole number of
+        frames of at least 1, a plate shift that is not two finite numbers, or a shutter share outside [0, 1).
     """
     capture, out = Path(capture), Path(out)
     if change not in CHANGES:
@@ -178,6 +181,8 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         raise InputError(f"shutter {shutter}: expected the share of the frame before, at least 0 and below 1")
     if not np.isfinite(calibration_error_deg):
         raise InputError(f"calibration error {calibration_error_deg}: expected a finite angle in degrees")
+    if not np.isfinite(position_error_m):
+        raise InputError(f"position error {position_error_m}: expected a finite distance in metres")
     zoom = dict(zoom or {})
     for name, factor in zoom.items():
         if not (np.isfinite(factor) and factor >= 1.0):
@@ -203,9 +208,10 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     shutil.rmtree(partial, ignore_errors=True)
     (partial / "videos").mkdir(parents=True)
     shutil.copy2(capture / "capture.yaml", partial / "capture.yaml")
-    if cameras or calibration_error_deg or zoom:
+    if cameras or calibration_error_deg or position_error_m or zoom:
         _rewrite_calibration(Capture.open(capture), partial, {video.stem for video in videos}, calibration_error_deg,
-                             np.random.default_rng([seed, 1]), zoom)  # its own draws: the frames' stay as without it
+                             np.random.default_rng([seed, 1]), zoom,  # its own draws: the frames' stay as without it
+                             position_error_m=position_error_m)
     elif (capture / "calibration").is_dir():
         shutil.copytree(capture / "calibration", partial / "calibration")
     if plates and (capture / "background").is_dir():
@@ -258,15 +264,17 @@ def capture_videos(capture: Path) -> list[Path]:
 
 
 def _rewrite_calibration(source: Capture, copy: Path, kept: set[str], error_deg: float,
-                         rng: np.random.Generator, zoom: dict[str, float]) -> None:
+                         rng: np.random.Generator, zoom: dict[str, float], *, position_error_m: float = 0.0) -> None:
     """The ``source`` capture's calibration written into ``copy`` with only the ``kept`` cameras, each turned by
-    ``error_deg`` (:func:`_turned`) and those of ``zoom`` zoomed (:func:`zoom_matrix`): read as the file states it
-    (image sizes from the media) and saved in the same format at the same place, so that its units and up axis stay
-    as capture.yaml says."""
+    ``error_deg`` (:func:`_turned`), then moved by ``position_error_m`` (:func:`_moved`), and those of ``zoom``
+    zoomed (:func:`zoom_matrix`): read as the file states it (image sizes from the media) and saved in the same
+    format at the same place, so that its units and up axis stay as capture.yaml says."""
     calibration = source.config["calibration"]
     rig = load_rig(calibration["format"], source.root / calibration["path"],
                    image_sizes={camera.name: camera.size for camera in source.rig})
     cameras = [_turned(camera, error_deg, rng) for camera in rig if camera.name in kept]
+    in_file_units = position_error_m / UNIT_SCALE[calibration["units"]]
+    cameras = [_moved(camera, in_file_units, rng) for camera in cameras]
     cameras = [replace(camera, K=zoom_matrix(camera.size, zoom[camera.name]) @ camera.K) if camera.name in zoom
                else camera for camera in cameras]
     save_rig(Rig(tuple(cameras)), calibration["format"], copy / calibration["path"])
@@ -299,6 +307,14 @@ def _turned(camera: Camera, angle_deg: float, rng: np.random.Generator) -> Camer
     turn, _ = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(angle_deg))
     R = turn @ camera.R
     return replace(camera, R=R, t=-R @ camera.centre)
+
+
+def _moved(camera: Camera, distance: float, rng: np.random.Generator) -> Camera:
+    """``camera`` moved by ``distance`` (the calibration's units) in a random direction, its orientation kept."""
+    if not distance:
+        return camera
+    step = rng.normal(size=3)
+    return replace(camera, t=-camera.R @ (camera.centre + distance * step / np.linalg.norm(step)))
 
 
 def _plate(capture: Path, camera: str) -> np.ndarray:
@@ -458,6 +474,8 @@ def main(argv: list[str] | None = None) -> int:
                         metavar="NAME,NAME,...", help="keep only these cameras (a smaller rig)")
     parser.add_argument("--calibration-error", type=float, default=0.0, metavar="DEGREES",
                         help="each camera of the calibration turned by this angle about an axis of its own")
+    parser.add_argument("--position-error", type=float, default=0.0, metavar="METRES",
+                        help="each camera of the calibration moved by this distance in a direction of its own")
     parser.add_argument("--zoom", type=_zooms, default={}, metavar="NAME:FACTOR,...",
                         help="these cameras zoomed in by these factors about their images' centres (the subject "
                              "then partly out of their view)")
@@ -474,6 +492,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates,
                         absent=args.absent, cameras=args.cameras, calibration_error_deg=args.calibration_error,
+                        position_error_m=args.position_error,
                         zoom=args.zoom, late=args.late, plate_shift=args.plate_shift, monochrome=args.monochrome,
                         shutter=args.shutter)
     except InputError as error:

@@ -72,6 +72,7 @@ class Variant:
     first_cameras: int | None = None
     first_camera_zoom: float | None = None
     calibration_error_deg: float = 0.0
+    position_error_m: float = 0.0
     first_plate_shift: tuple[float, float] | None = None
     shutter: float = 0.0
 
@@ -81,12 +82,15 @@ class Variant:
         return re.sub(r"[^a-z0-9]+", "-", self.name.lower()).strip("-")
 
     def arguments(self, cameras: Sequence[str]) -> dict:
-        """:func:`perturb_capture`'s keyword arguments for a capture whose cameras are ``cameras`` (sorted); a plate
-        shift and a shutter only when there are, so that the other copies keep their cache keys (:func:`cache_key`)."""
+        """:func:`perturb_capture`'s keyword arguments for a capture whose cameras are ``cameras`` (sorted); a position
+        error, a plate shift and a shutter only when there are, so that the other copies keep their cache keys
+        (:func:`cache_key`)."""
         arguments = {"change": self.change, "seed": SEED, "plates": self.plates,
                      "cameras": tuple(cameras[:self.first_cameras]) if self.first_cameras is not None else (),
                      "calibration_error_deg": self.calibration_error_deg,
                      "zoom": {cameras[0]: self.first_camera_zoom} if self.first_camera_zoom is not None else None}
+        if self.position_error_m:
+            arguments["position_error_m"] = self.position_error_m
         if self.first_plate_shift is not None:
             arguments["plate_shift"] = {cameras[0]: self.first_plate_shift}
         if self.shutter:
@@ -104,6 +108,7 @@ VARIANTS = (
     Variant("one camera zoomed 1.8x", first_camera_zoom=1.8),
     Variant("calibration off 0.1°", calibration_error_deg=0.1),
     Variant("calibration off 0.3°", calibration_error_deg=0.3),
+    Variant("cameras moved 2 cm", position_error_m=0.02),
     Variant("one plate 5 px off", first_plate_shift=(4.0, 3.0)),
     Variant("shutter open the whole frame", shutter=0.5),
 )
