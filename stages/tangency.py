@@ -58,20 +58,30 @@ def pair_disagreement(masks: Sequence[np.ndarray], cameras: Sequence[Camera], ce
         for j in range(i + 1, count):
             if rays[i] is None or rays[j] is None:
                 continue
-            baseline = cameras[j].centre - cameras[i].centre
-            baseline /= np.linalg.norm(baseline)
-            towards = centre - cameras[i].centre
-            towards = towards - (towards @ baseline) * baseline
-            distance = float(np.linalg.norm(towards))
-            if distance == 0.0:
+            frame = _pair_frame(cameras[i], cameras[j], centre)
+            if frame is None:
                 continue
-            towards /= distance
+            baseline, towards, distance = frame
             extremes = [_plane_angles(baseline, towards, directions) for directions in (rays[i], rays[j])]
             if max(high - low for low, high in extremes) > MAX_SPAN_RAD:
                 continue
             (low_i, high_i), (low_j, high_j) = extremes
             disagreement[i, j] = disagreement[j, i] = 0.5 * (abs(low_i - low_j) + abs(high_i - high_j)) * distance
     return disagreement
+
+
+def _pair_frame(first: Camera, second: Camera, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """``(baseline, towards, distance)`` of a camera pair: the unit baseline from ``first`` to ``second``, the unit
+    direction across it towards the subject's ``centre``, and the centre's distance from it; None when the centre
+    lies on the baseline (no plane through it is the subject's)."""
+    baseline = second.centre - first.centre
+    baseline /= np.linalg.norm(baseline)
+    towards = centre - first.centre
+    towards = towards - (towards @ baseline) * baseline
+    distance = float(np.linalg.norm(towards))
+    if distance == 0.0:
+        return None
+    return baseline, towards / distance, distance
 
 
 def pair_medians(per_frame: np.ndarray) -> np.ndarray:
@@ -301,14 +311,10 @@ class _TangencyProblem:
                 for j in range(i + 1, len(cameras)):
                     if hull[i] is None or hull[j] is None:
                         continue
-                    baseline = cameras[j].centre - cameras[i].centre
-                    baseline /= np.linalg.norm(baseline)
-                    across = middle - cameras[i].centre
-                    across = across - (across @ baseline) * baseline
-                    length = float(np.linalg.norm(across))
-                    if length == 0.0:
+                    frame = _pair_frame(cameras[i], cameras[j], middle)
+                    if frame is None:
                         continue
-                    across /= length
+                    baseline, across, length = frame
                     side = np.cross(across, baseline)
                     spans = [np.ptp(np.arctan2(hull[k][1] @ across, hull[k][1] @ side)) for k in (i, j)]
                     if max(spans) > MAX_SPAN_RAD:
