@@ -350,16 +350,18 @@ def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path, tolerated: int
     if len(rig) < 3:  # two views' tangencies say nothing the calibration could be wrong about
         return rig
     frames = spread_frames(capture.frame_numbers, REFINEMENT_FRAMES)
-    masks = [[frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame)) for camera in rig]
-             for frame in frames]
-    refinement = refine_turns(masks, list(rig), capture.volume.mean(axis=0))
+
+    def masks(frame: int) -> list[np.ndarray]:  # read frame by frame: thirty frames' masks at once are tens of MB
+        return [frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame)) for camera in rig]
+
+    refinement = refine_turns(map(masks, frames), list(rig), capture.volume.mean(axis=0))
     refined = Rig(tuple(turned(camera, turn) for camera, turn in zip(rig, refinement.turns, strict=True)))
     explained = (np.nan, np.nan)
     if refinement.kept:
-        checked = [masks[frames.index(frame)] for frame in spread_frames(frames, COHERENCE_FRAMES)]
-        explained = tuple(float(np.nanmean([explained_share(views, list(cameras), capture.volume, tolerated=tolerated,
-                                                            rays_per_view=COHERENCE_RAYS) for views in checked]))
-                          for cameras in (rig, refined))
+        shares = np.array([[explained_share(views, list(cameras), capture.volume, tolerated=tolerated,
+                                            rays_per_view=COHERENCE_RAYS) for cameras in (rig, refined)]
+                           for views in map(masks, spread_frames(frames, COHERENCE_FRAMES))])
+        explained = tuple(float(value) for value in np.nanmean(shares, axis=0))
     kept = refinement.kept and explained[1] > explained[0]
     degrees = np.degrees(np.linalg.norm(refinement.turns, axis=1))
     frames_io.write_json(calibration_refinement_path(out_dir), {

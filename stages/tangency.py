@@ -21,7 +21,7 @@ does not implicate the others, and cameras are set aside worst first until the r
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -201,7 +201,7 @@ class Refinement:
         return self.tangencies > 0 and self.after_m <= KEPT_SHARE * self.before_m
 
 
-def refine_turns(masks_by_frame: Sequence[Sequence[np.ndarray]], cameras: Sequence[Camera],
+def refine_turns(masks_by_frame: Iterable[Sequence[np.ndarray]], cameras: Sequence[Camera],
                  centre: np.ndarray) -> Refinement:
     """The turn of each camera about its centre that best makes its silhouettes' extreme epipolar planes agree with
     the other cameras', over several frames (robust least squares, each turn held by `TURN_PRIOR_M_PER_DEGREE`).
@@ -215,8 +215,9 @@ def refine_turns(masks_by_frame: Sequence[Sequence[np.ndarray]], cameras: Sequen
 
     Parameters
     ----------
-    masks_by_frame : sequence of sequences of (H, W) uint8
-        Per frame, a silhouette per camera.
+    masks_by_frame : iterable of sequences of (H, W) uint8
+        Per frame, a silhouette per camera; read once, one frame at a time (a generator keeps one frame's masks in
+        memory, not all of them).
     cameras : sequence of Camera
     centre : (3,) float
         The working volume's centre (see :func:`pair_disagreement`).
