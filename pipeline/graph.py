@@ -357,21 +357,21 @@ def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path, tolerated: int
     refinement = refine_turns(map(masks, frames), list(rig), capture.volume.mean(axis=0))
     refined = Rig(tuple(turned(camera, turn) for camera, turn in zip(rig, refinement.turns, strict=True)))
     explained = (np.nan, np.nan)
-    if refinement.kept:
+    if refinement.tangencies_agree:
         shares = np.array([[explained_share(views, list(cameras), capture.volume, tolerated=tolerated,
                                             rays_per_view=COHERENCE_RAYS) for cameras in (rig, refined)]
                            for views in map(masks, spread_frames(frames, COHERENCE_FRAMES))])
         explained = tuple(float(value) for value in np.nanmean(shares, axis=0))
-    kept = refinement.kept and explained[1] > explained[0]
+    kept = refinement.tangencies_agree and explained[1] > explained[0]
     degrees = np.degrees(np.linalg.norm(refinement.turns, axis=1))
     frames_io.write_json(calibration_refinement_path(out_dir), {
         "method": "epipolar tangency", "frames": frames, "tangencies": refinement.tangencies,
         "disagreement_before_m": _finite_or_none(refinement.before_m),
-        "disagreement_after_m": _finite_or_none(refinement.after_m), "tangencies_agree": refinement.kept,
+        "disagreement_after_m": _finite_or_none(refinement.after_m), "tangencies_agree": refinement.tangencies_agree,
         "explained_before": _finite_or_none(explained[0]), "explained_after": _finite_or_none(explained[1]),
         "kept": kept, "turns_deg": {camera.name: float(turn) for camera, turn in zip(rig, degrees, strict=True)}})
     turns = ", ".join(f"{camera.name} {turn:.2f}" for camera, turn in zip(rig, degrees, strict=True))
-    if refinement.kept and not kept:
+    if refinement.tangencies_agree and not kept:
         log.info("calibration not refined: turning the cameras by %s degrees made the tangencies agree (%.1f -> "
                  "%.1f mm) but the visual hull explain less of the silhouettes (%.1f -> %.1f %%): the calibration is "
                  "off in a way turns cannot mend (the cameras' positions?)", turns, 1000 * refinement.before_m,

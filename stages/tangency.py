@@ -170,7 +170,7 @@ TURN_PRIOR_M_PER_DEGREE = 1.0
 #: Disagreements beyond this (metres at the subject) count less and less (a soft L1 loss): a silhouette that
 #: lost a hand or gained a shadow on one frame moves its extreme planes by its own error, not the calibration's.
 TANGENCY_LOSS_SCALE_M = 0.01
-#: The refinement is kept only when the median disagreement falls to this share or less: a sound calibration's
+#: Turns are proposed only when the median disagreement falls to this share or less: a sound calibration's
 #: disagreement is the silhouettes' noise, which no turn removes, and a refinement there would chase the noise.
 KEPT_SHARE = 2.0 / 3.0
 _TURN_PRIOR = TURN_PRIOR_M_PER_DEGREE * np.degrees(1.0)  # metres per radian
@@ -196,8 +196,8 @@ class Refinement:
     tangencies: int
 
     @property
-    def kept(self) -> bool:
-        """Whether the turns explain the silhouettes clearly better than the calibration as given (`KEPT_SHARE`)."""
+    def tangencies_agree(self) -> bool:
+        """Whether the turns make the tangencies agree clearly better than the calibration as given (`KEPT_SHARE`)."""
         return self.tangencies > 0 and self.after_m <= KEPT_SHARE * self.before_m
 
 

@@ -114,7 +114,7 @@ def test_cameras_turned_since_their_calibration_are_turned_back(moving):
     calibrated = [turned(camera, np.radians(0.3) * axis / np.linalg.norm(axis))
                   for camera, axis in zip(truth, axes, strict=True)]
     refinement = refine_turns(masks, calibrated, VOLUME.mean(axis=0))
-    assert refinement.kept and refinement.after_m < 0.5 * refinement.before_m
+    assert refinement.tangencies_agree and refinement.after_m < 0.5 * refinement.before_m
     refined = [turned(camera, turn) for camera, turn in zip(calibrated, refinement.turns, strict=True)]
     # The rays meet again: spheres' silhouettes cannot tell every turn of the rig as a whole, but they tell how the
     # cameras' rays disagree. The refined cameras keep their centres: only their orientations were in doubt.
@@ -126,7 +126,7 @@ def test_cameras_turned_since_their_calibration_are_turned_back(moving):
 def test_a_sound_calibration_is_left_as_it_is(moving):
     truth, masks = moving
     refinement = refine_turns(masks, truth, VOLUME.mean(axis=0))
-    assert refinement.tangencies > 0 and not refinement.kept
+    assert refinement.tangencies > 0 and not refinement.tangencies_agree
     assert refinement.before_m < 0.005  # metres: the silhouettes' pixel staircase, which no turn removes
 
 
@@ -147,4 +147,4 @@ def test_without_two_views_of_the_whole_subject_nothing_is_refined(moving):
     truth, masks = moving
     empty = [[np.zeros_like(mask) for mask in frame[:5]] + [frame[5]] for frame in masks]
     refinement = refine_turns(empty, truth, VOLUME.mean(axis=0))
-    assert refinement.tangencies == 0 and not refinement.kept and not np.any(refinement.turns)
+    assert refinement.tangencies == 0 and not refinement.tangencies_agree and not np.any(refinement.turns)
