@@ -178,6 +178,21 @@ def test_a_calibration_error_turns_each_camera_about_its_centre_by_the_angle_ask
         perturb_capture(capture, tmp_path / "nan", "none", calibration_error_deg=float("nan"))
 
 
+def test_a_position_error_moves_each_camera_by_the_distance_asked_in_the_files_units(capture, tmp_path):
+    cameras = [Camera.look_at(f"cam{index}", (4000.0 * np.cos(index), 4000.0 * np.sin(index), 1500.0),
+                              (0.0, 0.0, 1000.0), f_px=60.0, size=(WIDTH, HEIGHT)) for index in (0, 1)]
+    save_rig(Rig(tuple(cameras)), "anipose", capture / "calibration" / "anipose")  # millimetres
+    (capture / "capture.yaml").write_text("fps: 25\ncalibration: {format: anipose, path: calibration/anipose, "
+                                          "units: mm, up: +z}\n")
+    out = perturb_capture(capture, tmp_path / "moved", "none", position_error_m=0.02)
+    moved = load_rig("anipose", out / "calibration" / "anipose", image_sizes={c.name: c.size for c in cameras})
+    for before, after in zip(cameras, moved, strict=True):
+        np.testing.assert_allclose(after.R, before.R, atol=1e-12)  # the orientation kept
+        assert np.linalg.norm(after.centre - before.centre) == pytest.approx(20.0)  # 2 cm in millimetres
+    with pytest.raises(InputError, match="expected a finite distance"):
+        perturb_capture(capture, tmp_path / "inf", "none", position_error_m=float("inf"))
+
+
 def test_a_zoomed_camera_sees_the_middle_of_its_image_enlarged_and_its_calibration_and_truth_agree(capture, tmp_path):
     cameras = _colmap_calibration(capture)
     mask = np.zeros((HEIGHT, WIDTH), np.uint8)
