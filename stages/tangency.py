@@ -54,20 +54,25 @@ def pair_disagreement(masks: Sequence[np.ndarray], cameras: Sequence[Camera], ce
             for camera, points in zip(cameras, outlines, strict=True)]
     count = len(cameras)
     disagreement = np.full((count, count), np.nan)
-    for i in range(count):
-        for j in range(i + 1, count):
-            if rays[i] is None or rays[j] is None:
+    for i, j, baseline, towards, distance in _measured_pairs(rays, cameras, centre):
+        extremes = [_plane_angles(baseline, towards, directions) for directions in (rays[i], rays[j])]
+        if max(high - low for low, high in extremes) > MAX_SPAN_RAD:
+            continue
+        (low_i, high_i), (low_j, high_j) = extremes
+        disagreement[i, j] = disagreement[j, i] = 0.5 * (abs(low_i - low_j) + abs(high_i - high_j)) * distance
+    return disagreement
+
+
+def _measured_pairs(views: Sequence, cameras: Sequence[Camera], centre: np.ndarray):
+    """``(i, j, baseline, towards, distance)`` (`_pair_frame`) of each camera pair i < j whose two ``views`` were
+    measured (not None) and whose baseline misses the subject's ``centre``."""
+    for i in range(len(cameras)):
+        for j in range(i + 1, len(cameras)):
+            if views[i] is None or views[j] is None:
                 continue
             frame = _pair_frame(cameras[i], cameras[j], centre)
-            if frame is None:
-                continue
-            baseline, towards, distance = frame
-            extremes = [_plane_angles(baseline, towards, directions) for directions in (rays[i], rays[j])]
-            if max(high - low for low, high in extremes) > MAX_SPAN_RAD:
-                continue
-            (low_i, high_i), (low_j, high_j) = extremes
-            disagreement[i, j] = disagreement[j, i] = 0.5 * (abs(low_i - low_j) + abs(high_i - high_j)) * distance
-    return disagreement
+            if frame is not None:
+                yield i, j, *frame
 
 
 def _pair_frame(first: Camera, second: Camera, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -308,23 +313,16 @@ class _TangencyProblem:
                 camera_of_ray.append(np.full(len(xy), index))
                 hull.append((np.arange(offset, offset + len(xy)), rays[-1] @ camera.R))  # indices, world rays
                 offset += len(xy)
-            for i in range(len(cameras)):
-                for j in range(i + 1, len(cameras)):
-                    if hull[i] is None or hull[j] is None:
-                        continue
-                    frame = _pair_frame(cameras[i], cameras[j], middle)
-                    if frame is None:
-                        continue
-                    baseline, across, length = frame
-                    side = np.cross(across, baseline)
-                    spans = [np.ptp(np.arctan2(hull[k][1] @ across, hull[k][1] @ side)) for k in (i, j)]
-                    if max(spans) > MAX_SPAN_RAD:
-                        continue
-                    groups += [hull[i][0], hull[j][0]]
-                    towards.append(across)
-                    sideways.append(side)
-                    distance.append(length)
-                    pairs.append((i, j))
+            for i, j, baseline, across, length in _measured_pairs(hull, cameras, middle):
+                side = np.cross(across, baseline)
+                spans = [np.ptp(np.arctan2(hull[k][1] @ across, hull[k][1] @ side)) for k in (i, j)]
+                if max(spans) > MAX_SPAN_RAD:
+                    continue
+                groups += [hull[i][0], hull[j][0]]
+                towards.append(across)
+                sideways.append(side)
+                distance.append(length)
+                pairs.append((i, j))
         if not pairs:
             return None
         sizes = np.array([len(group) for group in groups])
