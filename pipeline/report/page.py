@@ -201,7 +201,8 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
     cameras = list(stills) or [str(name) for name in run.capture.get("cameras", []) or []]
     layout = RunLayout(run.out_dir)
     check = _calibration_check(layout.calibration_check)
-    refinement = _refinement(layout.calibration_refinement)
+    decided = _refinement_record(layout.calibration_refinement)
+    refinement = decided if decided and decided.get("kept") is True else None
     rows = []
     for camera in cameras:
         frame = stills[camera][0] if camera in stills else None
@@ -227,7 +228,8 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
                                          ("truth in white", run.truth))
              if sequence is not None and any(sequence.at(frame) is not None for frame, _ in stills.values())]
     legend = (", ".join(drawn) + ". ").capitalize() if drawn else ""
-    return f"<h2>Cameras</h2><p class='note'>{legend}Silhouettes white on black.</p>" + "".join(rows)
+    return (f"<h2>Cameras</h2><p class='note'>{legend}Silhouettes white on black.</p>{_refinement_note(decided)}"
+            + "".join(rows))
 
 
 def _calibration_check(path: Path) -> dict | None:
@@ -240,17 +242,33 @@ def _calibration_check(path: Path) -> dict | None:
     return check if isinstance(check, dict) and isinstance(check.get("disagreement_m"), dict) else None
 
 
-def _refinement(path: Path) -> dict | None:
-    """The reconstruction stage's refinement of the cameras' orientations (`pipeline.graph.refined_rig`), when it
-    was kept; None otherwise, or when absent or unreadable."""
+def _refinement_record(path: Path) -> dict | None:
+    """The reconstruction stage's refinement of the cameras' orientations (`pipeline.graph.refined_rig`), or None
+    when absent or unreadable (a report never fails on it)."""
     try:
-        refinement = frames_io.read_json(path)
+        record = frames_io.read_json(path)
     except (OSError, InputError):
         return None
-    if not (isinstance(refinement, dict) and refinement.get("kept") is True
-            and isinstance(refinement.get("turns_deg"), dict)):
-        return None
-    return refinement
+    return record if isinstance(record, dict) and isinstance(record.get("turns_deg"), dict) else None
+
+
+def _refinement_note(record: dict | None) -> str:
+    """What the refinement of the cameras' orientations decided, when turns were proposed: kept or refused."""
+    if not record or record.get("tangencies_agree") is not True:
+        return ""
+    figures = [record.get(key) for key in ("disagreement_before_m", "disagreement_after_m", "explained_before",
+                                           "explained_after")]
+    if not all(isinstance(value, (int, float)) for value in figures):
+        return ""
+    before, after, explained_before, explained_after = figures
+    measured = (f"the tangencies' median disagreement {1000 * before:.1f} → {1000 * after:.1f} mm, the share of the "
+                f"silhouettes the visual hull explains {100 * explained_before:.1f} → {100 * explained_after:.1f} %")
+    if record.get("kept") is True:
+        return (f"<p class='note'>Calibration refined from the silhouettes: each camera turned about its centre "
+                f"({measured}); the cameras used are in reconstruction/rig_refined.toml.</p>")
+    return (f"<p class='note'>Calibration <strong>not refined</strong>: turning the cameras made the tangencies agree "
+            f"but the silhouettes less consistent ({measured}): the calibration is off in a way turns cannot mend "
+            "(the cameras' positions?).</p>")
 
 
 def _turn(refinement: dict | None, camera: str) -> str:

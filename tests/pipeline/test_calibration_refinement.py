@@ -15,6 +15,7 @@ from calib.formats import load_rig, save_rig
 from pipeline import graph
 from pipeline.cli import main
 from pipeline.io.capture import Capture
+from pipeline.report.page import _refinement_note
 from stages.tangency import turned
 
 TINY = Path(__file__).resolve().parents[2] / "data_samples" / "tiny"
@@ -51,6 +52,7 @@ def test_cameras_turned_since_their_calibration_are_refined_and_written(tmp_path
     # The report's stills are drawn with the cameras the reconstruction used, and say so.
     report = (out / "export" / "report.html").read_text()
     assert report.count("Calibration refined from the silhouettes: turned by") == len(given)
+    assert report.count("Calibration refined from the silhouettes: each camera turned about its centre") == 1
 
 
 def test_a_sound_calibration_is_used_as_it_is(tmp_path):
@@ -87,3 +89,6 @@ def test_turns_that_leave_the_silhouettes_less_explained_are_not_kept(tmp_path, 
     assert refinement["explained_before"] > refinement["explained_after"]
     assert not (out / "reconstruction" / "rig_refined.toml").exists()
     assert "calibration not refined: turning the cameras by cam1 " in capfd.readouterr().err
+    # The report says so too (its camera sections note no turn: none was kept).
+    note = _refinement_note(refinement)
+    assert "Calibration <strong>not refined</strong>" in note and "90.0 → 80.0 %" in note
