@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.camera import Rig
+from calib.camera import Camera, Rig
 from calib.formats import load_rig, save_rig
 from pipeline.engine.context import StageContext
 from pipeline.engine.executors import usable_cpus
@@ -274,8 +274,7 @@ def _check_calibration(capture: Capture, masks_dir: Path) -> None:
     if len(cameras) < 2:
         return
     frames = spread_frames(capture.frame_numbers, CALIBRATION_CHECK_FRAMES)
-    per_frame = [pair_disagreement([frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame))
-                                    for camera in cameras], cameras, capture.volume.mean(axis=0))
+    per_frame = [pair_disagreement(_frame_masks(masks_dir, cameras, frame), cameras, capture.volume.mean(axis=0))
                  for frame in frames]
     pairs = pair_medians(np.array(per_frame))
     off = cameras_at_fault(pairs, CALIBRATION_DISAGREEMENT_M)
@@ -307,6 +306,11 @@ def _check_calibration(capture: Capture, masks_dir: Path) -> None:
                 "(epipolar tangency, median over %d frames%s): check their calibration (two cameras' names "
                 "swapped, a camera moved since it was calibrated), then their silhouettes (something that only "
                 "they see, in every frame)", named, len(frames), agree)
+
+
+def _frame_masks(masks_dir: Path, cameras: Sequence[Camera], frame: int) -> list[np.ndarray]:
+    """The silhouette stage's masks of one frame, one per camera."""
+    return [frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame)) for camera in cameras]
 
 
 def video_chunk_size(pending: int, workers: int) -> int:
@@ -350,10 +354,8 @@ def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path, tolerated: int
     if len(rig) < 3:  # two views' tangencies say nothing the calibration could be wrong about
         return rig
     frames = spread_frames(capture.frame_numbers, REFINEMENT_FRAMES)
-
-    def masks(frame: int) -> list[np.ndarray]:  # read frame by frame: thirty frames' masks at once are tens of MB
-        return [frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame)) for camera in rig]
-
+    # Read frame by frame (a generator): thirty frames' masks at once are tens of megabytes.
+    masks = functools.partial(_frame_masks, masks_dir, list(rig))
     refinement = refine_turns(map(masks, frames), list(rig), capture.volume.mean(axis=0))
     refined = Rig(tuple(turned(camera, turn) for camera, turn in zip(rig, refinement.turns, strict=True)))
     explained = (np.nan, np.nan)

@@ -177,7 +177,7 @@ TURN_PRIOR_M_PER_DEGREE = 1.0
 TANGENCY_LOSS_SCALE_M = 0.01
 #: Turns are proposed only when the median disagreement falls to this share or less: a sound calibration's
 #: disagreement is the silhouettes' noise, which no turn removes, and a refinement there would chase the noise.
-KEPT_SHARE = 2.0 / 3.0
+AGREEMENT_SHARE = 2.0 / 3.0
 _TURN_PRIOR = TURN_PRIOR_M_PER_DEGREE * np.degrees(1.0)  # metres per radian
 
 
@@ -202,8 +202,9 @@ class Refinement:
 
     @property
     def tangencies_agree(self) -> bool:
-        """Whether the turns make the tangencies agree clearly better than the calibration as given (`KEPT_SHARE`)."""
-        return self.tangencies > 0 and self.after_m <= KEPT_SHARE * self.before_m
+        """Whether the turns make the tangencies agree clearly better than the calibration as given
+        (`AGREEMENT_SHARE`)."""
+        return self.tangencies > 0 and self.after_m <= AGREEMENT_SHARE * self.before_m
 
 
 def refine_turns(masks_by_frame: Iterable[Sequence[np.ndarray]], cameras: Sequence[Camera],
@@ -314,13 +315,12 @@ class _TangencyProblem:
                 hull.append((np.arange(offset, offset + len(xy)), rays[-1] @ camera.R))  # indices, world rays
                 offset += len(xy)
             for i, j, baseline, across, length in _measured_pairs(hull, cameras, middle):
-                side = np.cross(across, baseline)
-                spans = [np.ptp(np.arctan2(hull[k][1] @ across, hull[k][1] @ side)) for k in (i, j)]
-                if max(spans) > MAX_SPAN_RAD:
+                extremes = [_plane_angles(baseline, across, hull[k][1]) for k in (i, j)]
+                if max(high - low for low, high in extremes) > MAX_SPAN_RAD:
                     continue
                 groups += [hull[i][0], hull[j][0]]
                 towards.append(across)
-                sideways.append(side)
+                sideways.append(np.cross(across, baseline))
                 distance.append(length)
                 pairs.append((i, j))
         if not pairs:

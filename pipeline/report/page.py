@@ -200,8 +200,8 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
               (overlay_stills(images, rig, run.estimate, run.truth) if rig is not None and images else [])}
     cameras = list(stills) or [str(name) for name in run.capture.get("cameras", []) or []]
     layout = RunLayout(run.out_dir)
-    check = _calibration_check(layout.calibration_check)
-    decided = _refinement_record(layout.calibration_refinement)
+    check = _record(layout.calibration_check, "disagreement_m")
+    decided = _record(layout.calibration_refinement, "turns_deg")
     refinement = decided if decided and decided.get("kept") is True else None
     rows = []
     for camera in cameras:
@@ -232,24 +232,15 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
             + "".join(rows))
 
 
-def _calibration_check(path: Path) -> dict | None:
-    """The silhouette stage's check of the calibration (`pipeline.graph._check_calibration`), or None when
+def _record(path: Path, key: str) -> dict | None:
+    """A stage's JSON record holding a mapping under ``key`` (the calibration check,
+    `pipeline.graph._check_calibration`; the calibration refinement, `pipeline.graph.refined_rig`), or None when
     absent or unreadable (a report never fails on it)."""
-    try:
-        check = frames_io.read_json(path)
-    except (OSError, InputError):
-        return None
-    return check if isinstance(check, dict) and isinstance(check.get("disagreement_m"), dict) else None
-
-
-def _refinement_record(path: Path) -> dict | None:
-    """The reconstruction stage's refinement of the cameras' orientations (`pipeline.graph.refined_rig`), or None
-    when absent or unreadable (a report never fails on it)."""
     try:
         record = frames_io.read_json(path)
     except (OSError, InputError):
         return None
-    return record if isinstance(record, dict) and isinstance(record.get("turns_deg"), dict) else None
+    return record if isinstance(record, dict) and isinstance(record.get(key), dict) else None
 
 
 def _refinement_note(record: dict | None) -> str:
