@@ -7,8 +7,10 @@ Examples:
   python -m pipeline bench --out runs/bench --report-only --docs docs   # redraw docs/results.md, docs/figures
 
 Writes <out>/results.json (one section per suite; running a suite replaces only its own), <out>/results.md
-(tables, targets met or missed) and <out>/figures/*.png; with --docs DIR also DIR/results.md and
-DIR/figures/*.png. Synthetic captures are rendered
+(tables, targets met or missed) and <out>/figures/*.png; with --docs DIR also DIR/results.md,
+DIR/figures/*.png and DIR/results.json, the measurements the page is drawn from, kept with the page: a bench in a
+fresh checkout (no <out>/results.json yet) starts from them, so that running one suite there replaces that
+suite's section and keeps the others'. Synthetic captures are rendered
 once into <out>/captures/<name>/ with their recipe beside them (<name>.recipe.json) and rendered again only
 when the recipe changes. Suites:
   speed   the paper's studio (6 cameras 780x580 28 fps): end-to-end frames/s of `python -m pipeline run`,
@@ -36,6 +38,7 @@ import argparse
 from pathlib import Path
 
 from calib.errors import InputError
+from pipeline.io import atomic
 from pipeline.lab.bench.suite import (
     RESULTS_JSON,
     RESULTS_MD,
@@ -53,7 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="few frames per capture: a smoke run of a few minutes")
     parser.add_argument("--workers", type=int, default=2, help="worker processes (pipeline runs, rendering, sweeps)")
     parser.add_argument("--captures", type=Path, help="cache of synthetic captures (default <out>/captures)")
-    parser.add_argument("--docs", type=Path, metavar="DIR", help="also write DIR/results.md and DIR/figures/")
+    parser.add_argument("--docs", type=Path, metavar="DIR",
+                        help="also write DIR/results.md, DIR/figures/ and DIR/results.json (and start from that "
+                             "JSON when <out> has none)")
     parser.add_argument("--report-only", action="store_true",
                         help="measure nothing: redraw the tables and figures from <out>/results.json")
 
@@ -62,6 +67,8 @@ def main(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise InputError(f"--workers {args.workers}: expected at least 1")
     source = args.out / RESULTS_JSON
+    if args.docs is not None:
+        seed_results(source, args.docs / RESULTS_JSON)
     if args.report_only:
         results = load_results(source)
         if not results:
@@ -74,6 +81,20 @@ def main(args: argparse.Namespace) -> int:
     written = [source, args.out / RESULTS_MD]
     if args.docs is not None:
         write_report(results, args.docs / RESULTS_MD, source=source)
-        written.append(args.docs / RESULTS_MD)
+        atomic.write_text(args.docs / RESULTS_JSON, source.read_text())
+        written += [args.docs / RESULTS_MD, args.docs / RESULTS_JSON]
     print("written: " + ", ".join(str(path) for path in written))
     return 0
+
+
+def seed_results(results: Path, published: Path) -> None:
+    """Copy the ``published`` measurements (the docs' results.json) to ``results`` when there are none there yet.
+
+    Results stay on the machine that measured them; the docs page and its JSON travel with the repository. A
+    suite run in a fresh checkout merges into the published sections instead of drawing a page of one suite.
+    """
+    if results.exists() or not load_results(published):
+        return
+    results.parent.mkdir(parents=True, exist_ok=True)
+    atomic.write_text(results, published.read_text())
+    print(f"bench: {results} started from {published} (the published measurements)")

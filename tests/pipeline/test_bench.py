@@ -407,3 +407,22 @@ def test_a_suite_records_the_reference_workload_before_and_after_it(tmp_path, mo
     options = suite.BenchOptions(out=tmp_path / "bench", captures=tmp_path / "captures", quick=True, workers=1)
     results = suite.run_bench(["speed"], options, log=lambda line: None)
     assert results["speed"]["made"]["reference_s"] == [0.2, 0.3]
+
+
+def test_docs_keep_the_measurements_and_a_fresh_checkout_starts_from_them(results, tmp_path, capsys):
+    import argparse
+
+    from pipeline.commands import bench
+
+    out, docs = tmp_path / "runs" / "bench", tmp_path / "docs"
+    docs.mkdir()
+    (docs / "results.json").write_text(json.dumps(suite.json_safe(results), allow_nan=False))
+    args = argparse.Namespace(out=out, suite="all", quick=False, workers=2, captures=None, docs=docs, report_only=True)
+    assert bench.main(args) == 0  # a fresh checkout: nothing measured here yet, the published page redrawn
+    assert suite.load_results(out / "results.json") == suite.load_results(docs / "results.json")
+    assert "started from" in capsys.readouterr().out
+    kept = suite.load_results(out / "results.json")
+    (out / "results.json").write_text(json.dumps({"speed": kept["speed"]}))  # this machine's own measurements
+    assert bench.main(args) == 0
+    assert set(suite.load_results(docs / "results.json")) == {"speed"}  # the docs follow <out>, never the reverse
+    assert "## Speed" in (docs / "results.md").read_text()
