@@ -11,11 +11,9 @@ import logging
 import os
 import sys
 
-# OpenCV's and FFmpeg's own messages (a PNG header they cannot parse, "moov atom not found") would reach the
-# terminal before the pipeline's one-line error that says which file is wrong and why; set before cv2 loads,
-# so that the worker processes, which inherit the environment, are quiet too. A user's own setting wins.
-os.environ.setdefault("OPENCV_LOG_LEVEL", "OFF")
-os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+from pipeline.environment import set_defaults
+
+set_defaults()  # before OpenCV and numpy load, for this process and the workers it starts
 
 from pipeline.cli import main  # noqa: E402  (after the environment it must see)
 
