@@ -482,7 +482,8 @@ def frame_quality(results: dict[int, FrameResult]) -> FrameQuality:
         outlier_fraction=np.array([results[f].outlier_fraction for f in frames], dtype=float),
         support=np.array([unrecorded if results[f].joint_support is None else results[f].joint_support
                           for f in frames]),
-        fitted=np.array([results[f].status in EXPORTED_STATUSES for f in frames]))
+        fitted=np.array([results[f].status in EXPORTED_STATUSES for f in frames]),
+        corrected=np.array([" ".join(results[f].corrected) for f in frames]))
 
 
 def run_export(ctx: StageContext) -> None:

@@ -15,7 +15,9 @@ tracker's parameters (the tracking stage's manifest), by the rules of :mod:`stag
   (``failure_sigma_m``, or for a tracked fit on data whose good fits are wider, the track's usual spread:
   :func:`stages.tracking.results.spread_limit`) or at the ``max_sigma_m`` ceiling;
 - *predicted*: fewer than ``min_observations`` usable observations, the pose carried on;
-- *lost*: too few observations for longer than ``max_predicted_frames`` frames, or before any fit.
+- *lost*: too few observations for longer than ``max_predicted_frames`` frames, or before any fit;
+- *tracked* frames on which a limb search put a limb elsewhere or the legs were exchanged (the record's
+  ``corrected``): where the track changed its mind about a limb, and where to look first when it went wrong.
 """
 
 from __future__ import annotations
@@ -130,9 +132,15 @@ def frame_status(frame: int, record: tuple[FrameResult, TrackerState],
     doubtful = result.doubtful and status in ("tracked", "initialised")
     if doubtful:
         causes = _doubt_causes(result, spread, limit, params) + tuple(f"initialised: {cause}" for cause in causes)
+    causes += tuple(_correction(name) for name in result.corrected)
     return FrameStatus(frame=frame, category="doubtful" if doubtful else status, status=status,
                        log_likelihood=float(result.log_likelihood), outlier_fraction=float(result.outlier_fraction),
                        sigma_spread_m=spread, sigma_limit_m=limit, causes=causes)
+
+
+def _correction(name: str) -> str:
+    """How the report names a limb the tracker put elsewhere on a tracked frame (`FrameResult.corrected`)."""
+    return f"legs exchanged ({name})" if "/" in name else f"{name} put elsewhere by a search"
 
 
 def tracker_params(tracking_dir: Path) -> dict:

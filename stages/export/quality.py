@@ -18,6 +18,9 @@ outlier_fraction                     mean posterior of the outlier class: the sh
                                      unexplained
 unsupported                          in a fitted frame, the joints whose confidence is below
                                      :data:`UNSUPPORTED_CONFIDENCE`, space-separated (empty when none)
+corrected                            the limbs the tracker put elsewhere on this tracked frame rather than
+                                     following them (``FrameResult.corrected``), space-separated: the frames
+                                     to look at first where a limb went wrong
 <joint>_confidence                   per joint, from 0 to 1 (below)
 ==================================== ==========================================================================
 
@@ -72,6 +75,8 @@ class FrameQuality:
         (frames not fitted).
     fitted : (F,) bool
         The frames fitted to data (the exported statuses).
+    corrected : (F,) str
+        The limbs corrected on each frame (``FrameResult.corrected``), space-separated.
     """
 
     frames: np.ndarray
@@ -82,6 +87,7 @@ class FrameQuality:
     outlier_fraction: np.ndarray
     support: np.ndarray
     fitted: np.ndarray
+    corrected: np.ndarray
 
 
 def joint_confidence(support: np.ndarray, fitted: np.ndarray, names: Sequence[str]) -> np.ndarray:
@@ -111,7 +117,7 @@ def format_quality_csv(quality: FrameQuality, names: Sequence[str]) -> str:
     """The text of ``quality.csv`` (columns in the module docstring), one row per frame in frame order."""
     confidence = joint_confidence(quality.support, quality.fitted, names)
     header = ["frame", "status", "doubtful", "observations", "log_likelihood_per_observation", "outlier_fraction",
-              "unsupported"] + [f"{name}_confidence" for name in names]
+              "unsupported", "corrected"] + [f"{name}_confidence" for name in names]
     lines = [",".join(header)]
     for f in np.argsort(quality.frames, kind="stable"):
         fitted = bool(quality.fitted[f]) and quality.observations[f] > 0
@@ -119,6 +125,7 @@ def format_quality_csv(quality: FrameQuality, names: Sequence[str]) -> str:
         outliers = f"{quality.outlier_fraction[f]:.{DECIMALS}f}" if fitted else ""
         weak = " ".join(name for name, c in zip(names, confidence[f], strict=True) if c < UNSUPPORTED_CONFIDENCE)
         lines.append(",".join([str(int(quality.frames[f])), str(quality.statuses[f]), str(int(quality.doubtful[f])),
-                               str(int(quality.observations[f])), per_observation, outliers, weak if fitted else ""]
+                               str(int(quality.observations[f])), per_observation, outliers, weak if fitted else "",
+                               str(quality.corrected[f])]
                               + [f"{c:.{DECIMALS}f}" for c in confidence[f]]))
     return "\n".join(lines) + "\n"

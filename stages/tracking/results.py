@@ -45,6 +45,11 @@ class FrameResult:
         to the joint before it in the skeleton (`joint_support`); None when the frame was not fitted.
         The export's per-joint confidence comes from it: a limb EM keeps where the data say nothing
         is still "tracked", and only this says that its data are missing.
+    corrected : tuple of str
+        The limbs a search put elsewhere on this tracked frame (`Limb.name`, "l_upperarm") and the legs an
+        exchange swapped ("l_thigh/r_thigh"): where the track changed its mind about a limb rather than
+        following it, which the likelihood decides and can decide wrong on ambiguous data (a rig of few
+        cameras, motion blur). An initialisation's own searches are not listed (its status says it).
     """
 
     pose: np.ndarray
@@ -57,19 +62,23 @@ class FrameResult:
     doubtful: bool = False
     observations: int = 0
     joint_support: np.ndarray | None = None
+    corrected: tuple[str, ...] = ()
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (lists of floats)."""
         support = None if self.joint_support is None else np.asarray(self.joint_support).tolist()
-        return {**asdict(self), "pose": self.pose.tolist(), "joints": self.joints.tolist(), "joint_support": support}
+        return {**asdict(self), "pose": self.pose.tolist(), "joints": self.joints.tolist(), "joint_support": support,
+                "corrected": list(self.corrected)}
 
     @staticmethod
     def from_dict(data: dict) -> FrameResult:
-        """The estimate `to_dict` wrote (records written before `joint_support` was saved have none)."""
+        """The estimate `to_dict` wrote (records written before `joint_support` or `corrected` were saved have
+        neither)."""
         support = data.get("joint_support")
         return FrameResult(**{**data, "pose": np.asarray(data["pose"], dtype=float),
                               "joints": np.asarray(data["joints"], dtype=float),
-                              "joint_support": None if support is None else np.asarray(support, dtype=float)})
+                              "joint_support": None if support is None else np.asarray(support, dtype=float),
+                              "corrected": tuple(data.get("corrected", ()))})
 
 
 @dataclass(frozen=True)

@@ -154,7 +154,7 @@ class Tracker:
         searching = replace(em, estimate_lengths=False)
         tracked, moved, searches = self._search_limbs(y, n, tracked, state, searching)
         tracked, exchanged, exchanges = self._exchange_legs(y, n, tracked, state, searching)
-        moved += exchanged
+        moved |= exchanged
         doubtful = _failed(tracked, params, spread_limit(state, params.failure_sigma_m),
                            usual=_as_likely_as_usual(tracked, len(y), state, params))
         tried = doubtful or 0 < params.reinit_every <= state.since_initialisation + 1 or state.recheck
@@ -230,8 +230,8 @@ class Tracker:
         return tracked
 
     def _search_limbs(self, y, n, tracked: FitResult, state: TrackerState,
-                      em: EMParams) -> tuple[FitResult, list[np.ndarray], tuple[np.ndarray, np.ndarray]]:
-        """The tracked fit after the limb searches (`_recover_limbs`), the DOFs of the limbs they moved, and
+                      em: EMParams) -> tuple[FitResult, dict[str, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """The tracked fit after the limb searches (`_recover_limbs`), the limbs they moved (name -> DOFs), and
         the limbs' searches in a row that kept the fit and their waits after this frame (`limbs.search_backoff`).
 
         A limb waits only while the fit is as good as usual: a fit worse than usual (`refit_drop`) is a change
@@ -243,34 +243,38 @@ class Tracker:
         due = checks_due(state.since_initialisation + 1, len(self.limbs), every)
         tracked, searched, kept = self._recover_limbs(y, n, tracked, em, state.segment_shares, state.pose,
                                                       (wait > 0) & usual, due)
-        moved = [limb.dofs for limb, still in zip(self.limbs, kept, strict=True) if not still]
+        moved = {limb.name: limb.dofs for limb, still in zip(self.limbs, kept, strict=True) if not still}
         return tracked, moved, search_backoff(misses, wait, searched, kept)
 
     def _exchange_legs(self, y, n, tracked: FitResult, state: TrackerState,
-                       em: EMParams) -> tuple[FitResult, list[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+                       em: EMParams) -> tuple[FitResult, dict[str, np.ndarray], tuple[np.ndarray, np.ndarray]]:
         """The tracked fit after each pair of `legs` was tried exchanged (`limbs.swap_limbs`) if it is worse than
-        usual (`refit_drop`) and the pair is not waiting, the DOFs of the exchanges kept, and the pairs' tries in
+        usual (`refit_drop`) and the pair is not waiting, the exchanges kept ("l_thigh/r_thigh" -> both legs' DOFs),
+        and the pairs' tries in
         a row that kept the fit and their waits after this frame (`limbs.search_backoff`)."""
         misses, wait = _search_counts(state.exchange_misses, state.exchange_wait, len(self.legs))
         tried = _worse_than_usual(tracked, len(y), state, self.params) & (wait == 0)
         kept = np.ones(len(self.legs), dtype=bool)
-        moved = []
+        moved = {}
         for index in np.flatnonzero(tried):
             legs = self.legs[index]
             exchanged = swap_limbs(y, n, tracked, legs, self.volume, em)
             kept[index] = exchanged is tracked
-            moved += [] if kept[index] else [legs.dofs, legs.mirror_dofs]
+            if not kept[index]:
+                mirror = self.body.segment_names[legs.mirror_segments[0]]
+                moved[f"{legs.name}/{mirror}"] = np.concatenate([legs.dofs, legs.mirror_dofs])
             tracked = exchanged
         return tracked, moved, search_backoff(misses, wait, tried, kept)
 
     def _tracked(self, state: TrackerState, tracked: FitResult, observations: int, learning: bool, doubtful: bool,
-                 tried: bool, moved: list[np.ndarray], searches: tuple[np.ndarray, np.ndarray],
+                 tried: bool, moved: dict[str, np.ndarray], searches: tuple[np.ndarray, np.ndarray],
                  exchanges: tuple[np.ndarray, np.ndarray]) -> tuple[FrameResult, TrackerState]:
         """The estimate of a tracked frame and the state after it: the length factors' running mean (while
         `learning`), the likelihood level and segment shares (exponential averages), the velocity, the limbs'
         `searches` and the legs' `exchanges` in a row that kept the fit and their waits (`limbs.search_backoff`).
 
-        The DOFs of limbs a search or an exchange `moved` get no velocity: their change over this frame is a
+        The limbs a search or an exchange `moved` (name -> DOFs) are the estimate's `corrected`, and their DOFs
+        get no velocity: their change over this frame is a
         correction, not motion, and carried on it would throw the limb as far again at the next frame. For the
         same reason no DOF gets any on the first frame after an initialisation: its change is mostly the EM's
         correction of the search's coarse pose."""
@@ -290,7 +294,7 @@ class Tracker:
         after_initialisation = not np.isfinite(state.likelihood_level) or state.recheck
         moving = state.frames_without_fit == 0 and not doubtful and not after_initialisation
         velocity = tracked.pose - state.pose if moving else np.zeros_like(state.velocity)
-        for dofs in moved:
+        for dofs in moved.values():
             velocity[dofs] = 0.0
         spread_level, spread_variance = state.spread_level, state.spread_variance
         if not doubtful:
@@ -314,7 +318,8 @@ class Tracker:
                              log_likelihood=tracked.log_likelihood[-1], iterations=tracked.iterations,
                              outlier_fraction=tracked.outlier_fraction, status="tracked", height_m=tracked.height_m,
                              doubtful=doubtful, observations=observations,
-                             joint_support=joint_support(tracked.body, tracked.mixture, observations))
+                             joint_support=joint_support(tracked.body, tracked.mixture, observations),
+                             corrected=tuple(moved))
         return result, new_state
 
     def _recover_limbs(self, y, n, result: FitResult, em: EMParams, usual_shares=None,

@@ -17,7 +17,8 @@ def _export(folder, params=None):
     support[4, 7] = 5.0  # frame 9's left wrist: its forearm explains a tenth of its usual data
     quality = FrameQuality(frames=t + 5, statuses=np.array(["tracked"] * 12), doubtful=np.zeros(12, bool),
                            observations=np.full(12, 900), log_likelihood=np.full(12, 2000.0),
-                           outlier_fraction=np.full(12, 0.05), support=support, fitted=np.ones(12, bool))
+                           outlier_fraction=np.full(12, 0.05), support=support, fitted=np.ones(12, bool),
+                           corrected=np.full(12, ""))
     write_exports(folder / "export", t + 5, joints, fps=30.0, params=params, quality=quality)
     return t + 5
 

@@ -182,10 +182,12 @@ def test_quality_csv_is_written_beside_joints_csv(tmp_path):
     quality = FrameQuality(frames=frames, statuses=np.array(["initialised"] + ["tracked"] * 4),
                            doubtful=np.zeros(5, bool), observations=np.full(5, 900),
                            log_likelihood=np.full(5, 1800.0), outlier_fraction=np.full(5, 0.1), support=support,
-                           fitted=np.ones(5, bool))
+                           fitted=np.ones(5, bool), corrected=np.array(["", "", "l_upperarm", "", "l_thigh/r_thigh"]))
     paths = write_exports(tmp_path, frames, _walk(5), fps=25.0, quality=quality)
     lines = paths["quality.csv"].read_text().splitlines()
-    assert len(lines) == 6 and lines[1].startswith("0,initialised,0,900,2.0000,0.1000,,1.0000")
+    assert len(lines) == 6 and lines[1].startswith("0,initialised,0,900,2.0000,0.1000,,,1.0000")
+    assert lines[0].split(",")[6:8] == ["unsupported", "corrected"]
+    assert [line.split(",")[7] for line in lines[1:]] == ["", "", "l_upperarm", "", "l_thigh/r_thigh"]
 
 
 def test_write_exports_refuses_an_empty_sequence(tmp_path):

@@ -18,12 +18,13 @@ PARAMS = {"max_outlier_fraction": 0.6, "failure_sigma_m": 0.05, "max_sigma_m": 0
 
 
 def record(frame, status, *, doubtful=False, outliers=0.05, spread_m=0.02, recheck=False, since=0, height_m=1.7,
-           measured_m=None, spread_level=np.nan, spread_variance=np.nan):
+           measured_m=None, spread_level=np.nan, spread_variance=np.nan, corrected=()):
     """A tracking record as the tracker writes it (`frame_record`), with the fields the summary reads set."""
     fitted = status in ("tracked", "initialised")
     result = FrameResult(pose=np.zeros(6), joints=np.zeros((len(JOINT_NAMES), 3)),
                          log_likelihood=3000.0 + frame if fitted else 0.0, iterations=3,
-                         outlier_fraction=outliers if fitted else 1.0, status=status, height_m=1.7, doubtful=doubtful)
+                         outlier_fraction=outliers if fitted else 1.0, status=status, height_m=1.7, doubtful=doubtful,
+                         corrected=corrected)
     state = TrackerState(pose=np.zeros(6), velocity=np.zeros(6), height_m=height_m, length_factors=np.ones(0),
                          height_weight=1, Sigma=np.diag([spread_m**2, (spread_m / 2) ** 2, 1e-6]), pi=np.ones(1),
                          likelihood_level=np.nan, frames_without_fit=0 if fitted else 1, lost=False,
@@ -50,6 +51,15 @@ def test_initialisations_say_why_they_happened():
         "initialised", ("periodic re-initialisation",))
     assert causes(record(5, "initialised"), record(4, "tracked", since=3)) == (
         "initialised", ("the fit from the previous frame failed the checks",))
+
+
+def test_a_tracked_frame_names_the_limbs_the_tracker_put_elsewhere():
+    assert causes(record(3, "tracked"), record(2, "tracked")) == ("tracked", ())
+    assert causes(record(3, "tracked", corrected=("l_upperarm", "l_thigh/r_thigh")), record(2, "tracked")) == (
+        "tracked", ("l_upperarm put elsewhere by a search", "legs exchanged (l_thigh/r_thigh)"))
+    category, why = causes(record(3, "tracked", doubtful=True, outliers=0.7, corrected=("r_upperarm",)),
+                           record(2, "tracked"))
+    assert category == "doubtful" and why == ("outlier share above 60 %", "r_upperarm put elsewhere by a search")
 
 
 def test_a_doubtful_frame_names_the_checks_it_failed():

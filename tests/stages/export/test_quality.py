@@ -15,7 +15,8 @@ def _quality(support: np.ndarray, statuses: list[str]) -> FrameQuality:
     fitted = np.array([s in ("tracked", "initialised") for s in statuses])
     return FrameQuality(frames=np.arange(10, 10 + n), statuses=np.array(statuses), doubtful=np.zeros(n, bool),
                         observations=np.where(fitted, 1000, 5), log_likelihood=np.where(fitted, 2500.0, 0.0),
-                        outlier_fraction=np.where(fitted, 0.05, 1.0), support=support, fitted=fitted)
+                        outlier_fraction=np.where(fitted, 0.05, 1.0), support=support, fitted=fitted,
+                        corrected=np.full(n, ""))
 
 
 def test_confidence_is_the_support_over_its_usual_level_carried_down_each_chain():

@@ -11,8 +11,9 @@ from tracking_testing import VOLUME, sample_ellipsoids
 from stages.joints import JOINT_NAMES
 from stages.tracking import tracker
 from stages.tracking.body_file import load_body
+from stages.tracking.limbs import exchanged
 from stages.tracking.params import TrackerParams
-from stages.tracking.results import STATUSES, TrackerState, sigma_spread, spread_limit
+from stages.tracking.results import STATUSES, FrameResult, TrackerState, sigma_spread, spread_limit
 from stages.tracking.tracker import Tracker, velocity_gain
 
 PARAMS = TrackerParams(height_m=1.75, init_headings=6, init_refine=2)
@@ -448,9 +449,28 @@ def test_a_limb_a_search_moved_carries_no_velocity_into_the_next_frame(body, mon
     monkeypatch.setattr(tracker, "reinitialise_limb", search)
     result, after = the_tracker.track(state, _obs(body, poses[3], rng))
     assert result.status == "tracked"
+    assert result.corrected == ("l_upperarm",)  # quality.csv names the frame where the track changed its mind
+    assert FrameResult.from_dict(json.loads(json.dumps(result.to_dict()))).corrected == ("l_upperarm",)
     assert not after.velocity[arm.dofs].any()
     others = np.setdiff1d(np.arange(body.pose_size), arm.dofs)
     assert np.abs(after.velocity[others]).max() > 0.01  # the walk goes on
+
+
+def test_legs_an_exchange_swapped_are_named_with_the_frame(body, monkeypatch):
+    """The legs' exchange is a correction like a limb search's: its frame lists both legs, and an exchange that
+    gained nothing lists none."""
+    rng = np.random.default_rng(33)
+    the_tracker, state = Tracker(PARAMS, VOLUME), None
+    poses = _walk(body.scaled(1.75), 4)
+    for pose in poses[:3]:
+        _, state = the_tracker.track(state, _obs(body, pose, rng))
+    worse = replace(state, likelihood_level=state.likelihood_level + 2 * PARAMS.refit_drop + 1.0)
+    corrected = {}
+    for kept in (True, False):
+        monkeypatch.setattr(tracker, "swap_limbs", lambda y, n, result, limb, *args, kept=kept: result if kept
+                            else _moved_fit(result, result.body.clip(exchanged(result.pose, limb))))
+        corrected[kept] = the_tracker.track(worse, _obs(body, poses[3], rng))[0].corrected
+    assert corrected == {True: (), False: ("l_thigh/r_thigh",)}
 
 
 def test_the_prediction_carries_on_the_changes_the_track_found_smooth(body):
