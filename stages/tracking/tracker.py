@@ -250,8 +250,7 @@ class Tracker:
                        em: EMParams) -> tuple[FitResult, dict[str, np.ndarray], tuple[np.ndarray, np.ndarray]]:
         """The tracked fit after each pair of `legs` was tried exchanged (`limbs.swap_limbs`) if it is worse than
         usual (`refit_drop`) and the pair is not waiting, the exchanges kept ("l_thigh/r_thigh" -> both legs' DOFs),
-        and the pairs' tries in
-        a row that kept the fit and their waits after this frame (`limbs.search_backoff`)."""
+        and the pairs' tries in a row that kept the fit and their waits after this frame (`limbs.search_backoff`)."""
         misses, wait = _search_counts(state.exchange_misses, state.exchange_wait, len(self.legs))
         tried = _worse_than_usual(tracked, len(y), state, self.params) & (wait == 0)
         kept = np.ones(len(self.legs), dtype=bool)
@@ -274,10 +273,9 @@ class Tracker:
         `searches` and the legs' `exchanges` in a row that kept the fit and their waits (`limbs.search_backoff`).
 
         The limbs a search or an exchange `moved` (name -> DOFs) are the estimate's `corrected`, and their DOFs
-        get no velocity: their change over this frame is a
-        correction, not motion, and carried on it would throw the limb as far again at the next frame. For the
-        same reason no DOF gets any on the first frame after an initialisation: its change is mostly the EM's
-        correction of the search's coarse pose."""
+        get no velocity: their change over this frame is a correction, not motion, and carried on it would throw
+        the limb as far again at the next frame. For the same reason no DOF gets any on the first frame after an
+        initialisation: its change is mostly the EM's correction of the search's coarse pose."""
         per_obs = tracked.log_likelihood[-1] / observations
         height, lengths, weight = state.height_m, state.length_factors, state.height_weight
         if learning:  # running mean of the per-frame estimates of ln ℓ
