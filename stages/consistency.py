@@ -92,7 +92,7 @@ def explained_share(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volu
         if points is None:
             continue
         points = points.reshape(-1, 2)
-        uv = points[np.unique(np.linspace(0, len(points) - 1, rays_per_view).round().astype(int))].astype(float)
+        uv = points[_evenly_spread(len(points), rays_per_view)].astype(float)
         others = [(other, masks[o]) for o, other in enumerate(cameras) if o != c]
         explained += int(_explained(camera, uv, others, volume, tolerated).sum())
         tested += len(uv)
@@ -140,8 +140,13 @@ def _spread_pixels(mask: np.ndarray, labels: np.ndarray, stats: np.ndarray, corn
     box = mask[y * cell : (y + h) * cell, x * cell : (x + w) * cell]
     points = cv2.findNonZero(cv2.bitwise_and(blocks[: box.shape[0], : box.shape[1]], box))  # (n, 1, 2) raster order
     cols, rows = points.reshape(-1, 2).T
-    chosen = np.unique(np.linspace(0, len(rows) - 1, min(RAYS_PER_PART, len(rows))).round().astype(int))
+    chosen = _evenly_spread(len(rows), RAYS_PER_PART)
     return np.column_stack([cols[chosen] + x * cell, rows[chosen] + y * cell]).astype(float)
+
+
+def _evenly_spread(count: int, wanted: int) -> np.ndarray:
+    """At most ``wanted`` indices of ``count`` items (count > 0), evenly spread from the first to the last."""
+    return np.unique(np.linspace(0, count - 1, min(wanted, count)).round().astype(int))
 
 
 def _without_parts(mask: np.ndarray, labels: np.ndarray, corner: tuple[int, int], dropped: np.ndarray,

@@ -54,25 +54,28 @@ def pair_disagreement(masks: Sequence[np.ndarray], cameras: Sequence[Camera], ce
             for camera, points in zip(cameras, outlines, strict=True)]
     count = len(cameras)
     disagreement = np.full((count, count), np.nan)
-    for i, j, baseline, towards, distance in _measured_pairs(rays, cameras, centre):
-        extremes = [_plane_angles(baseline, towards, directions) for directions in (rays[i], rays[j])]
-        if max(high - low for low, high in extremes) > MAX_SPAN_RAD:
-            continue
-        (low_i, high_i), (low_j, high_j) = extremes
+    for i, j, (_, _, distance), (low_i, high_i), (low_j, high_j) in _measured_pairs(rays, cameras, centre):
         disagreement[i, j] = disagreement[j, i] = 0.5 * (abs(low_i - low_j) + abs(high_i - high_j)) * distance
     return disagreement
 
 
-def _measured_pairs(views: Sequence, cameras: Sequence[Camera], centre: np.ndarray):
-    """``(i, j, baseline, towards, distance)`` (`_pair_frame`) of each camera pair i < j whose two ``views`` were
-    measured (not None) and whose baseline misses the subject's ``centre``."""
+def _measured_pairs(rays: Sequence[np.ndarray | None], cameras: Sequence[Camera], centre: np.ndarray):
+    """``(i, j, frame, extremes_i, extremes_j)`` of each camera pair i < j whose two views' ``rays`` (N, 3) (world
+    directions through the outline; None: not measured) give extreme planes: the pair's `_pair_frame` and the
+    smallest and largest angle of each view's planes in it (`_plane_angles`). A pair whose baseline meets the
+    subject's ``centre``, or whose planes span more than `MAX_SPAN_RAD` (the baseline passes through the person),
+    has none."""
     for i in range(len(cameras)):
         for j in range(i + 1, len(cameras)):
-            if views[i] is None or views[j] is None:
+            if rays[i] is None or rays[j] is None:
                 continue
             frame = _pair_frame(cameras[i], cameras[j], centre)
-            if frame is not None:
-                yield i, j, *frame
+            if frame is None:
+                continue
+            baseline, towards, _ = frame
+            extremes = [_plane_angles(baseline, towards, rays[k]) for k in (i, j)]
+            if max(high - low for low, high in extremes) <= MAX_SPAN_RAD:
+                yield i, j, frame, *extremes
 
 
 def _pair_frame(first: Camera, second: Camera, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -302,23 +305,22 @@ class _TangencyProblem:
         offset = 0
         for masks in masks_by_frame:
             middle = _nearest_point(masks, cameras, centre)
-            hull = []
+            indices, world = [], []  # per view, its hull rays' indices in ``rays`` and their world directions
             for index, (camera, mask) in enumerate(zip(cameras, masks, strict=True)):
                 outline = _outline(mask)
                 if outline is None:
-                    hull.append(None)
+                    indices.append(None)
+                    world.append(None)
                     continue
                 xy = cv2.convexHull(camera.undistort_pixels(outline).astype(np.float32)).reshape(-1, 2)
                 directions = np.hstack([xy, np.ones((len(xy), 1))])
                 rays.append(directions / np.linalg.norm(directions, axis=1, keepdims=True))
                 camera_of_ray.append(np.full(len(xy), index))
-                hull.append((np.arange(offset, offset + len(xy)), rays[-1] @ camera.R))  # indices, world rays
+                indices.append(np.arange(offset, offset + len(xy)))
+                world.append(rays[-1] @ camera.R)
                 offset += len(xy)
-            for i, j, baseline, across, length in _measured_pairs(hull, cameras, middle):
-                extremes = [_plane_angles(baseline, across, hull[k][1]) for k in (i, j)]
-                if max(high - low for low, high in extremes) > MAX_SPAN_RAD:
-                    continue
-                groups += [hull[i][0], hull[j][0]]
+            for i, j, (baseline, across, length), _, _ in _measured_pairs(world, cameras, middle):
+                groups += [indices[i], indices[j]]
                 towards.append(across)
                 sideways.append(np.cross(across, baseline))
                 distance.append(length)

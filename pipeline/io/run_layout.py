@@ -162,6 +162,10 @@ class RunLayout:
         return calibration_refinement_path(self.stage_dir("reconstruction"))
 
     @property
+    def refined_rig(self) -> Path:
+        return refined_rig_path(self.stage_dir("reconstruction"))
+
+    @property
     def tracking_dir(self) -> Path:
         return self.stage_dir("tracking")
 

@@ -228,7 +228,9 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
                                          ("truth in white", run.truth))
              if sequence is not None and any(sequence.at(frame) is not None for frame, _ in stills.values())]
     legend = (", ".join(drawn) + ". ").capitalize() if drawn else ""
-    return (f"<h2>Cameras</h2><p class='note'>{legend}Silhouettes white on black.</p>{_refinement_note(decided)}"
+    rig_file = layout.refined_rig.relative_to(layout.root).as_posix()
+    return (f"<h2>Cameras</h2><p class='note'>{legend}Silhouettes white on black.</p>"
+            f"{_refinement_note(decided, rig_file)}"
             + "".join(rows))
 
 
@@ -243,8 +245,9 @@ def _record(path: Path, key: str) -> dict | None:
     return record if isinstance(record, dict) and isinstance(record.get(key), dict) else None
 
 
-def _refinement_note(record: dict | None) -> str:
-    """What the refinement of the cameras' orientations decided, when turns were proposed: kept or refused."""
+def _refinement_note(record: dict | None, rig_file: str) -> str:
+    """What the refinement of the cameras' orientations decided, when turns were proposed: kept (the cameras used
+    then in ``rig_file``, relative to the run folder) or refused."""
     if not record or record.get("tangencies_agree") is not True:
         return ""
     figures = [record.get(key) for key in ("disagreement_before_m", "disagreement_after_m", "explained_before",
@@ -256,7 +259,8 @@ def _refinement_note(record: dict | None) -> str:
                 f"silhouettes the visual hull explains {100 * explained_before:.1f} → {100 * explained_after:.1f} %")
     if record.get("kept") is True:
         return (f"<p class='note'>Calibration refined from the silhouettes: each camera turned about its centre "
-                f"({measured}); the cameras used are in reconstruction/rig_refined.toml.</p>")
+                f"({measured}); the cameras the reconstruction and these stills used are in "
+                f"{html.escape(rig_file)}.</p>")
     return (f"<p class='note'>Calibration <strong>not refined</strong>: turning the cameras made the tangencies agree "
             f"but the silhouettes less consistent ({measured}): the calibration is off in a way turns cannot mend "
             "(the cameras' positions?).</p>")
@@ -267,8 +271,7 @@ def _turn(refinement: dict | None, camera: str) -> str:
     turn = refinement["turns_deg"].get(camera) if refinement else None
     if not isinstance(turn, (int, float)):
         return ""
-    return (f"<p class='note'>Calibration refined from the silhouettes: turned by {turn:.2f}° about its centre "
-            "(the cameras the reconstruction and these stills used: reconstruction/rig_refined.toml).</p>")
+    return f"<p class='note'>Calibration refined from the silhouettes: turned by {turn:.2f}° about its centre.</p>"
 
 
 def _agreement(check: dict | None, camera: str) -> str:

@@ -19,7 +19,7 @@ import numpy as np
 
 from calib.camera import Rig
 from calib.errors import InputError
-from stages.checks import check_choice, check_int, check_number
+from stages.checks import check_bool, check_choice, check_int, check_number
 from stages.reconstruction.visual_hull import hull_surface_points
 from stages.reconstruction.visual_shape import rim_points
 
@@ -73,9 +73,7 @@ class ReconstructionParams:
 
     def __post_init__(self) -> None:
         check_choice("reconstruction.method", self.method, METHODS)
-        if not isinstance(self.refine_calibration, bool):
-            raise InputError("reconstruction.refine_calibration: expected true or false, "
-                             f"got {self.refine_calibration!r}")
+        check_bool("reconstruction.refine_calibration", self.refine_calibration)
         check_choice("reconstruction.rim_placement", self.rim_placement, RIM_PLACEMENTS)
         check_int("reconstruction.n_observations", self.n_observations, 50, 5000)
         check_int("reconstruction.tolerated_views", self.tolerated_views, 0)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from calib.errors import InputError
-from stages.checks import check_int, check_number
+from stages.checks import check_bool, check_choice, check_int, check_number
 
 #: Choices of ``SilhouetteParams.shadows``.
 SHADOW_TESTS = ("floor", "colour", "none")
@@ -82,8 +82,7 @@ class SilhouetteParams:
     multiview_check: bool = True
 
     def __post_init__(self) -> None:
-        if not isinstance(self.multiview_check, bool):
-            raise InputError(f"silhouettes.multiview_check: expected true or false, got {self.multiview_check!r}")
+        check_bool("silhouettes.multiview_check", self.multiview_check)
         check_int("silhouettes.downsample", self.downsample, 1)
         for name in ("opening_px", "closing_px"):
             check_int(f"silhouettes.{name}", getattr(self, name), 0)
@@ -95,8 +94,7 @@ class SilhouetteParams:
                 "silhouettes.shadow_min/shadow_max: expected 0 < shadow_min < shadow_max <= 1, "
                 f"got {self.shadow_min} and {self.shadow_max}"
             )
-        if self.shadows not in SHADOW_TESTS:
-            raise InputError(f"silhouettes.shadows: expected one of {', '.join(SHADOW_TESTS)}, got {self.shadows!r}")
+        check_choice("silhouettes.shadows", self.shadows, SHADOW_TESTS)
         kernel = self.blur_kernel_px
         if not (isinstance(kernel, int) and not isinstance(kernel, bool) and kernel >= 1 and kernel % 2):
             raise InputError(f"silhouettes.blur_kernel_px: expected an odd integer >= 1, got {kernel!r}")

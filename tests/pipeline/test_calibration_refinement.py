@@ -53,6 +53,7 @@ def test_cameras_turned_since_their_calibration_are_refined_and_written(tmp_path
     report = (out / "export" / "report.html").read_text()
     assert report.count("Calibration refined from the silhouettes: turned by") == len(given)
     assert report.count("Calibration refined from the silhouettes: each camera turned about its centre") == 1
+    assert report.count("reconstruction/rig_refined.toml") == 1  # named once, above the cameras
 
 
 def test_a_sound_calibration_is_used_as_it_is(tmp_path):
@@ -90,5 +91,5 @@ def test_turns_that_leave_the_silhouettes_less_explained_are_not_kept(tmp_path, 
     assert not (out / "reconstruction" / "rig_refined.toml").exists()
     assert "calibration not refined: turning the cameras by cam1 " in capfd.readouterr().err
     # The report says so too (its camera sections note no turn: none was kept).
-    note = _refinement_note(refinement)
+    note = _refinement_note(refinement, "reconstruction/rig_refined.toml")
     assert "Calibration <strong>not refined</strong>" in note and "90.0 → 80.0 %" in note
