@@ -1,10 +1,11 @@
-"""The per-frame work of the silhouette and reconstruction stages, as it runs in a worker.
+"""The per-frame work of the silhouette and reconstruction stages, and the refinement of the calibration between
+them, as it runs in a worker.
 
 A worker of ``--workers N`` is a fork of a server process that imported :data:`WORKER_MODULES` once
 (:func:`pipeline.engine.executors.start_worker_server`), started before the run's own imports: the
 workers have this module and the reconstruction in memory before the first frame, and none imports
 the tracker (numba), which lives in :mod:`pipeline.graph`. The reconstruction (scipy, slow to import)
-is imported by its own task, not at the top of this module: the command line imports this module (for
+is imported by the tasks that use it, not at the top of this module: the command line imports this module (for
 :data:`WORKER_MODULES`) before it starts that server, and that must stay quick.
 
 Within a worker, frames are the unit of parallelism: OpenCV's own threads are switched off while a
@@ -20,18 +21,20 @@ import hashlib
 import logging
 import os
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
-from calib.camera import Rig
+from calib.camera import Camera, Rig
 from pipeline.io import frames_io
+from pipeline.io.backgrounds import spread_frames
 from pipeline.io.capture import Capture
 from pipeline.io.run_layout import background_path, observations_path, silhouette_path
 from stages.background import tolerated_views
-from stages.consistency import consistent_silhouettes
+from stages.consistency import consistent_silhouettes, explained_share
 from stages.silhouettes import (
     NOISE_SIGMA_MIN,
     BackgroundModel,
@@ -44,11 +47,12 @@ from stages.silhouettes import (
 
 if TYPE_CHECKING:
     from stages.reconstruction import ReconstructionParams
+    from stages.tangency import Refinement
 
 log = logging.getLogger(__name__)
 
 #: Modules the tasks of this module run, which the process serving the workers imports before their first task.
-WORKER_MODULES = (__name__, "stages.reconstruction")
+WORKER_MODULES = (__name__, "stages.reconstruction", "stages.tangency")
 #: Below this many observations a frame is reported: the tracker will only predict its pose.
 FEW_OBSERVATIONS = 30
 #: Background models a worker keeps (a few MB each): enough for every camera of a large rig.
@@ -56,6 +60,12 @@ CACHED_BACKGROUNDS = 32
 #: Given masks marking more than this share of every camera's image as person are reported: a subject that a
 #: studio's cameras frame whole covers far less, and masks saved the other way round (person 0) cover most.
 MAX_GIVEN_COVERAGE = 0.5
+#: Frames, spread over the capture, whose silhouettes refine the cameras' orientations, ...
+REFINEMENT_FRAMES = 30
+#: ... and, among them, the frames and the rays per view on which the refined cameras must explain more of the
+#: silhouettes than the given ones (`stages.consistency.explained_share`).
+COHERENCE_FRAMES = 10
+COHERENCE_RAYS = 100
 
 
 @contextlib.contextmanager
@@ -175,3 +185,47 @@ def reconstruction_task(chunk: Sequence[int], *, capture: Capture, rig: Rig, par
                 log.warning("frame %d: only %d observations (person out of view or silhouettes disagree)",
                             frame, len(observations))
             frames_io.write_ply(observations_path(out_dir, frame), observations.points, observations.normals)
+
+
+def frame_masks(masks_dir: Path, cameras: Sequence[Camera], frame: int) -> list[np.ndarray]:
+    """The silhouette stage's masks of one frame, one per camera."""
+    return [frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame)) for camera in cameras]
+
+
+@dataclass(frozen=True)
+class RigRefinement:
+    """What :func:`refinement_task` measured of the capture's cameras (`pipeline.graph.refined_rig` decides and
+    writes)."""
+
+    frames: list[int]  # the frames whose tangencies were compared
+    refinement: Refinement
+    rig: Rig  # the capture's cameras turned by ``refinement.turns``
+    explained: tuple[float, float]  # share of the silhouettes the hull explains, given and turned (nan: untested)
+
+    @property
+    def kept(self) -> bool:
+        """Whether the turned cameras replace the given ones: the tangencies agree clearly better and the hull
+        explains more."""
+        return self.refinement.tangencies_agree and self.explained[1] > self.explained[0]
+
+
+def refinement_task(capture: Capture, masks_dir: Path, tolerated: int) -> RigRefinement:
+    """Worker: each camera's turn from the tangencies of the silhouettes of ``REFINEMENT_FRAMES`` frames spread
+    over the capture (`stages.tangency.refine_turns`) and, when they agree clearly better turned, the share of
+    the silhouettes of ``COHERENCE_FRAMES`` of them the visual hull explains (at most ``tolerated`` views outside)
+    with the cameras given and turned (`stages.consistency.explained_share`)."""
+    from stages.tangency import refine_turns, turned  # here: it brings the reconstruction (see the docstring)
+
+    rig = capture.rig
+    frames = spread_frames(capture.frame_numbers, REFINEMENT_FRAMES)
+    # Read frame by frame (a generator): thirty frames' masks at once are tens of megabytes.
+    masks = functools.partial(frame_masks, masks_dir, list(rig))
+    refinement = refine_turns(map(masks, frames), list(rig), capture.volume.mean(axis=0))
+    refined = Rig(tuple(turned(camera, turn) for camera, turn in zip(rig, refinement.turns, strict=True)))
+    explained = (np.nan, np.nan)
+    if refinement.tangencies_agree:
+        shares = np.array([[explained_share(views, list(cameras), capture.volume, tolerated=tolerated,
+                                            rays_per_view=COHERENCE_RAYS) for cameras in (rig, refined)]
+                           for views in map(masks, spread_frames(frames, COHERENCE_FRAMES))])
+        explained = tuple(float(value) for value in np.nanmean(shares, axis=0))
+    return RigRefinement(frames, refinement, refined, explained)

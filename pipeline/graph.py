@@ -44,12 +44,13 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.camera import Camera, Rig
+from calib.camera import Rig
 from calib.formats import load_rig, save_rig
+from pipeline.compiled_cache import load_cached
 from pipeline.engine.context import StageContext
 from pipeline.engine.executors import usable_cpus
 from pipeline.engine.stage import Stage
-from pipeline.frame_tasks import reconstruction_task, silhouettes_task
+from pipeline.frame_tasks import frame_masks, reconstruction_task, refinement_task, silhouettes_task
 from pipeline.io import atomic, frames_io, run_layout
 from pipeline.io.backgrounds import spread_frames
 from pipeline.io.body_io import tracking_body
@@ -74,7 +75,6 @@ from pipeline.io.tracking_io import read_tracking
 from pipeline.report.page import write_report
 from stages.background import BackgroundEstimate, estimate_backgrounds, sample_camera, sample_count, working_size
 from stages.background.plates import MIN_PLATE_MATCH, PLATE_SHIFT_PX, PlateFit, plate_fit, shifted_plate
-from stages.consistency import explained_share
 from stages.export import ExportParams
 from stages.export.quality import FrameQuality
 from stages.joints import JOINT_NAMES
@@ -86,8 +86,6 @@ from stages.tangency import (
     cameras_at_fault,
     pair_disagreement,
     pair_medians,
-    refine_turns,
-    turned,
 )
 from stages.tracking.params import TrackerParams
 from stages.tracking.results import BodyHeight, FrameResult, frame_record
@@ -274,7 +272,7 @@ def _check_calibration(capture: Capture, masks_dir: Path) -> None:
     if len(cameras) < 2:
         return
     frames = spread_frames(capture.frame_numbers, CALIBRATION_CHECK_FRAMES)
-    per_frame = [pair_disagreement(_frame_masks(masks_dir, cameras, frame), cameras, capture.volume.mean(axis=0))
+    per_frame = [pair_disagreement(frame_masks(masks_dir, cameras, frame), cameras, capture.volume.mean(axis=0))
                  for frame in frames]
     pairs = pair_medians(np.array(per_frame))
     off = cameras_at_fault(pairs, CALIBRATION_DISAGREEMENT_M)
@@ -308,11 +306,6 @@ def _check_calibration(capture: Capture, masks_dir: Path) -> None:
                 "they see, in every frame)", named, len(frames), agree)
 
 
-def _frame_masks(masks_dir: Path, cameras: Sequence[Camera], frame: int) -> list[np.ndarray]:
-    """The silhouette stage's masks of one frame, one per camera."""
-    return [frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame)) for camera in cameras]
-
-
 def video_chunk_size(pending: int, workers: int) -> int:
     """Frames per chunk of ``pending`` video frames: the fewest chunks that are a multiple of ``workers``
     (so that they share the chunks evenly) and no longer than ``MAX_VIDEO_CHUNK_FRAMES``."""
@@ -324,50 +317,36 @@ def run_reconstruction(ctx: StageContext) -> int:
     """Per frame, sparse surface points with outward normals from all cameras' silhouettes, with the cameras'
     orientations refined from the silhouettes first (``refine_calibration``, `refined_rig`)."""
     masks_dir = ctx.input_dir("silhouettes")
-    rig = (refined_rig(ctx.capture, masks_dir, ctx.out_dir, ctx.params.tolerated_views)
+    rig = (refined_rig(ctx.capture, masks_dir, ctx.out_dir, ctx.params.tolerated_views, ctx.workers.executor)
            if ctx.params.refine_calibration else ctx.capture.rig)
     task = functools.partial(reconstruction_task, capture=ctx.capture, rig=rig, params=ctx.params,
                              masks_dir=masks_dir, out_dir=ctx.out_dir)
     return ctx.map_frames(task, lambda frame: [observations_path(ctx.out_dir, frame)])
 
 
-#: Frames, spread over the capture, whose silhouettes refine the cameras' orientations, ...
-REFINEMENT_FRAMES = 30
-#: ... and, among them, the frames and the rays per view on which the refined cameras must explain more of the
-#: silhouettes than the given ones (`stages.consistency.explained_share`).
-COHERENCE_FRAMES = 10
-COHERENCE_RAYS = 100
-
-
-def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path, tolerated: int) -> Rig:
+def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path, tolerated: int,
+                executor: cf.Executor | None = None) -> Rig:
     """The capture's rig with each camera turned about its centre as the silhouettes' tangencies say
     (`stages.tangency.refine_turns`), when that makes them agree clearly better and the visual hull (at most
     ``tolerated`` views outside, as the reconstruction carves) explains more of the silhouettes; else as given.
 
     The second test guards against an error that turns cannot mend: cameras whose positions are off by centimetres
     give tangencies that turns bring closer while the rays through the silhouettes meet less well (foreign taekwondo
-    with every camera moved by 2 cm: docs/results_by_hand.md). Writes what was measured and decided
-    (`calibration_refinement_path`) and, when the turns are kept, the cameras as the reconstruction uses them
-    (`refined_rig_path`, anipose TOML: for the user's next run or other tools).
+    with every camera moved by 2 cm: docs/results_by_hand.md). The measuring runs on ``executor`` when given
+    (:func:`~pipeline.frame_tasks.refinement_task`: a worker process, while this one readies the tracker), else
+    here. Writes what was measured and decided (`calibration_refinement_path`) and, when the turns are kept, the
+    cameras as the reconstruction uses them (`refined_rig_path`, anipose TOML: for the user's next run or other
+    tools).
     """
     rig = capture.rig
     if len(rig) < 3:  # two views' tangencies say nothing the calibration could be wrong about
         return rig
-    frames = spread_frames(capture.frame_numbers, REFINEMENT_FRAMES)
-    # Read frame by frame (a generator): thirty frames' masks at once are tens of megabytes.
-    masks = functools.partial(_frame_masks, masks_dir, list(rig))
-    refinement = refine_turns(map(masks, frames), list(rig), capture.volume.mean(axis=0))
-    refined = Rig(tuple(turned(camera, turn) for camera, turn in zip(rig, refinement.turns, strict=True)))
-    explained = (np.nan, np.nan)
-    if refinement.tangencies_agree:
-        shares = np.array([[explained_share(views, list(cameras), capture.volume, tolerated=tolerated,
-                                            rays_per_view=COHERENCE_RAYS) for cameras in (rig, refined)]
-                           for views in map(masks, spread_frames(frames, COHERENCE_FRAMES))])
-        explained = tuple(float(value) for value in np.nanmean(shares, axis=0))
-    kept = refinement.tangencies_agree and explained[1] > explained[0]
+    measured = (executor.submit(refinement_task, capture, masks_dir, tolerated).result() if executor is not None
+                else refinement_task(capture, masks_dir, tolerated))
+    refinement, explained, kept = measured.refinement, measured.explained, measured.kept
     degrees = np.degrees(np.linalg.norm(refinement.turns, axis=1))
     frames_io.write_json(calibration_refinement_path(out_dir), {
-        "method": "epipolar tangency", "frames": frames, "tangencies": refinement.tangencies,
+        "method": "epipolar tangency", "frames": measured.frames, "tangencies": refinement.tangencies,
         "disagreement_before_m": _finite_or_none(refinement.before_m),
         "disagreement_after_m": _finite_or_none(refinement.after_m), "tangencies_agree": refinement.tangencies_agree,
         "explained_before": _finite_or_none(explained[0]), "explained_after": _finite_or_none(explained[1]),
@@ -381,12 +360,12 @@ def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path, tolerated: int
     if not kept:
         return rig
     with atomic.atomic_output(refined_rig_path(out_dir)) as tmp:
-        save_rig(refined, "anipose", tmp)
+        save_rig(measured.rig, "anipose", tmp)
     log.info("calibration refined from the silhouettes: cameras turned by %s degrees about their centres (the "
              "tangencies' median disagreement %.1f -> %.1f mm over %d frames, the silhouettes the visual hull explains "
              "%.1f -> %.1f %%; the cameras used: %s)", turns, 1000 * refinement.before_m, 1000 * refinement.after_m,
-             len(frames), 100 * explained[0], 100 * explained[1], refined_rig_path(out_dir))
-    return refined
+             len(measured.frames), 100 * explained[0], 100 * explained[1], refined_rig_path(out_dir))
+    return measured.rig
 
 
 def used_rig(capture: Capture, reconstruction_dir: Path) -> Rig:
@@ -415,6 +394,9 @@ def run_tracking(ctx: StageContext) -> int:
     if params.height_m is None and ctx.capture.height_m is not None:
         params = dataclasses.replace(params, height_m=ctx.capture.height_m)
     tracker = Tracker(params, ctx.capture.volume, tracking_body(params))
+    # Now rather than at the first frame: alongside the reconstruction, this runs while the calibration is refined
+    # in a worker, and the first frame comes when every core has frames to reconstruct.
+    load_cached()
     frames = ctx.capture.frame_numbers
     pending = ctx.pending_frames(lambda frame: [run_layout.tracking_path(ctx.out_dir, frame)])
     done = frames.index(pending[0]) if pending else len(frames)  # frames after a missing one are redone
@@ -543,7 +525,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("tracking", run_tracking, inputs=("calibration", "reconstruction"), params_type=TrackerParams,
           capture_parts=("config", "frames"),
           code=("stages.tracking", "stages.checks", "stages.joints", "stages.reconstruction", "pipeline.frame_tasks",
-                "pipeline.io.body_io", "pipeline.io.tracking_io", *FILES_CODE),
+                "pipeline.compiled_cache", "pipeline.io.body_io", "pipeline.io.tracking_io", *FILES_CODE),
           streams=True),
     Stage("export", run_export, inputs=("calibration", "reconstruction", "tracking"), params_type=ExportParams,
           capture_parts=("config", "frames", "images"),

@@ -31,6 +31,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from pipeline.compiled_cache import dispatchers
+
 #: The stamp's file name, in numba's cache directory of `stages.tracking.compiled`.
 STAMP = "tracker-warmup.stamp"
 #: Working volume of the warm-up's synthetic frames, metres.
@@ -87,14 +89,6 @@ def is_fresh(cache_dir: Path, key: str) -> bool:
     except OSError:
         return False
     return bool(indexes) and all(index.stat().st_mtime_ns <= written for index in indexes)
-
-
-def dispatchers() -> dict:
-    """Name -> numba dispatcher of every compiled function of `stages.tracking.compiled`."""
-    from numba.core.registry import CPUDispatcher
-
-    from stages.tracking import compiled
-    return {name: value for name, value in vars(compiled).items() if isinstance(value, CPUDispatcher)}
 
 
 def _observations(body, pose: np.ndarray, rng: np.random.Generator, count: int = OBSERVATIONS) -> SimpleNamespace:

@@ -12,7 +12,7 @@ import yaml
 
 from calib.camera import Rig
 from calib.formats import load_rig, save_rig
-from pipeline import graph
+from pipeline import frame_tasks, graph
 from pipeline.cli import main
 from pipeline.io.capture import Capture
 from pipeline.report.page import _refinement_note
@@ -81,7 +81,7 @@ def test_turns_that_leave_the_silhouettes_less_explained_are_not_kept(tmp_path, 
     assert main(["run", str(capture), "--out", str(out), "--to", "silhouettes", "-q"]) == 0
     opened = Capture.open(capture)
     given = opened.rig["cam1"].R
-    monkeypatch.setattr(graph, "explained_share",  # the rig as given explains 90 %, turned 80 %
+    monkeypatch.setattr(frame_tasks, "explained_share",  # the rig as given explains 90 %, turned 80 %
                         lambda masks, cameras, *args, **kwargs: 0.9 if np.array_equal(cameras[0].R, given) else 0.8)
     (out / "reconstruction").mkdir()
     assert graph.refined_rig(opened, out / "silhouettes", out / "reconstruction", 0) is opened.rig

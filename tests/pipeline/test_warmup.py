@@ -14,21 +14,23 @@ from pipeline.commands import warmup
 
 REPO = Path(__file__).resolve().parents[2]
 
-# Run in a fresh process after the warm-up: the warm-up again, then the tracker on other data (a walk, as in
-# the tracker's tests, with each distance), as the tracking stage would call it. Prints, per compiled
-# function, the signatures it compiled (cache misses) and loaded (cache hits) and the size of its fresh
-# on-disk index.
+# Run in a fresh process after the warm-up: the cache loaded ahead (`compiled_cache.load_cached`), the warm-up
+# again, then the tracker on other data (a walk, as in the tracker's tests, with each distance), as the tracking
+# stage would call it. Prints, per compiled function, the signatures it compiled (cache misses) and loaded (cache
+# hits) and the size of its fresh on-disk index, and how many signatures were loaded ahead.
 _AFTER = textwrap.dedent("""
     import json, sys
     from types import SimpleNamespace
     import numpy as np
     sys.path.insert(0, "tests/stages/tracking")
     from tracking_testing import VOLUME, sample_ellipsoids
+    from pipeline import compiled_cache
     from pipeline.commands import warmup
     from stages.tracking.body_file import load_body
     from stages.tracking.params import TrackerParams
     from stages.tracking.tracker import Tracker
 
+    ahead = compiled_cache.load_cached()
     warmup.warm_up()
     body = load_body()
     rng = np.random.default_rng(5)
@@ -44,7 +46,8 @@ _AFTER = textwrap.dedent("""
     print(json.dumps({name: {"misses": [str(s) for s in d.stats.cache_misses],
                              "hits": [str(s) for s in d.stats.cache_hits],
                              "indexed": len(d._cache._cache_file._load_index())}
-                      for name, d in warmup.dispatchers().items()}))
+                      for name, d in compiled_cache.dispatchers().items()}))
+    print(ahead)
 """)
 
 
@@ -73,11 +76,13 @@ def test_after_the_warmup_a_new_process_compiles_nothing():
     after = subprocess.run([sys.executable, "-c", _AFTER], cwd=REPO, env=_env(), capture_output=True, text=True,
                            timeout=600)
     assert after.returncode == 0, after.stderr
-    stats = json.loads(after.stdout.strip().splitlines()[-1])
+    *_, line, ahead = after.stdout.strip().splitlines()
+    stats = json.loads(line)
     assert set(ENTRY_POINTS) <= set(stats)
     assert {name: s["misses"] for name, s in stats.items() if s["misses"]} == {}  # nothing compiled
-    for name in ENTRY_POINTS:  # each loaded from the disk cache
-        assert stats[name]["hits"], name
+    for name in ENTRY_POINTS:  # each loaded from the disk cache, ahead of its first call and only then
+        assert len(stats[name]["hits"]) == 1, name
+    assert int(ahead) == sum(len(s["hits"]) for s in stats.values())
     for name, s in stats.items():  # helpers too are cached (they are compiled into the entry points)
         assert s["indexed"] >= 1, name
     assert stats["_mixture"]["indexed"] == 2  # with and without posteriors (a literal bool)
