@@ -51,8 +51,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-#: Modules the tasks of this module run, which the process serving the workers imports before their first task.
-WORKER_MODULES = (__name__, "stages.reconstruction", "stages.tangency")
+#: Modules the tasks of this module run, which the process serving the workers imports before their first task
+#: (scipy.optimize: `stages.tangency.refine_turns` imports it when it runs, a tenth of a second).
+WORKER_MODULES = (__name__, "stages.reconstruction", "stages.tangency", "scipy.optimize")
 #: Below this many observations a frame is reported: the tracker will only predict its pose.
 FEW_OBSERVATIONS = 30
 #: Background models a worker keeps (a few MB each): enough for every camera of a large rig.
