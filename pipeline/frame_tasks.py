@@ -195,8 +195,8 @@ def frame_masks(masks_dir: Path, cameras: Sequence[Camera], frame: int) -> list[
 
 @dataclass(frozen=True)
 class RigRefinement:
-    """What :func:`refinement_task` measured of the capture's cameras (`pipeline.graph.refined_rig` decides and
-    writes)."""
+    """What :func:`refinement_task` measured of the capture's cameras, and whether the turns are kept
+    (`pipeline.graph.refined_rig` writes and logs it)."""
 
     frames: list[int]  # the frames whose tangencies were compared
     refinement: Refinement

@@ -210,8 +210,8 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     shutil.copy2(capture / "capture.yaml", partial / "capture.yaml")
     if cameras or calibration_error_deg or position_error_m or zoom:
         _rewrite_calibration(Capture.open(capture), partial, {video.stem for video in videos}, calibration_error_deg,
-                             np.random.default_rng([seed, 1]), zoom,  # its own draws: the frames' stay as without it
-                             position_error_m=position_error_m)
+                             # its own draws: the frames' stay as without it
+                             position_error_m, np.random.default_rng([seed, 1]), zoom)
     elif (capture / "calibration").is_dir():
         shutil.copytree(capture / "calibration", partial / "calibration")
     if plates and (capture / "background").is_dir():
@@ -263,8 +263,8 @@ def capture_videos(capture: Path) -> list[Path]:
     return videos
 
 
-def _rewrite_calibration(source: Capture, copy: Path, kept: set[str], error_deg: float,
-                         rng: np.random.Generator, zoom: dict[str, float], *, position_error_m: float = 0.0) -> None:
+def _rewrite_calibration(source: Capture, copy: Path, kept: set[str], error_deg: float, position_error_m: float,
+                         rng: np.random.Generator, zoom: dict[str, float]) -> None:
     """The ``source`` capture's calibration written into ``copy`` with only the ``kept`` cameras, each turned by
     ``error_deg`` (:func:`_turned`), then moved by ``position_error_m`` (:func:`_moved`), and those of ``zoom``
     zoomed (:func:`zoom_matrix`): read as the file states it (image sizes from the media) and saved in the same
