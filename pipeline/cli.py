@@ -102,7 +102,7 @@ def start_workers_early(argv: Sequence[str]) -> None:
     """Start the fork server of a ``run`` with local workers (``--workers N``, N > 1, no ``--scheduler``) now,
     before the run command's own imports.
 
-    The server imports the per-frame tasks' modules once (:data:`pipeline.frame_tasks.WORKER_MODULES`) and
+    The server imports the per-frame tasks' modules once (:data:`pipeline.worker_modules.WORKER_MODULES`) and
     every worker is a fork of it (:func:`pipeline.engine.executors.start_worker_server`). Started here, its
     imports overlap this process's (the run command imports the tracker: most of a second), and the workers
     are ready when the first frames are. This look at the command line only decides when the server starts:
@@ -119,7 +119,7 @@ def start_workers_early(argv: Sequence[str]) -> None:
         return
     if known.workers > 1 and not known.scheduler:
         from pipeline.engine.executors import start_worker_server
-        from pipeline.frame_tasks import WORKER_MODULES
+        from pipeline.worker_modules import WORKER_MODULES
 
         start_worker_server(WORKER_MODULES)
 

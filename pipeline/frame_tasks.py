@@ -1,12 +1,10 @@
 """The per-frame work of the silhouette and reconstruction stages, and the refinement of the calibration between
 them, as it runs in a worker.
 
-A worker of ``--workers N`` is a fork of a server process that imported :data:`WORKER_MODULES` once
-(:func:`pipeline.engine.executors.start_worker_server`), started before the run's own imports: the
-workers have this module and the reconstruction in memory before the first frame, and none imports
-the tracker (numba), which lives in :mod:`pipeline.graph`. The reconstruction (scipy, slow to import)
-is imported by the tasks that use it, not at the top of this module: the command line imports this module (for
-:data:`WORKER_MODULES`) before it starts that server, and that must stay quick.
+A worker of ``--workers N`` is a fork of a server process that imported this module once
+(:data:`pipeline.worker_modules.WORKER_MODULES`), started before the run's own imports: the workers have this
+module and the reconstruction in memory before the first frame, and none imports the tracker (numba), which
+lives in :mod:`pipeline.graph`.
 
 Within a worker, frames are the unit of parallelism: OpenCV's own threads are switched off while a
 chunk runs (on small images they mostly synchronise, a fifth more CPU for the same wall time), and
@@ -23,7 +21,6 @@ import os
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -35,6 +32,8 @@ from pipeline.io.capture import Capture
 from pipeline.io.run_layout import background_path, observations_path, silhouette_path
 from stages.background import tolerated_views
 from stages.consistency import consistent_silhouettes, explained_share
+from stages.reconstruction import ReconstructionParams, reconstruct
+from stages.reconstruction.views import subject_cut_off
 from stages.silhouettes import (
     NOISE_SIGMA_MIN,
     BackgroundModel,
@@ -44,16 +43,10 @@ from stages.silhouettes import (
     extract_silhouettes,
     floor_geometry,
 )
-
-if TYPE_CHECKING:
-    from stages.reconstruction import ReconstructionParams
-    from stages.tangency import Refinement
+from stages.tangency import Refinement, refine_turns, turned
 
 log = logging.getLogger(__name__)
 
-#: Modules the tasks of this module run, which the process serving the workers imports before their first task
-#: (scipy.optimize: `stages.tangency.refine_turns` imports it when it runs, a tenth of a second).
-WORKER_MODULES = (__name__, "stages.reconstruction", "stages.tangency", "scipy.optimize")
 #: Below this many observations a frame is reported: the tracker will only predict its pose.
 FEW_OBSERVATIONS = 30
 #: Background models a worker keeps (a few MB each): enough for every camera of a large rig.
@@ -167,9 +160,6 @@ def reconstruction_task(chunk: Sequence[int], *, capture: Capture, rig: Rig, par
                         masks_dir: Path, out_dir: Path) -> None:
     """Worker: points and normals of a chunk of frames from the silhouette stage's masks, seen by ``rig`` (the
     capture's cameras, or as the silhouettes refined them: `pipeline.graph.refined_rig`)."""
-    from stages.reconstruction import reconstruct  # here rather than above: see the module's docstring
-    from stages.reconstruction.views import subject_cut_off
-
     with single_threaded_opencv():
         for frame in chunk:
             masks = [frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame), camera.size)
@@ -215,8 +205,6 @@ def refinement_task(capture: Capture, masks_dir: Path, tolerated: int) -> RigRef
     over the capture (`stages.tangency.refine_turns`) and, when they agree clearly better turned, the share of
     the silhouettes of ``COHERENCE_FRAMES`` of them the visual hull explains (at most ``tolerated`` views outside)
     with the cameras given and turned (`stages.consistency.explained_share`)."""
-    from stages.tangency import refine_turns, turned  # here: it brings the reconstruction (see the docstring)
-
     rig = capture.rig
     frames = spread_frames(capture.frame_numbers, REFINEMENT_FRAMES)
     # Read frame by frame (a generator): thirty frames' masks at once are tens of megabytes.

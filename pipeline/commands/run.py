@@ -24,13 +24,13 @@ from pipeline.engine.output_folder import check_own_files, output_lock, storage_
 from pipeline.engine.params import apply_all, default_params, read_overrides
 from pipeline.engine.runner import Runner, StageOutcome, format_summary
 from pipeline.engine.stage import select_stages
-from pipeline.frame_tasks import WORKER_MODULES
 from pipeline.io.body_io import tracking_body
 from pipeline.io.capture import Capture
 from pipeline.io.export_io import check_cutoff, read_joints_csv
 from pipeline.io.run_layout import BVH_FILE, C3D_FILE, JOINTS_FILE, RunLayout
 from pipeline.report.tracking_summary import read_frame_statuses, summary_line
 from pipeline.terminal import printable
+from pipeline.worker_modules import WORKER_MODULES
 from stages.reconstruction import check_tolerated_views
 
 

@@ -124,7 +124,7 @@ def test_pool_processes_yield_to_the_parent():
 def test_a_run_with_local_workers_starts_their_server_before_its_imports(monkeypatch, argv, started):
     import pipeline.engine.executors as executors
     from pipeline.cli import start_workers_early
-    from pipeline.frame_tasks import WORKER_MODULES
+    from pipeline.worker_modules import WORKER_MODULES
 
     calls = []
     monkeypatch.setattr(executors, "start_worker_server", calls.append)

@@ -290,3 +290,16 @@ def test_the_png_check_is_the_formats_own_crc(tmp_path):
     """A PNG from any writer passes: the check is the chunk CRC every PNG carries."""
     cv2.imwrite(str(tmp_path / "photo.png"), np.full((8, 8, 3), 7, np.uint8))
     assert frames_io.png_problem((tmp_path / "photo.png").read_bytes()) is None
+
+
+def test_an_images_size_is_read_from_a_png_header_and_checked_like_a_decoded_image(tmp_path):
+    cv2.imwrite(str(tmp_path / "plate.png"), np.full((6, 9, 3), 7, np.uint8))
+    cv2.imwrite(str(tmp_path / "plate.jpg"), np.full((6, 9, 3), 7, np.uint8))
+    assert frames_io.image_size(tmp_path / "plate.png") == frames_io.image_size(tmp_path / "plate.jpg") == (9, 6)
+    data = (tmp_path / "plate.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[:-20])
+    with pytest.raises(InputError, match=r"cut.png: not a readable image \(PNG file is truncated"):
+        frames_io.image_size(tmp_path / "cut.png")
+    (tmp_path / "text.png").write_bytes(b"not a png")
+    with pytest.raises(InputError, match="text.png: not a readable image"):
+        frames_io.image_size(tmp_path / "text.png")

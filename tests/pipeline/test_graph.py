@@ -33,11 +33,19 @@ def test_the_run_command_never_imports_the_lab():
     assert imported.strip() == "[]"  # benchmarks and synthetic captures are not part of a run
 
 
-def test_the_worker_tasks_module_imports_neither_scipy_nor_the_tracker():
-    heavy = ("scipy", "numba", "stages.tracking", "stages.reconstruction")
-    code = f"import sys, pipeline.frame_tasks; print(sorted(m for m in {heavy!r} if m in sys.modules))"
+def test_the_worker_server_starts_before_any_heavy_import():
+    heavy = ("numpy", "cv2", "scipy", "numba", "pipeline.frame_tasks")
+    code = ("import sys, pipeline.cli, pipeline.worker_modules, pipeline.engine.executors; "
+            f"print(sorted(m for m in {heavy!r} if m in sys.modules))")
     imported = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert imported.strip() == "[]"  # the command line imports it before it starts the worker server
+    assert imported.strip() == "[]"  # what the command line imports before it starts the worker server
+
+
+def test_the_workers_never_import_the_tracker():
+    code = ("import sys, importlib, pipeline.worker_modules as w; [importlib.import_module(m) for m in "
+            "w.WORKER_MODULES]; print(sorted(m for m in ('numba', 'stages.tracking') if m in sys.modules))")
+    imported = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert imported.strip() == "[]"  # numba's import and cache are the tracker's, in the main process
 
 
 def test_the_run_layout_names_the_graph_stages():

@@ -113,15 +113,11 @@ def _frame_numbers_in(source: _CameraMedia) -> list[int]:
     return sorted(int(FRAME_FILE.match(p.name).group(1)) for p in _visible_entries(source.path))
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    image = frames_io.read_image(path)
-    return image.shape[1], image.shape[0]
-
-
 def _first_frame_size(source: _CameraMedia, camera: str) -> tuple[int, int]:
-    """``(width, height)`` of the camera's first frame (decoding it checks the file is readable)."""
+    """``(width, height)`` of the camera's first frame, checked readable (`frames_io.image_size`; a video's
+    decoded)."""
     if source.suffix:
-        return _image_size(source.frame_path(_frame_numbers_in(source)[0]))
+        return frames_io.image_size(source.frame_path(_frame_numbers_in(source)[0]))
     for _, image in _iter_video(source.path, [0]):
         return image.shape[1], image.shape[0]
     raise AssertionError("unreachable: _iter_video yields or raises")

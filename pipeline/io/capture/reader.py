@@ -44,7 +44,6 @@ from pipeline.io.capture.media import (
     _find_image_folders,
     _find_media,
     _first_frame_size,
-    _image_size,
     _iter_video,
     _selected_frames,
     _warn_other_rates,
@@ -303,7 +302,7 @@ def _check_given_files(frame_numbers: Sequence[int], silhouette_media: Mapping[s
             raise InputError(f"{source.path}: no silhouette for frame {missing[0]} "
                              f"({len(missing)} missing; expected one mask per processed frame)")
     for name, path in background_paths.items():
-        size = _image_size(path)
+        size = frames_io.image_size(path)
         if size != sizes[name]:
             raise InputError(f"{path}: image size {size} differs from camera {name!r}'s {sizes[name]} "
                              "(expected the clean plate of that camera)")
