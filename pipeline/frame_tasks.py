@@ -178,6 +178,12 @@ def reconstruction_task(chunk: Sequence[int], *, capture: Capture, rig: Rig, par
             frames_io.write_ply(observations_path(out_dir, frame), observations.points, observations.normals)
 
 
+def frame_images_task(capture: Capture, frame: int) -> dict[str, tuple[int, np.ndarray]]:
+    """Worker: each camera's ``(frame, image)`` of one frame (the report's photographs): a seek per camera into
+    its video, made beside the main process's writing of the exports."""
+    return {camera: next(capture.iter_images(camera, [frame])) for camera in capture.rig.names}
+
+
 def frame_masks(masks_dir: Path, cameras: Sequence[Camera], frame: int) -> list[np.ndarray]:
     """The silhouette stage's masks of one frame, one per camera."""
     return [frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame)) for camera in cameras]

@@ -50,7 +50,13 @@ from pipeline.compiled_cache import load_cached
 from pipeline.engine.context import StageContext
 from pipeline.engine.executors import usable_cpus
 from pipeline.engine.stage import Stage
-from pipeline.frame_tasks import frame_masks, reconstruction_task, refinement_task, silhouettes_task
+from pipeline.frame_tasks import (
+    frame_images_task,
+    frame_masks,
+    reconstruction_task,
+    refinement_task,
+    silhouettes_task,
+)
 from pipeline.io import atomic, frames_io, run_layout
 from pipeline.io.backgrounds import spread_frames
 from pipeline.io.body_io import tracking_body
@@ -484,6 +490,10 @@ def run_export(ctx: StageContext) -> None:
                     len(results) - len(estimated), len(results))
     frames = np.array(sorted(estimated), dtype=int)
     quality = frame_quality(results)
+    shown = None
+    if params.report and capture.has_images:  # the report's photographs, decoded while the exports are written
+        pictured = frames if len(frames) else np.asarray(capture.frame_numbers)
+        shown = ctx.workers.executor.submit(frame_images_task, capture, int(pictured[len(pictured) // 2]))
     if len(frames):
         write_exports(ctx.out_dir, frames, np.stack([estimated[frame] for frame in frames]), capture.fps,
                       params=params, quality=quality)
@@ -497,12 +507,7 @@ def run_export(ctx: StageContext) -> None:
             write_overlay_video(capture.iter_images(camera.name, capture.frame_numbers), camera, estimated,
                                 ctx.out_dir / overlay_video_name(camera.name), capture.fps)
     if params.report:  # also when no frame was estimated: it says what happened
-        images = None
-        if capture.has_images:
-            shown = frames if len(frames) else np.asarray(capture.frame_numbers)
-            middle = int(shown[len(shown) // 2])
-            images = {camera: next(capture.iter_images(camera, [middle])) for camera in capture.rig.names}
-        write_report(ctx.output_root, rig=rig, images=images)
+        write_report(ctx.output_root, rig=rig, images=shown.result() if shown is not None else None)
 
 
 #: Modules every stage runs to write (and read) its files.
@@ -532,5 +537,5 @@ STAGES: tuple[Stage, ...] = (
           code=("stages.export", "stages.checks", "stages.joints", "stages.tracking.results", "pipeline.io.export_io",
                 "pipeline.io.tracking_io", "pipeline.io.overlay_video", "pipeline.report",
                 "pipeline.engine.run_warnings", "pipeline.evaluate", "pipeline.terminal", "pipeline.io.capture",
-                "calib", *FILES_CODE)),
+                "pipeline.frame_tasks", "calib", *FILES_CODE)),
 )

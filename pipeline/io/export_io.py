@@ -26,6 +26,7 @@ to far below a millimetre in every frame. Formats with a fixed frame rate need e
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -122,7 +123,16 @@ def read_joints_csv(path: str | os.PathLike) -> tuple[np.ndarray, tuple[str, ...
     except (UnicodeDecodeError, IsADirectoryError) as error:
         raise InputError(f"{path}: not a readable text file ({type(error).__name__}), "
                          "expected a joints.csv") from None
-    return parse_joints_csv(text, source=str(path))
+    frames, names, joints = _parsed(text, str(path))
+    return frames.copy(), names, joints.copy()
+
+
+@functools.lru_cache(maxsize=4)
+def _parsed(text: str, source: str) -> tuple[np.ndarray, tuple[str, ...], np.ndarray]:
+    """:func:`~stages.export.joints_table.parse_joints_csv` remembered for the last texts read: the end of a run
+    reads its joints.csv and the truth's several times (the closing check, the report and its scores), and the
+    parse costs far more than the read. Keyed by the text itself, so a file that changed is parsed anew."""
+    return parse_joints_csv(text, source=source)
 
 
 def write_bvh(path: str | os.PathLike, grid: np.ndarray, gridded: np.ndarray, fps: float,

@@ -37,6 +37,18 @@ def test_joints_csv_file_round_trip(tmp_path):
     np.testing.assert_allclose(read, joints, atol=1e-7)
 
 
+def test_a_joints_csv_read_again_is_the_files_content_whatever_the_last_reader_did(tmp_path):
+    path = tmp_path / "joints.csv"
+    write_joints_csv(path, np.arange(4), _walk(4))
+    frames, _, joints = read_joints_csv(path)
+    frames[:], joints[:] = -1, np.nan  # a reader's own arrays: the next read does not see this
+    np.testing.assert_allclose(read_joints_csv(path)[2], _walk(4), atol=1e-7)
+    write_joints_csv(path, np.arange(3), _walk(3) + 1.0)  # the file rewritten: read anew
+    frames, _, joints = read_joints_csv(path)
+    assert frames.tolist() == [0, 1, 2]
+    np.testing.assert_allclose(joints, _walk(3) + 1.0, atol=1e-7)
+
+
 def test_read_joints_csv_errors_name_the_file(tmp_path):
     with pytest.raises(InputError, match="missing.csv: file not found"):
         read_joints_csv(tmp_path / "missing.csv")
