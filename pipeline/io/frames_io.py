@@ -86,9 +86,9 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
 def image_size(path: str | os.PathLike) -> tuple[int, int]:
     """``(width, height)`` of the image file at ``path``, which must be readable as :func:`read_image` reads it.
 
-    A PNG is checked by its own CRCs (:func:`png_problem`) and measured from its header, a few hundredths of a
-    second faster than decoding a clean plate (which the capture's opening measures for every camera); any
-    other image is decoded.
+    A PNG is checked by its own CRCs (:func:`png_problem`) and measured from its header: the capture's opening
+    measures every camera's clean plate, and decoding a colour plate costs many times that; any other image is
+    decoded.
     """
     data = Path(path).read_bytes()
     if not data.startswith(PNG_SIGNATURE):
