@@ -30,7 +30,7 @@ from pipeline.io import frames_io
 from pipeline.io.backgrounds import spread_frames
 from pipeline.io.capture import Capture
 from pipeline.io.run_layout import background_path, observations_path, silhouette_path
-from stages.background import tolerated_views
+from stages.background import CameraSamples, sample_camera, tolerated_views, working_size
 from stages.consistency import consistent_silhouettes, explained_share
 from stages.reconstruction import ReconstructionParams, reconstruct
 from stages.reconstruction.views import subject_cut_off
@@ -176,6 +176,14 @@ def reconstruction_task(chunk: Sequence[int], *, capture: Capture, rig: Rig, par
                 log.warning("frame %d: only %d observations (person out of view or silhouettes disagree)",
                             frame, len(observations))
             frames_io.write_ply(observations_path(out_dir, frame), observations.points, observations.normals)
+
+
+def camera_samples_task(capture: Capture, camera: str, frames: Sequence[int], *, downsample: int,
+                        plate: np.ndarray | None = None) -> CameraSamples:
+    """Worker: one camera's sampled ``frames`` summed up for the background estimate
+    (`stages.background.sample_camera`, its clean ``plate`` if it has one), its video decoded once."""
+    return sample_camera((image for _, image in capture.iter_images(camera, frames)),
+                         working_size(capture.rig[camera].size), plate=plate, downsample=downsample)
 
 
 def frame_images_task(capture: Capture, frame: int) -> dict[str, tuple[int, np.ndarray]]:

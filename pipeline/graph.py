@@ -51,6 +51,7 @@ from pipeline.engine.context import StageContext
 from pipeline.engine.executors import usable_cpus
 from pipeline.engine.stage import Stage
 from pipeline.frame_tasks import (
+    camera_samples_task,
     frame_images_task,
     frame_masks,
     reconstruction_task,
@@ -79,7 +80,7 @@ from pipeline.io.run_layout import (
 )
 from pipeline.io.tracking_io import read_tracking
 from pipeline.report.page import write_report
-from stages.background import BackgroundEstimate, estimate_backgrounds, sample_camera, sample_count, working_size
+from stages.background import BackgroundEstimate, estimate_backgrounds, sample_count
 from stages.background.plates import MIN_PLATE_MATCH, PLATE_SHIFT_PX, PlateFit, plate_fit, shifted_plate
 from stages.export import ExportParams
 from stages.export.quality import FrameQuality
@@ -122,23 +123,28 @@ MAX_VIDEO_CHUNK_FRAMES = 200
 UNRESOLVED_WARNING_SHARE = 0.001
 
 
-def estimated_backgrounds(capture: Capture, params: SilhouetteParams,
-                          plates: Mapping[str, PlateFit]) -> dict[str, BackgroundEstimate]:
+def estimated_backgrounds(capture: Capture, params: SilhouetteParams, plates: Mapping[str, PlateFit],
+                          executor: cf.Executor | None = None) -> dict[str, BackgroundEstimate]:
     """Every camera's background, estimated from frames sampled over the whole capture when a camera has no
     clean plate in ``plates`` (:func:`checked_plates`; :func:`stages.background.estimate_backgrounds`; the cameras
     with one keep it).
 
-    The samples of one camera at full resolution are held at a time; each camera's video is decoded once.
-    Logs what was done, and warns for each camera where part of the image was never seen without the subject.
+    Each camera's video is decoded once, at the sampled frames, and its samples summed up
+    (:func:`~pipeline.frame_tasks.camera_samples_task`) on ``executor`` when given, the cameras side by side (a
+    worker holds one camera's full-resolution samples at a time), and so are each round's silhouettes of a
+    camera's samples (``estimate_backgrounds``' ``mapper``). Logs what was done, and warns for each
+    camera where part of the image was never seen without the subject.
     """
     frames = capture.frame_numbers
     picks = spread_frames(frames, min(sample_count(len(frames), (height, width, 3))
                                       for width, height in (camera.size for camera in capture.rig)))
-    samples = [sample_camera((image for _, image in capture.iter_images(camera.name, picks)), working_size(camera.size),
-                             plate=plate_image(capture, camera.name, plates[camera.name]) if camera.name in plates
-                             else None, downsample=params.downsample)
-               for camera in capture.rig]
-    estimates = estimate_backgrounds(samples, list(capture.rig), capture.volume, params)
+    tasks = [functools.partial(camera_samples_task, capture, camera.name, picks, downsample=params.downsample,
+                               plate=plate_image(capture, camera.name, plates[camera.name])
+                               if camera.name in plates else None) for camera in capture.rig]
+    samples = ([future.result() for future in [executor.submit(task) for task in tasks]] if executor is not None
+               else [task() for task in tasks])
+    estimates = estimate_backgrounds(samples, list(capture.rig), capture.volume, params,
+                                     mapper=executor.map if executor is not None else map)
     found = dict(zip(capture.rig.names, estimates, strict=True))
     missing = [name for name, s in zip(capture.rig.names, samples, strict=True) if not s.plate]
     first = estimates[0]
@@ -179,7 +185,8 @@ def _backgrounds(ctx: StageContext) -> dict[str, float]:
         pending = list(capture.rig.names)  # the floors come with the estimate (which is deterministic)
     if not pending:  # all kept from an interrupted run, intact
         return frames_io.read_json(floors_path) if estimated else {}
-    estimates = estimated_backgrounds(capture, ctx.params, plates) if estimated else {}  # every camera votes
+    estimates = (estimated_backgrounds(capture, ctx.params, plates, ctx.workers.executor)  # every camera votes
+                 if estimated else {})
     for camera in pending:
         path = background_path(ctx.out_dir, camera)
         given = capture.background_paths.get(camera)

@@ -3,7 +3,8 @@ covered pixels settle, the ghost check, and each camera's full-resolution backgr
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import itertools
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 
 import cv2
@@ -46,6 +47,9 @@ REGION_LEVELS = 30
 #: pixels settle (fewer than SETTLED_SHARE of the covered working pixels change from one round to the next).
 MAX_ROUNDS = 5
 SETTLED_SHARE = 0.01
+
+#: How a round maps :func:`camera_silhouettes` over the cameras: :func:`map`, or an executor's.
+Mapper = Callable[..., Iterable[np.ndarray]]
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,25 +125,32 @@ class _Round:
 
 
 def _round(samples: Sequence[CameraSamples], backgrounds: Sequence[np.ndarray], grid: VoxelGrid, tolerated: int,
-           params: SilhouetteParams, *, fresh: bool) -> _Round:
+           params: SilhouetteParams, mapper: Mapper, *, fresh: bool) -> _Round:
     """Silhouettes, hulls and covers of every sample against the current working ``backgrounds``.
 
     A fresh start's backgrounds may hold ghosts, which hide the subject from a view's own silhouette: the
     hull alone says where he is. Later rounds' backgrounds are free of them, and the own silhouette, tighter
     than any hull, marks him, where the hull agrees (what the hull does not explain is not him).
     """
-    models = [background_model(b, params, tone_curve=False) for b in backgrounds]
+    views = list(mapper(camera_silhouettes, [s.small for s in samples], backgrounds, itertools.repeat(params)))
     count = len(samples[0].small)
     covers = [np.zeros(s.small.shape[:3], bool) for s in samples]
     sizes = np.zeros(count, np.int64)
     for k in range(count):
-        masks = [extract_silhouette(s.small[k], model, params) for s, model in zip(samples, models, strict=True)]
+        masks = [view[k] for view in views]
         hull, sizes[k] = hull_cover(masks, grid, tolerated)
         for c, (mask, cover) in enumerate(zip(masks, hull, strict=True)):
             if not fresh:
                 cover &= _filled(cv2.dilate(mask, disk(OWN_MARGIN_PX)))
             covers[c][k] = _filled(cover.view(np.uint8))
     return _Round(covers, sizes)
+
+
+def camera_silhouettes(small: np.ndarray, background: np.ndarray, params: SilhouetteParams) -> np.ndarray:
+    """(K, h, w) uint8 the silhouettes of one camera's working-resolution samples ``small`` (K, h, w, 3) against
+    its working ``background`` (h, w, 3): a round's work for that camera, which needs no other camera's."""
+    model = background_model(background, params, tone_curve=False)
+    return np.stack([extract_silhouette(sample, model, params) for sample in small])
 
 
 def _filled(mask: np.ndarray) -> np.ndarray:
@@ -164,7 +175,7 @@ def _absent(sizes: np.ndarray, minimum: float) -> np.ndarray:
 
 
 def estimate_backgrounds(samples: Sequence[CameraSamples], cameras: Sequence[Camera], volume: np.ndarray,
-                         params: SilhouetteParams) -> list[BackgroundEstimate]:
+                         params: SilhouetteParams, *, mapper: Mapper = map) -> list[BackgroundEstimate]:
     """Every camera's background, the subject left out by the multi-view iteration of the module's docstring.
 
     Parameters
@@ -179,6 +190,9 @@ def estimate_backgrounds(samples: Sequence[CameraSamples], cameras: Sequence[Cam
         The silhouette stage's parameters; the samples' silhouettes use them at the working resolution
         (``downsample`` 1, no blur), with no shadow test: a shadow counts as the subject, so it stays out of
         the median too.
+    mapper : callable like :func:`map`
+        How each round computes every camera's silhouettes (:func:`camera_silhouettes`, one call per camera):
+        an executor's ``map`` spreads the cameras over processes, with the same result.
 
     Returns
     -------
@@ -201,7 +215,7 @@ def estimate_backgrounds(samples: Sequence[CameraSamples], cameras: Sequence[Cam
              for s, camera in zip(samples, small, strict=True)]
     backgrounds = list(first)
     minimum = MIN_SUBJECT_M3 / grid.voxel**3
-    found = _round(samples, backgrounds, grid, tolerated, working_params, fresh=True)
+    found = _round(samples, backgrounds, grid, tolerated, working_params, mapper, fresh=True)
     absent = _absent(found.sizes, minimum)
     ghost_samples, left_out = 0, np.zeros_like(absent)
     if absent.any():
@@ -214,7 +228,7 @@ def estimate_backgrounds(samples: Sequence[CameraSamples], cameras: Sequence[Cam
         ratio = _outlines(trial, backgrounds) / max(_outlines(backgrounds, trial), 1e-6)
         if ratio < OUTLINE_RATIO:
             backgrounds, first, ghost_samples = trial, list(trial), int(absent.sum())
-            found = _round(samples, backgrounds, grid, tolerated, working_params, fresh=True)
+            found = _round(samples, backgrounds, grid, tolerated, working_params, mapper, fresh=True)
         elif ratio <= 1 / OUTLINE_RATIO:
             left_out = absent
     rounds = 1
@@ -228,7 +242,7 @@ def estimate_backgrounds(samples: Sequence[CameraSamples], cameras: Sequence[Cam
         if settled or rounds >= MAX_ROUNDS:
             break
         rounds += 1
-        found = _round(samples, backgrounds, grid, tolerated, working_params, fresh=False)
+        found = _round(samples, backgrounds, grid, tolerated, working_params, mapper, fresh=False)
         previous, covers = covers, found.left_out(left_out)
         changed = sum(int((new ^ old).sum()) for new, old in zip(covers, previous, strict=True))
         settled = changed <= SETTLED_SHARE * max(sum(int(cover.sum()) for cover in covers), 1)

@@ -14,6 +14,7 @@ import yaml
 
 from calib.formats import save_rig
 from pipeline import graph
+from pipeline.engine.executors import make_executor
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
 from pipeline.io.run_layout import background_path, noise_floors_path
@@ -51,6 +52,16 @@ def test_a_subject_who_stood_still_leaves_no_ghost_and_the_log_says_how(tmp_path
     assert "the subject left out" in caplog.text and "WARNING" not in caplog.text
 
 
+def test_the_estimate_spread_over_worker_processes_is_the_estimate_made_here(tmp_path):
+    capture = Capture.open(_write_capture(tmp_path / "capture", scene.still_then_moving())[0])
+    here = graph.estimated_backgrounds(capture, SilhouetteParams(), {})
+    with make_executor(2) as workers:  # the cameras' samples and each round's silhouettes in two processes
+        there = graph.estimated_backgrounds(capture, SilhouetteParams(), {}, workers.executor)
+    for camera in capture.rig.names:
+        np.testing.assert_array_equal(there[camera].image, here[camera].image)
+        assert (there[camera].noise, there[camera].rounds) == (here[camera].noise, here[camera].rounds)
+
+
 def test_a_subject_who_never_leaves_his_spot_is_a_warning_naming_each_camera(tmp_path, caplog):
     swaying = np.column_stack([0.15 * np.sin(np.arange(24)), np.zeros(24)])
     capture = Capture.open(_write_capture(tmp_path / "capture", swaying)[0])
@@ -72,7 +83,8 @@ def test_the_stage_writes_backgrounds_and_the_noise_floors_of_estimated_ones(tmp
     root, rooms = _write_capture(tmp_path / "capture", scene.still_then_moving(16, 6), plates=plates)
     out = tmp_path / "run"
 
-    context = SimpleNamespace(capture=Capture.open(root), out_dir=out, params=SilhouetteParams())  # what it reads
+    context = SimpleNamespace(capture=Capture.open(root), out_dir=out, params=SilhouetteParams(),  # what it reads
+                              workers=SimpleNamespace(executor=None))
     floors = graph._backgrounds(context)
     names = context.capture.rig.names
     assert all(frames_io.file_problem(background_path(out, camera)) is None for camera in names)
@@ -94,7 +106,8 @@ def test_a_plate_off_its_frames_is_shifted_onto_them_and_another_views_plate_is_
     cv2.imwrite(str(moved), shifted_plate(rooms[0], (3.0, -2.0)))
     (root / "background" / f"{names[1]}.png").write_bytes((root / "background" / f"{names[2]}.png").read_bytes())
     out = tmp_path / "run"
-    context = SimpleNamespace(capture=Capture.open(root), out_dir=out, params=SilhouetteParams())
+    context = SimpleNamespace(capture=Capture.open(root), out_dir=out, params=SilhouetteParams(),
+                              workers=SimpleNamespace(executor=None))
     with caplog.at_level(logging.WARNING, logger="pipeline.graph"):
         floors = graph._backgrounds(context)
     assert f"the clean plate lies 3.6 pixels off camera {names[0]}'s frames (x -3.1, y +1.8" in caplog.text
