@@ -3,7 +3,6 @@ covered pixels settle, the ghost check, and each camera's full-resolution backgr
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 
@@ -132,7 +131,7 @@ def _round(samples: Sequence[CameraSamples], backgrounds: Sequence[np.ndarray], 
     hull alone says where he is. Later rounds' backgrounds are free of them, and the own silhouette, tighter
     than any hull, marks him, where the hull agrees (what the hull does not explain is not him).
     """
-    views = list(mapper(camera_silhouettes, [s.small for s in samples], backgrounds, itertools.repeat(params)))
+    views = list(mapper(camera_silhouettes, [s.small for s in samples], backgrounds, [params] * len(samples)))
     count = len(samples[0].small)
     covers = [np.zeros(s.small.shape[:3], bool) for s in samples]
     sizes = np.zeros(count, np.int64)
