@@ -178,10 +178,10 @@ def reconstruction_task(chunk: Sequence[int], *, capture: Capture, rig: Rig, par
             frames_io.write_ply(observations_path(out_dir, frame), observations.points, observations.normals)
 
 
-def camera_samples_task(capture: Capture, camera: str, frames: Sequence[int], *, downsample: int,
-                        plate: np.ndarray | None = None) -> CameraSamples:
+def camera_samples_task(capture: Capture, camera: str, plate: np.ndarray | None, *, frames: Sequence[int],
+                        downsample: int) -> CameraSamples:
     """Worker: one camera's sampled ``frames`` summed up for the background estimate
-    (`stages.background.sample_camera`, its clean ``plate`` if it has one), its video decoded once."""
+    (`stages.background.sample_camera`, its clean ``plate`` if it has one, else None), its video decoded once."""
     return sample_camera((image for _, image in capture.iter_images(camera, frames)),
                          working_size(capture.rig[camera].size), plate=plate, downsample=downsample)
 

@@ -129,22 +129,20 @@ def estimated_backgrounds(capture: Capture, params: SilhouetteParams, plates: Ma
     clean plate in ``plates`` (:func:`checked_plates`; :func:`stages.background.estimate_backgrounds`; the cameras
     with one keep it).
 
-    Each camera's video is decoded once, at the sampled frames, and its samples summed up
-    (:func:`~pipeline.frame_tasks.camera_samples_task`) on ``executor`` when given, the cameras side by side (a
-    worker holds one camera's full-resolution samples at a time), and so are each round's silhouettes of a
-    camera's samples (``estimate_backgrounds``' ``mapper``). Logs what was done, and warns for each
-    camera where part of the image was never seen without the subject.
+    The work that is one camera's (its samples, :func:`~pipeline.frame_tasks.camera_samples_task`, its video
+    decoded once; each round's silhouettes of them, ``estimate_backgrounds``' ``mapper``) is mapped over the
+    cameras on ``executor`` when given, side by side: a worker holds one camera's full-resolution samples at a
+    time. Logs what was done, and warns for each camera where part of the image was never seen without the
+    subject.
     """
     frames = capture.frame_numbers
     picks = spread_frames(frames, min(sample_count(len(frames), (height, width, 3))
                                       for width, height in (camera.size for camera in capture.rig)))
-    tasks = [functools.partial(camera_samples_task, capture, camera.name, picks, downsample=params.downsample,
-                               plate=plate_image(capture, camera.name, plates[camera.name])
-                               if camera.name in plates else None) for camera in capture.rig]
-    samples = ([future.result() for future in [executor.submit(task) for task in tasks]] if executor is not None
-               else [task() for task in tasks])
-    estimates = estimate_backgrounds(samples, list(capture.rig), capture.volume, params,
-                                     mapper=executor.map if executor is not None else map)
+    mapper = executor.map if executor is not None else map
+    given = [plate_image(capture, name, plates[name]) if name in plates else None for name in capture.rig.names]
+    samples = list(mapper(functools.partial(camera_samples_task, capture, frames=picks, downsample=params.downsample),
+                          capture.rig.names, given))
+    estimates = estimate_backgrounds(samples, list(capture.rig), capture.volume, params, mapper=mapper)
     found = dict(zip(capture.rig.names, estimates, strict=True))
     missing = [name for name, s in zip(capture.rig.names, samples, strict=True) if not s.plate]
     first = estimates[0]

@@ -113,7 +113,7 @@ def _frame_numbers_in(source: _CameraMedia) -> list[int]:
     return sorted(int(FRAME_FILE.match(p.name).group(1)) for p in _visible_entries(source.path))
 
 
-def _first_frame_size(source: _CameraMedia, camera: str) -> tuple[int, int]:
+def _first_frame_size(source: _CameraMedia) -> tuple[int, int]:
     """``(width, height)`` of the camera's first frame, checked readable (`frames_io.image_size`; a video's
     decoded)."""
     if source.suffix:

@@ -127,7 +127,7 @@ class Capture:
             camera_media, silhouette_media, background_paths = (
                 {name: source for name, source in found.items() if name in chosen}
                 for found in (camera_media, silhouette_media, background_paths))
-        sizes = {name: _first_frame_size(source, name) for name, source in camera_media.items()}
+        sizes = {name: _first_frame_size(source) for name, source in camera_media.items()}
 
         rig = _load_calibration(calibration["format"], calibration_path, sizes, chosen)
         _check_camera_count(rig, root / "capture.yaml" if chosen is not None else calibration_path)
