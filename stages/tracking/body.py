@@ -278,6 +278,58 @@ class BodyModel:
             return self
         return self.with_each_lengths(factors[None])[0]
 
+    def length_derivatives(self, kin: Kinematics) -> tuple[np.ndarray, np.ndarray]:
+        """How the posed ellipsoids of `kin` move as each length factor grows: dt_p / d ln ℓ_g (G, E, 3) and
+        dM_p / d ln ℓ_g (G, E, 3, 3), M_p = R_p diag(a²) R_pᵀ (world frame), at the current factors.
+
+        These are the derivatives of `with_lengths` at ℓ: a stretch S = I + (ℓ − 1) u uᵀ changes by u uᵀ per unit
+        ln ℓ, so a stretched segment's ellipsoid centres c move by u (u · c) and its shapes by
+        ũ (M ũ)ᵀ + (M ũ) ũᵀ (ũ = R_s u in the world), and each joint it carries by u (u · offset), taking the
+        child segment and everything below it along; a joint group moves its joints by a (a · offset) along its
+        axis a; a girth grows the two short semi-axes, dM = 2 (M − a₀² r₀ r₀ᵀ), r₀ the long axis. Exact where
+        differencing `with_each_lengths` was not, and without its eigen-decompositions.
+        """
+        G, S = len(self.length_groups), len(self.segment_names)
+        dt = np.zeros((G, self.n_ellipsoids, 3))
+        dM = np.zeros((G, self.n_ellipsoids, 3, 3))
+        if G == 0:
+            return dt, dM
+        ellipsoids, segment = kin.ellipsoids, self.ellipsoid_segment
+        M = ellipsoids.shapes[0]
+        # Each segment's joint moved in its parent's frame, per factor (G, S, 3), then in the world.
+        moved = np.zeros((G, S, 3))
+        child = np.flatnonzero(self.parent >= 0)
+        stretched = child[self.length_group[self.parent[child]] >= 0]  # joints carried by a stretched parent
+        u = self.length_axis[self.parent[stretched]]
+        moved[self.length_group[self.parent[stretched]], stretched] += u * np.einsum("sa,sa->s", u,
+                                                                                     self.offset[stretched])[:, None]
+        shifted = np.flatnonzero(self.joint_group >= 0)
+        a = self.joint_axis[shifted]
+        moved[self.joint_group[shifted], shifted] += a * np.einsum("sa,sa->s", a, self.offset[shifted])[:, None]
+        moved[:, child] = np.einsum("sab,gsb->gsa", kin.R[self.parent[child]], moved[:, child])
+        frame = np.einsum("as,gaj->gsj", self._lineage, moved)  # every segment moves with the joints above it
+        dt += frame[:, segment]
+        on = np.flatnonzero(self.length_group[segment] >= 0)  # ellipsoids of stretched segments
+        g, s = self.length_group[segment[on]], segment[on]
+        u_world = np.einsum("kab,kb->ka", kin.R[s], self.length_axis[s])
+        dt[g, on] += u_world * np.einsum("ka,ka->k", self.length_axis[s], self.ellipsoid_centre[on])[:, None]
+        Mu = np.einsum("kab,kb->ka", M[on], u_world)
+        dM[g, on] += u_world[:, :, None] * Mu[:, None, :] + Mu[:, :, None] * u_world[:, None, :]
+        thick = np.flatnonzero(self.girth_group >= 0)
+        r0 = ellipsoids.R[thick, :, 0]
+        dM[self.girth_group[thick], thick] += 2.0 * (
+            M[thick] - (ellipsoids.semi_axes[thick, 0] ** 2)[:, None, None] * r0[:, :, None] * r0[:, None, :])
+        return dt, dM
+
+    @functools.cached_property
+    def _lineage(self) -> np.ndarray:
+        """(S, S) bool: lineage[a, s] when segment a is s or one of its ancestors (a joint moving with a moves s)."""
+        lineage = np.eye(len(self.segment_names), dtype=bool)
+        for s in range(len(self.segment_names)):  # topological order: a parent's row is complete before its child's
+            if self.parent[s] >= 0:
+                lineage[:, s] |= lineage[:, self.parent[s]]
+        return lineage
+
     def with_each_lengths(self, factors: np.ndarray) -> tuple[BodyModel, ...]:
         """`with_lengths` of every row of `factors` (B, G), computed together.
 

@@ -331,6 +331,28 @@ def residuals(y, n, i, p, t, M):
 
 
 @njit(cache=True, error_model="numpy")
+def length_columns(n, i, p, M, dt, dM):
+    """de/d ln ℓ (K, 3, G) of the pairs (i[k], p[k]) for each length factor g,
+    −(dt_gp + λ dM_gp n − ½ λ³ (nᵀ dM_gp n) M_p n) with λ = (nᵀ M_p n)^(-1/2), from the ellipsoids' dt (G, P, 3)
+    and dM (G, P, 3, 3) (`distances.NormalsDistance.length_jacobian`, `BodyModel.length_derivatives`)."""
+    K, G = i.shape[0], dt.shape[0]
+    out = np.empty((K, 3, G))
+    for k in range(K):
+        d, e = i[k], p[k]
+        u0, u1, u2, lam = _normal_direction(n, d, M, e)
+        n0, n1, n2 = n[d, 0], n[d, 1], n[d, 2]
+        for g in range(G):
+            a0 = dM[g, e, 0, 0] * n0 + dM[g, e, 0, 1] * n1 + dM[g, e, 0, 2] * n2
+            a1 = dM[g, e, 1, 0] * n0 + dM[g, e, 1, 1] * n1 + dM[g, e, 1, 2] * n2
+            a2 = dM[g, e, 2, 0] * n0 + dM[g, e, 2, 1] * n1 + dM[g, e, 2, 2] * n2
+            c = 0.5 * lam * lam * lam * (n0 * a0 + n1 * a1 + n2 * a2)
+            out[k, 0, g] = -(dt[g, e, 0] + lam * a0 - c * u0)
+            out[k, 1, g] = -(dt[g, e, 1] + lam * a1 - c * u1)
+            out[k, 2, g] = -(dt[g, e, 2] + lam * a2 - c * u2)
+    return out
+
+
+@njit(cache=True, error_model="numpy")
 def normal_equations(y, n, i, p, W, t, M, root):
     """Whitened residuals and rigid derivatives of the pairs, and their normal equations per ellipsoid.
 

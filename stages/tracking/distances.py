@@ -40,7 +40,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from stages.tracking import compiled
-from stages.tracking.body import Ellipsoids, Kinematics
+from stages.tracking.body import BodyModel, Ellipsoids, Kinematics
 from stages.tracking.geometry import (
     Q_MIN,
     entries,
@@ -59,6 +59,9 @@ from stages.tracking.mixture import (
 
 # EM updates of Σ per M-step under normal noise (`CompiledNormals.covariance`).
 NOISY_COVARIANCE_ITERATIONS = 5
+# Forward-difference step on ln ℓ for de/d ln ℓ where a distance has no closed form (`Distance.length_jacobian`):
+# residuals are smooth in ℓ, so 1e-5 loses < 1e-5 relative.
+LENGTH_STEP = 1e-5
 
 
 @dataclass(frozen=True)
@@ -198,6 +201,19 @@ class Distance:
         """The M-step's residuals e (K, k) of the pairs (i, p) at the posed `ellipsoids`."""
         return self.residuals(y, n, i, p, kin, ellipsoids).e
 
+    def length_jacobian(self, y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, body: BodyModel,
+                        kin: Kinematics, pose: np.ndarray, e: np.ndarray) -> np.ndarray:
+        """de/d ln ℓ (K, k, G) of the pairs (i, p), whose residuals on `body` at `pose` (kinematics `kin`) are e
+        (K, k), for each of the body's length factors: forward differences, one stretched body per factor
+        (`BodyModel.with_each_lengths`).
+        """
+        one_step = np.where(np.eye(len(body.length_groups), dtype=bool), np.exp(LENGTH_STEP), 1.0)
+        columns = []
+        for stretched in body.with_each_lengths(body.length_factors * one_step):  # row g: factor g stepped
+            kin = stretched.fk(pose)
+            columns.append((self.pair_residuals(y, n, i, p, kin, stretched.ellipsoids(kin)) - e) / LENGTH_STEP)
+        return np.stack(columns, axis=2) if columns else np.zeros(e.shape + (0,))
+
     def normal_equations(self, y: np.ndarray, n: np.ndarray, i: np.ndarray, p: np.ndarray, W: np.ndarray,
                          kin: Kinematics, ellipsoids: Ellipsoids, scale: bool):
         """The pairs' residuals e and, whitened, r = Wᵀ e and Bw = Wᵀ B (B = de/d(ω, v)); per ellipsoid
@@ -253,6 +269,17 @@ class NormalsDistance(_PointDistance):
 
     def point(self, y_k, n_k, ellipsoids, p, t, jacobian):
         return normal_point(n_k, entries(shape_matrices(ellipsoids, 2.0), p), t, jacobian)
+
+    def length_jacobian(self, y, n, i, p, body, kin, pose, e):
+        """de/d ln ℓ (K, 3, G) in closed form: x = t + λ M n moves by dx = dt + λ dM n − ½ λ³ (nᵀ dM n) M n
+        (λ = (nᵀ M n)^(-1/2)) as the ellipsoids' centres and shapes change (`BodyModel.length_derivatives`)."""
+        dt, dM = body.length_derivatives(kin)
+        n_k = n[i]
+        m = np.einsum("kab,kb->ka", shape_matrices(kin.ellipsoids, 2.0)[p], n_k)  # M n
+        lam = 1.0 / np.sqrt(np.einsum("ka,ka->k", n_k, m))
+        dMn = np.einsum("gkab,kb->gka", dM[:, p], n_k)
+        dx = dt[:, p] + lam[:, None] * dMn - (0.5 * lam**3 * np.einsum("gka,ka->gk", dMn, n_k))[:, :, None] * m
+        return -dx.transpose(1, 2, 0)
 
     def all_residuals(self, y, n, ellipsoids):
         P = len(ellipsoids.t)
@@ -338,6 +365,10 @@ class CompiledNormals(NormalsDistance):
 
     def pair_residuals(self, y, n, i, p, kin, ellipsoids):
         return compiled.residuals(y, n, i, p, ellipsoids.t, ellipsoids.shapes[0])
+
+    def length_jacobian(self, y, n, i, p, body, kin, pose, e):
+        dt, dM = body.length_derivatives(kin)
+        return compiled.length_columns(n, i, p, kin.ellipsoids.shapes[0], dt, dM)
 
     def normal_equations(self, y, n, i, p, W, kin, ellipsoids, scale):
         e, r, Bw, H6, g6, J_scale, norm2 = compiled.normal_equations(

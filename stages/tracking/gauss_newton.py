@@ -21,9 +21,6 @@ from stages.tracking.distances import Distance
 PRIOR_SIGMA_RAD = 0.25
 # Length factors a segment may take (people, not caricatures).
 LENGTH_RANGE = (0.75, 1.33)
-# Forward-difference step on ln ℓ for de/d ln ℓ: the stretch acts on ellipsoid shapes, where an
-# analytic derivative would be per distance; residuals are smooth in ℓ, so 1e-5 loses < 1e-5 relative.
-LENGTH_STEP = 1e-5
 # Levenberg-Marquardt: initial damping (relative to the diagonal), growth on a rejected step, and
 # the number of tries before the M-step keeps the current pose (a GEM step never increases eq. 14).
 LM_DAMPING = 1e-3
@@ -101,7 +98,7 @@ def _normal_equations(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
     W, D = problem.W, body.pose_size
     e, r, Bw, H6, g6, J_scale, norm2 = problem.distance.normal_equations(
         problem.y, problem.n, problem.i, problem.p, W, kin, body.ellipsoids(kin), problem.estimate_scale)
-    extra = _extra_columns(problem, body, pose, e, J_scale)  # (K,k,X)
+    extra = _extra_columns(problem, body, kin, pose, e, J_scale)  # (K,k,X)
     X = extra.shape[2]
     H = np.zeros((D + X, D + X))
     g = np.zeros(D + X)
@@ -123,17 +120,15 @@ def _normal_equations(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
     return H, g, e, norm2
 
 
-def _extra_columns(problem: LeastSquares, body: BodyModel, pose: np.ndarray, e: np.ndarray,
+def _extra_columns(problem: LeastSquares, body: BodyModel, kin: Kinematics, pose: np.ndarray, e: np.ndarray,
                    J_scale: np.ndarray | None) -> np.ndarray:
-    """de/d ln s (analytic, `J_scale`) and de/d ln ℓ (forward differences from `e`) as columns (K, k, X)."""
+    """de/d ln s (analytic, `J_scale`) and de/d ln ℓ (`Distance.length_jacobian`) as columns (K, k, X)."""
     columns = []
     if problem.estimate_scale:
         columns.append(J_scale[:, :, None])
     if problem.estimate_lengths:
-        one_step = np.where(np.eye(len(body.length_groups), dtype=bool), np.exp(LENGTH_STEP), 1.0)
-        for stretched in body.with_each_lengths(body.length_factors * one_step):  # row g: factor g stepped
-            e_g = problem.residuals(stretched, stretched.fk(pose))
-            columns.append(((e_g - e) / LENGTH_STEP)[:, :, None])
+        columns.append(problem.distance.length_jacobian(problem.y, problem.n, problem.i, problem.p, body, kin, pose,
+                                                        e))
     return np.concatenate(columns, axis=2) if columns else np.zeros(e.shape + (0,))
 
 

@@ -274,3 +274,26 @@ def test_lengths_stretched_together_equal_each_stretched_alone():
                 for field in ("offset", "ellipsoid_rotation", "ellipsoid_centre", "semi_axes", "joint_offset",
                               "length_factors"):
                     np.testing.assert_allclose(getattr(together, field), getattr(alone, field), rtol=0, atol=1e-12)
+
+
+def test_length_derivatives_are_those_of_the_stretched_bodies():
+    """`length_derivatives` (centres and shape matrices of the posed ellipsoids per unit ln ℓ) against central
+    differences of `with_lengths`, for every kind of factor: stretches, the girth and the shoulders' joint group."""
+    full = load_body("default")
+    rng = np.random.default_rng(5)
+    for body in (full, full.with_length_groups(("upperarm", "shank", "girth", "forearm", "shoulders"))):
+        G = len(body.length_groups)
+        body = body.with_lengths(np.exp(rng.normal(0.0, 0.1, G)))
+        pose = body.clip(body.zero_pose() + np.r_[np.zeros(3), rng.normal(0.0, 0.4, body.pose_size - 3)])
+        dt, dM = body.length_derivatives(body.fk(pose))
+        step = 1e-6
+        for g in range(G):
+            ends = []
+            for sign in (1.0, -1.0):
+                factors = body.length_factors.copy()
+                factors[g] *= np.exp(sign * step)
+                ellipsoids = body.with_lengths(factors).ellipsoids(pose)
+                ends.append((ellipsoids.t, ellipsoids.shapes[0]))
+            np.testing.assert_allclose(dt[g], (ends[0][0] - ends[1][0]) / (2 * step), atol=1e-8)
+            np.testing.assert_allclose(dM[g], (ends[0][1] - ends[1][1]) / (2 * step), atol=1e-8)
+            assert np.abs(dt[g]).max() > 1e-3 or np.abs(dM[g]).max() > 1e-4  # every factor moves something

@@ -140,3 +140,16 @@ def test_pruning_bounds_use_sigmas_largest_eigenvalue(seed):
     reach, largest = compiled._bounds(semi, Sigma, np.log(np.full(4, 0.2)), np.log(1e-9), 0.03)
     assert largest == pytest.approx(np.linalg.eigvalsh(Sigma)[-1], rel=1e-9)
     np.testing.assert_allclose(reach[:, 2], largest + 0.03 * (semi.max(1) ** 2 / semi.min(1)) ** 2, rtol=1e-12)
+
+
+def test_length_columns_match_the_reference(pairs):
+    y, n, i, p, kin, ell, rng = pairs
+    body = load_body("default")
+    body = body.with_lengths(np.exp(rng.normal(0.0, 0.1, len(body.length_groups))))
+    pose = random_pose(body, rng)
+    kin = body.fk(pose)
+    e = NormalsDistance().pair_residuals(y, n, i, p, kin, kin.ellipsoids)
+    expected = NormalsDistance().length_jacobian(y, n, i, p, body, kin, pose, e)
+    dt, dM = body.length_derivatives(kin)
+    np.testing.assert_allclose(compiled.length_columns(n, i, p, shape_matrices(kin.ellipsoids, 2.0), dt, dM),
+                               expected, atol=1e-12)

@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
-from tracking_testing import data_near_a_pose
+from tracking_testing import data_near_a_pose, random_pose
 
 from stages.tracking.body_file import load_body
-from stages.tracking.distances import DISTANCES
+from stages.tracking.distances import DISTANCES, CompiledNormals, Distance, NormalsDistance
 from stages.tracking.geometry import normal_spread, normal_spread_entries, symmetric_matrices
 
 
@@ -39,3 +39,22 @@ def test_pair_spread_matches_the_dense_one(data):
     dense = normal_spread(n, ell)[i, p]
     np.testing.assert_allclose(normal_spread(n[i], ell, p), dense, atol=1e-14)
     np.testing.assert_allclose(symmetric_matrices(normal_spread_entries(n[i], ell, p)), dense, atol=1e-14)
+
+
+def test_closed_form_length_jacobian_is_the_differenced_one(data):
+    """The paper's distance differentiates its residuals by the length factors in closed form; every distance
+    can difference them (`Distance.length_jacobian`), and the two agree to the differences' own error."""
+    y, n, *_ = data
+    rng = np.random.default_rng(8)
+    body = load_body("default")
+    body = body.with_lengths(np.exp(rng.normal(0.0, 0.1, len(body.length_groups))))
+    pose = random_pose(body, rng)
+    kin = body.fk(pose)
+    p = np.sort(rng.integers(0, body.n_ellipsoids, 400))
+    i = rng.integers(0, len(y), 400)
+    for distance in (NormalsDistance(), CompiledNormals()):
+        e = distance.pair_residuals(y, n, i, p, kin, kin.ellipsoids)
+        closed = distance.length_jacobian(y, n, i, p, body, kin, pose, e)
+        differenced = Distance.length_jacobian(distance, y, n, i, p, body, kin, pose, e)
+        assert closed.shape == (len(i), 3, len(body.length_groups))
+        np.testing.assert_allclose(closed, differenced, atol=1e-5 * np.abs(differenced).max())
