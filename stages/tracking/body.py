@@ -286,8 +286,8 @@ class BodyModel:
         ln ℓ, so a stretched segment's ellipsoid centres c move by u (u · c) and its shapes by
         ũ (M ũ)ᵀ + (M ũ) ũᵀ (ũ = R_s u in the world), and each joint it carries by u (u · offset), taking the
         child segment and everything below it along; a joint group moves its joints by a (a · offset) along its
-        axis a; a girth grows the two short semi-axes, dM = 2 (M − a₀² r₀ r₀ᵀ), r₀ the long axis. Exact where
-        differencing `with_each_lengths` was not, and without its eigen-decompositions.
+        axis a; a girth grows the two short semi-axes, dM = 2 (M − a₀² r₀ r₀ᵀ), r₀ the long axis. Exact, and
+        without the eigen-decompositions that differencing `with_each_lengths` would cost per factor.
         """
         G, S = len(self.length_groups), len(self.segment_names)
         dt = np.zeros((G, self.n_ellipsoids, 3))
@@ -333,8 +333,8 @@ class BodyModel:
     def with_each_lengths(self, factors: np.ndarray) -> tuple[BodyModel, ...]:
         """`with_lengths` of every row of `factors` (B, G), computed together.
 
-        The Gauss-Newton step differentiates the residuals by each factor in turn
-        (`gauss_newton._extra_columns`): one body per factor, and stretching them at once costs little
+        A distance without closed-form length derivatives differences its residuals by each factor in turn
+        (`distances.Distance.length_jacobian`): one body per factor, and stretching them at once costs little
         more than one, most of `with_lengths`'s cost being per call rather than per segment.
         """
         factors = np.asarray(factors, dtype=float)
