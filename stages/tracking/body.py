@@ -290,10 +290,6 @@ class BodyModel:
         without the eigen-decompositions that differencing `with_each_lengths` would cost per factor.
         """
         G, S = len(self.length_groups), len(self.segment_names)
-        dt = np.zeros((G, self.n_ellipsoids, 3))
-        dM = np.zeros((G, self.n_ellipsoids, 3, 3))
-        if G == 0:
-            return dt, dM
         ellipsoids, segment = kin.ellipsoids, self.ellipsoid_segment
         M = ellipsoids.shapes[0]
         # Each segment's joint moved in its parent's frame, per factor (G, S, 3), then in the world.
@@ -308,7 +304,8 @@ class BodyModel:
         moved[self.joint_group[shifted], shifted] += a * np.einsum("sa,sa->s", a, self.offset[shifted])[:, None]
         moved[:, child] = np.einsum("sab,gsb->gsa", kin.R[self.parent[child]], moved[:, child])
         frame = np.einsum("as,gaj->gsj", self._lineage, moved)  # every segment moves with the joints above it
-        dt += frame[:, segment]
+        dt = frame[:, segment]  # (G, E, 3)
+        dM = np.zeros((G, self.n_ellipsoids, 3, 3))
         on = np.flatnonzero(self.length_group[segment] >= 0)  # ellipsoids of stretched segments
         g, s = self.length_group[segment[on]], segment[on]
         u_world = np.einsum("kab,kb->ka", kin.R[s], self.length_axis[s])
@@ -323,12 +320,7 @@ class BodyModel:
 
     @functools.cached_property
     def _lineage(self) -> np.ndarray:
-        """(S, S) bool: lineage[a, s] when segment a is s or one of its ancestors (a joint moving with a moves s)."""
-        lineage = np.eye(len(self.segment_names), dtype=bool)
-        for s in range(len(self.segment_names)):  # topological order: a parent's row is complete before its child's
-            if self.parent[s] >= 0:
-                lineage[:, s] |= lineage[:, self.parent[s]]
-        return lineage
+        return lineage(self.parent)
 
     def with_each_lengths(self, factors: np.ndarray) -> tuple[BodyModel, ...]:
         """`with_lengths` of every row of `factors` (B, G), computed together.
@@ -401,6 +393,16 @@ class BodyModel:
 
     def _kinematics(self, pose_or_kin: np.ndarray | Kinematics) -> Kinematics:
         return pose_or_kin if isinstance(pose_or_kin, Kinematics) else self.fk(pose_or_kin)
+
+
+def lineage(parent: np.ndarray) -> np.ndarray:
+    """(S, S) bool: lineage[a, s] when segment a is s or one of its ancestors, for segments in topological order
+    with ``parent`` (S,) (−1 for the root): whatever moves segment a moves s."""
+    lineage = np.eye(len(parent), dtype=bool)
+    for s, a in enumerate(parent):  # a parent's column is complete before its child's
+        if a >= 0:
+            lineage[:, s] |= lineage[:, a]
+    return lineage
 
 
 def sample_surface(body: BodyModel, pose: np.ndarray, count: int,

@@ -16,7 +16,7 @@ import yaml
 
 from calib.errors import InputError
 from stages.joints import JOINT_NAMES
-from stages.tracking.body import BodyModel
+from stages.tracking.body import BodyModel, lineage
 
 ROOT_DOF_NAMES = ("tx", "ty", "tz", "yaw", "pitch", "roll")
 # Segment-length factors vary between adults by a few per cent of the population's proportions; this
@@ -153,13 +153,8 @@ def _dofs(segments: list, parent: np.ndarray) -> dict:
             lo.append(np.radians(float(dof["min"])))
             hi.append(np.radians(float(dof["max"])))
             prior.append(float(dof.get("prior", 0.0)))
-    dof_seg = np.array(dof_seg)
-    moves = np.zeros((len(dof_seg), len(segments)), dtype=bool)
-    for s in range(len(segments)):
-        a = s
-        while a >= 0:  # every DOF of s and of its ancestors moves s
-            moves[dof_seg == a, s] = True
-            a = parent[a]
+    dof_seg = np.array(dof_seg, dtype=int)
+    moves = lineage(parent)[dof_seg]  # every DOF of a segment and of its ancestors moves it
     return dict(dof_names=tuple(dof_names), dof_segment=dof_seg, dof_axis=np.array(axes, dtype=float),
                 dof_revolute=np.array(revolute), lower=np.array(lo), upper=np.array(hi),
                 prior_weight=np.array(prior), moves=moves)

@@ -210,8 +210,8 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     shutil.copy2(capture / "capture.yaml", partial / "capture.yaml")
     if cameras or calibration_error_deg or position_error_m or zoom:
         _rewrite_calibration(Capture.open(capture), partial, {video.stem for video in videos}, calibration_error_deg,
-                             # its own draws: the frames' stay as without it
-                             position_error_m, np.random.default_rng([seed, 1]), zoom)
+                             position_error_m, np.random.default_rng([seed, 1]),  # its own draws: the frames' stay
+                             zoom)
     elif (capture / "calibration").is_dir():
         shutil.copytree(capture / "calibration", partial / "calibration")
     if plates and (capture / "background").is_dir():
