@@ -29,6 +29,7 @@ import importlib.util
 import json
 import logging
 import os
+import platform
 import shutil
 import tempfile
 import warnings
@@ -92,9 +93,22 @@ def build_folder() -> Path:
 
 def build_key() -> str:
     """What a build depends on besides Python (whose extension suffix its file name carries): the content of
-    compiled.py and the numpy it was built against (its arrays' layout in memory)."""
+    compiled.py, the numpy it was built against (its arrays' layout in memory), and the CPU it was built for (its
+    model and instruction sets, as Linux reports them: the build uses them all, as numba's own compilation does, and
+    a folder shared by machines must not hand one's build to another)."""
     source = Path(importlib.util.find_spec("stages.tracking.compiled").origin).read_bytes()
-    return hashlib.sha256(source + f"numpy {np.__version__}".encode()).hexdigest()[:16]
+    return hashlib.sha256(source + f"numpy {np.__version__}\n{_cpu()}".encode()).hexdigest()[:16]
+
+
+def _cpu() -> str:
+    """The machine, CPU model and instruction-set flags of this computer (``platform.machine()`` alone where
+    /proc/cpuinfo is not to be read)."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        lines = []
+    described = [next((line for line in lines if line.startswith(field)), "") for field in ("model name", "flags")]
+    return "\n".join([platform.machine(), *described])
 
 
 def built_paths(folder: Path, key: str, name: str = BUILT_MODULE) -> tuple[Path, Path]:
@@ -151,6 +165,7 @@ def build_ahead_of_time(folder: Path | None = None, names: tuple[str, ...] = ker
         from numba.pycc import CC
     compiler = CC(module)
     compiler.verbose = False
+    compiler.target_cpu = "host"  # this CPU's instruction sets, as numba's own compilation uses (and build_key names)
     exported = 0
     for name in names:
         dispatcher = functions[name]

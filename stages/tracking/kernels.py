@@ -9,8 +9,8 @@ imported at the first call, not when this module is.
 
 A built function accepts only the argument types it was built for and does not check them: a float32 array would
 be read as float64 bytes. So each call to an installed function is first checked against the signatures it was
-built for (:class:`ArrayType` and scalar names), and a call that none fits goes to numba's version instead, which
-compiles for the new types as it always has.
+built for (:class:`ArrayType` and scalar names, :func:`checker`), and a call that none fits goes to numba's version
+instead, which compiles for the new types as it always has.
 """
 
 from __future__ import annotations
@@ -30,30 +30,45 @@ SCALARS = {"float64": (float, int, np.floating, np.integer), "int64": (int, np.i
 
 @dataclass(frozen=True)
 class ArrayType:
-    """An array argument of a built function: its dtype's name, dimensions, and whether it must be C-contiguous
-    (numba's layout 'C'; otherwise 'A', any strides). A built function's arrays are aligned and writeable."""
+    """An array argument of a built function: its dtype, dimensions, and whether it must be C-contiguous (numba's
+    layout 'C'; otherwise 'A', any strides). Aligned, as numba's arrays are; writeable or not alike (no entry point
+    writes into its arguments)."""
 
-    dtype: str
+    dtype: np.dtype
     ndim: int
     contiguous: bool
+
+    def __post_init__(self):
+        object.__setattr__(self, "dtype", np.dtype(self.dtype))
 
 
 #: A built function's argument types, in order: arrays and names of :data:`SCALARS`.
 Signature = Sequence[ArrayType | str]
 
 
-def fits(signature: Signature, args: Sequence) -> bool:
-    """Whether ``args`` are of the types of ``signature`` (no conversion that could change a value)."""
-    if len(args) != len(signature):
-        return False
-    for kind, arg in zip(signature, args, strict=True):
+def checker(signature: Signature) -> Callable[..., bool]:
+    """A function of ``len(signature)`` arguments telling whether they are of the types of ``signature``, with no
+    conversion that could change a value: an ndarray itself (no subclass) of that dtype (numpy's dtypes of the
+    native byte order are shared objects, compared by identity first) and dimension, aligned and, for a 'C'
+    layout, C-contiguous; a scalar of one of its name's :data:`SCALARS` types.
+
+    It runs before every call of a built function, where a loop over the signature cost more than most of the calls
+    themselves; so it is generated as one expression, as `dataclasses` generates the methods it adds.
+    """
+    names = [f"a{k}" for k in range(len(signature))]
+    scope: dict = {"ndarray": np.ndarray}
+    terms = []
+    for k, (kind, name) in enumerate(zip(signature, names, strict=True)):
         if isinstance(kind, str):
-            if not isinstance(arg, SCALARS[kind]):
-                return False
-        elif not (type(arg) is np.ndarray and arg.ndim == kind.ndim and arg.dtype.name == kind.dtype
-                  and arg.flags.aligned and arg.flags.writeable and (arg.flags.c_contiguous or not kind.contiguous)):
-            return False
-    return True
+            scope[f"scalar{k}"] = SCALARS[kind]
+            terms.append(f"isinstance({name}, scalar{k})")
+        else:
+            scope[f"dtype{k}"] = kind.dtype
+            layout = " and flags.c_contiguous" if kind.contiguous else ""
+            terms.append(f"{name}.__class__ is ndarray and {name}.ndim == {kind.ndim} and ({name}.dtype is dtype{k} "
+                         f"or {name}.dtype == dtype{k}) and (flags := {name}.flags).aligned{layout}")
+    exec(f"def check({', '.join(names)}):\n    return {' and '.join(terms) or 'True'}\n", scope)  # noqa: S102
+    return scope["check"]
 
 
 def _just_in_time(name: str) -> Callable:
@@ -75,10 +90,13 @@ def _numba_on_first_call(name: str) -> Callable:
 
 
 def _checked(name: str, variants: Sequence[tuple[Signature, Callable]]) -> Callable:
-    """``name`` calling the first built variant whose signature ``fits`` the arguments, else numba's version."""
+    """``name`` calling the first built variant whose signature fits the arguments (:func:`checker`), else numba's
+    version."""
+    checked = [(len(signature), checker(signature), function) for signature, function in variants]
+
     def call(*args):
-        for signature, function in variants:
-            if fits(signature, args):
+        for arity, fits, function in checked:
+            if len(args) == arity and fits(*args):
                 return function(*args)
         return _just_in_time(name)(*args)
 

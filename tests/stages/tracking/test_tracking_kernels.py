@@ -31,24 +31,30 @@ def _arguments(rng):
     return rng.normal(size=(6, 3, 3)), rng.normal(size=(6, 3))
 
 
-def test_fits_only_the_exact_types():
+def _fits(signature, args) -> bool:
+    return kernels.checker(signature)(*args)
+
+
+def test_a_checker_passes_only_the_exact_types():
     rng = np.random.default_rng(0)
     W, e = _arguments(rng)
-    assert kernels.fits(NORM_SIGNATURE, (W, e))
-    assert not kernels.fits(NORM_SIGNATURE, (W,))  # arity
-    assert not kernels.fits(NORM_SIGNATURE, (W.astype(np.float32), e))  # dtype: would be read as float64 bytes
-    assert not kernels.fits(NORM_SIGNATURE, (W[..., 0], e))  # dimensions
-    assert not kernels.fits(NORM_SIGNATURE, (np.asfortranarray(W), e))  # layout
-    assert not kernels.fits(NORM_SIGNATURE, (W, e[::2]))  # strides
-    assert not kernels.fits(NORM_SIGNATURE, (W, e.tolist()))
+    assert _fits(NORM_SIGNATURE, (W, e))
+    assert not _fits(NORM_SIGNATURE, (W.astype(np.float32), e))  # dtype: would be read as float64 bytes
+    assert not _fits(NORM_SIGNATURE, (W[..., 0], e))  # dimensions
+    assert not _fits(NORM_SIGNATURE, (np.asfortranarray(W), e))  # layout
+    assert not _fits(NORM_SIGNATURE, (W, e[::2]))  # strides
+    assert not _fits(NORM_SIGNATURE, (W, e.tolist()))
     readonly = e.copy()
     readonly.flags.writeable = False
-    assert not kernels.fits(NORM_SIGNATURE, (W, readonly))
-    assert kernels.fits((ArrayType("float64", 2, False),), (e[::2],))  # layout 'A': any strides
-    assert kernels.fits(("float64", "int64", "bool"), (1.5, np.int64(3), True))
-    assert kernels.fits(("float64",), (2,))  # an int converts to a double exactly
-    assert not kernels.fits(("int64",), (2.0,))
-    assert not kernels.fits(("int64",), ("2",))
+    assert _fits(NORM_SIGNATURE, (W, readonly))  # read only, as every entry point reads its arguments
+    unaligned = np.frombuffer(bytearray(6 * 3 * 8 + 1), np.uint8)[1:].view(np.float64).reshape(6, 3)
+    assert not unaligned.flags.aligned and not _fits(NORM_SIGNATURE, (W, unaligned))
+    assert not _fits(NORM_SIGNATURE, (W, e.astype(">f8")))  # the other byte order
+    assert _fits((ArrayType("float64", 2, False),), (e[::2],))  # layout 'A': any strides
+    assert _fits(("float64", "int64", "bool"), (1.5, np.int64(3), True))
+    assert _fits(("float64",), (2,))  # an int converts to a double exactly
+    assert not _fits(("int64",), (2.0,))
+    assert not _fits(("int64",), ("2",))
 
 
 def test_an_installed_build_takes_the_calls_it_fits_and_numba_the_others(stand_in):
@@ -58,6 +64,9 @@ def test_an_installed_build_takes_the_calls_it_fits_and_numba_the_others(stand_i
     assert kernels.whitened_norm2(W.astype(np.float32), e.astype(np.float32)) == -1.0 and len(stand_in) == 1
     assert kernels.whitened_norm2(W, e) == compiled.whitened_norm2(W, e)
     assert len(stand_in) == 1  # the float64 call went to numba
+    with pytest.raises(TypeError):  # numba's answer to a call of the wrong arity
+        kernels.whitened_norm2(W)
+    assert len(stand_in) == 1
     body_shapes = kernels.shapes(np.eye(3)[None].copy(), np.ones((1, 3)))  # not built: numba's
     np.testing.assert_allclose(body_shapes[0], compiled.shapes(np.eye(3)[None].copy(), np.ones((1, 3)))[0])
 
