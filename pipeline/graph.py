@@ -46,7 +46,7 @@ import numpy as np
 
 from calib.camera import Rig
 from calib.formats import load_rig, save_rig
-from pipeline.compiled_cache import make_ready
+from pipeline.compiled_cache import load_cached
 from pipeline.engine.context import StageContext
 from pipeline.engine.executors import usable_cpus
 from pipeline.engine.stage import Stage
@@ -406,9 +406,8 @@ def run_tracking(ctx: StageContext) -> int:
         params = dataclasses.replace(params, height_m=ctx.capture.height_m)
     tracker = Tracker(params, ctx.capture.volume, tracking_body(params))
     # Now rather than at the first frame: alongside the reconstruction, this runs while the calibration is refined
-    # in a worker, and the first frame comes when every core has frames to reconstruct (a millisecond when the
-    # set-up built the code ahead of time, half a second of loading numba otherwise).
-    make_ready()
+    # in a worker, and the first frame comes when every core has frames to reconstruct.
+    load_cached()
     frames = ctx.capture.frame_numbers
     pending = ctx.pending_frames(lambda frame: [run_layout.tracking_path(ctx.out_dir, frame)])
     done = frames.index(pending[0]) if pending else len(frames)  # frames after a missing one are redone

@@ -2,7 +2,7 @@
 # Brings a fresh machine up to what the project needs: the system libraries open3d
 # loads at import time, then a virtual environment with the pinned Python packages.
 # Last, it compiles the project's modules to bytecode and the tracker's numba code into numba's on-disk
-# cache and into an extension module, so that no run does either.
+# cache, so that no run does either.
 # Idempotent: each step checks before it acts, so a second run costs a second or two.
 # With --test it also installs what only the test suite needs (headless Chromium, which loads the
 # HTML report to check that it renders).
@@ -52,8 +52,7 @@ fi
   echo "bootstrap: compiling the project's modules to bytecode failed; runs will compile them as they start" >&2
 
 # The tracker's inner loops (stages/tracking/compiled.py) are compiled by numba on first use (20-30 s):
-# compile them now into numba's cache (stages/tracking/__pycache__), with the types the tracking stage uses,
-# and build them ahead of time beside it (about 15 s), which runs load without numba.
+# compile them now into numba's cache (stages/tracking/__pycache__), with the types the tracking stage uses.
 # A tenth of a second when its stamp there is fresh. A failure here only means the first run compiles.
 .venv/bin/python -m pipeline warmup ||
   echo "bootstrap: compiling the tracker's code failed (above); the first run will compile it instead" >&2

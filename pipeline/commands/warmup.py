@@ -1,4 +1,4 @@
-"""Compile the tracker's inner loops into numba's on-disk cache, and build them ahead of time, so that no run does.
+"""Compile the tracker's inner loops into numba's on-disk cache, so that the first run does not.
 
 Example:
   python -m pipeline warmup           # what scripts/bootstrap.sh runs; nothing to do when the stamp is fresh
@@ -11,10 +11,8 @@ when that is set), keyed on the content of compiled.py, numba's version, the Pyt
 Later processes load it from there instead. This command makes those calls with the types
 the tracking stage uses: it runs the tracker itself on a few frames of data sampled from the default
 body's own ellipsoids (an initialisation, a tracked frame, a limb re-initialisation, and a fit with each
-distance). It then builds the entry points, at those types, into an extension module beside numba's cache
-(`pipeline.compiled_cache.build_ahead_of_time`, about 15 s): a run loads that in a millisecond instead of numba in
-half a second. Last it writes a stamp (:data:`STAMP`) next to numba's cache files. The next call does nothing
-while the stamp is fresh (:func:`is_fresh`) and the build it names is there, so the set-up stays quick.
+distance), then writes a stamp (:data:`STAMP`) next to numba's cache files. The next call does nothing
+while the stamp is fresh (:func:`is_fresh`), so the set-up stays quick.
 """
 
 from __future__ import annotations
@@ -33,12 +31,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from pipeline.compiled_cache import build_ahead_of_time, build_folder, build_key, built_paths, dispatchers
+from pipeline.compiled_cache import dispatchers
 
 #: The stamp's file name, in numba's cache directory of `stages.tracking.compiled`.
 STAMP = "tracker-warmup.stamp"
-#: The stamp's last line: the build made ahead of time (followed by its file's name), or that it failed.
-BUILT, UNBUILDABLE = "built ahead of time:", "not built ahead of time"
 #: Working volume of the warm-up's synthetic frames, metres.
 VOLUME = np.array([[-2.0, -2.0, 0.0], [2.0, 2.0, 2.3]])
 #: Observations per synthetic frame (types, not sizes, decide what numba compiles: a few hundred suffice).
@@ -77,32 +73,22 @@ def stamp_key(source: Path) -> str:
 
 
 def is_fresh(cache_dir: Path, key: str) -> bool:
-    """Whether the stamp in `cache_dir` says the cache holds the warm-up's code for `key`, and the build it names
-    is there.
+    """Whether the stamp in `cache_dir` says the cache holds the warm-up's code for `key`.
 
-    Fresh when the stamp begins with `key`, no index file of numba's (``*.nbi``) is newer than it, and its last
-    line names a build for the current compiled.py that is still in :func:`~pipeline.compiled_cache.build_folder`
-    (or says that the build failed: not tried again until `key` changes, or ``--force``). numba rewrites a
-    function's index when it compiles it, so a newer index means that something compiled since the warm-up,
-    possibly for another version of compiled.py (an edit, then undone), which drops the cached code of the
-    version the stamp names.
+    Fresh when the stamp holds `key` and no index file of numba's (``*.nbi``) is newer than it: numba
+    rewrites a function's index when it compiles it, so a newer index means that something compiled
+    since the warm-up, possibly for another version of compiled.py (an edit, then undone), which drops
+    the cached code of the version the stamp names.
     """
     stamp = cache_dir / STAMP
     try:
-        text = stamp.read_text()
-        if not text.startswith(key):
+        if stamp.read_text() != key:
             return False
         written = stamp.stat().st_mtime_ns
         indexes = list(cache_dir.glob("compiled.*.nbi"))
     except OSError:
         return False
-    if not indexes or any(index.stat().st_mtime_ns > written for index in indexes):
-        return False
-    last = text[len(key):].strip()
-    if last == UNBUILDABLE:
-        return True
-    library, signatures = built_paths(build_folder(), build_key())
-    return last == f"{BUILT} {library.name}" and library.is_file() and signatures.is_file()
+    return bool(indexes) and all(index.stat().st_mtime_ns <= written for index in indexes)
 
 
 def _observations(body, pose: np.ndarray, rng: np.random.Generator, count: int = OBSERVATIONS) -> SimpleNamespace:
@@ -160,8 +146,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def ensure_compiled(*, force: bool = False) -> int:
-    """Warm up and build ahead of time unless the stamp is fresh (or ``force``); 0 when numba's disk cache now holds
-    the tracker's code (a build that fails is reported and leaves runs to numba's cache).
+    """Warm up unless the stamp is fresh (or ``force``); 0 when numba's disk cache now holds the tracker's code.
 
     Also what the bench calls before it measures anything: a checkout that was never set up (a new
     worktree, a clone run without ``make``) would otherwise compile during its first timed run, and that
@@ -185,17 +170,6 @@ def ensure_compiled(*, force: bool = False) -> int:
               "each run will compile it", file=sys.stderr)
         return 1
     print(f"warmup: {compiled_now} signatures compiled, {loaded} loaded from the cache, in {seconds:.1f} s ({where})")
-    print("warmup: building the tracker's code ahead of time (about 15 s, once)", flush=True)
-    started = time.perf_counter()
-    try:
-        library = build_ahead_of_time()
-        built = f"{BUILT} {library.name}"
-        print(f"warmup: built in {time.perf_counter() - started:.1f} s ({library})")
-    except Exception as error:  # noqa: BLE001  (pycc's and the C compiler's failures have no common type)
-        built = UNBUILDABLE
-        print(f"warmup: building the tracker's code ahead of time failed ({type(error).__name__}: {error}); runs will "
-              "load numba's cache instead, half a second each", file=sys.stderr)
     if cache_dir is not None and where.resolve() == cache_dir.resolve():
-        (cache_dir / STAMP).write_text(f"{key}{built}\n")
+        (cache_dir / STAMP).write_text(key)
     return 0
-

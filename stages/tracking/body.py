@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from calib.errors import InputError
-from stages.tracking import kernels
+from stages.tracking import compiled
 
 
 @dataclass(frozen=True)
@@ -51,7 +51,7 @@ class Ellipsoids:
         An EM iteration reads them in the M-step's normal equations, its covariance and the next E-step, all
         at the same pose: computed once per posed body.
         """
-        return kernels.shapes(self.R, self.semi_axes)
+        return compiled.shapes(self.R, self.semi_axes)
 
 
 @dataclass(frozen=True)
@@ -207,7 +207,7 @@ class BodyModel:
         poses = np.asarray(poses, dtype=float)
         if poses.ndim != 2 or poses.shape[1] != self.pose_size:
             raise ValueError(f"poses have shape {poses.shape}, expected (H, {self.pose_size})")
-        R, t = kernels.posed_ellipsoids(self.parent, self.offset, self._dof_start, self.dof_axis,
+        R, t = compiled.posed_ellipsoids(self.parent, self.offset, self._dof_start, self.dof_axis,
                                          self.dof_revolute, poses, self.ellipsoid_segment,
                                          self.ellipsoid_rotation, self.ellipsoid_centre)
         return Ellipsoids(R=R, t=t, semi_axes=np.broadcast_to(self.semi_axes, (len(poses),) + self.semi_axes.shape))
@@ -304,7 +304,7 @@ class BodyModel:
         moved[self.joint_group[shifted], shifted] += a * np.einsum("sa,sa->s", a, self.offset[shifted])[:, None]
         moved[:, child] = np.einsum("sab,gsb->gsa", kin.R[self.parent[child]], moved[:, child])
         frame = np.einsum("as,gaj->gsj", self._lineage, moved)  # every segment moves with the joints above it
-        dt = np.ascontiguousarray(frame[:, segment])  # (G, E, 3), C order as the compiled loops are built for
+        dt = frame[:, segment]  # (G, E, 3)
         dM = np.zeros((G, self.n_ellipsoids, 3, 3))
         on = np.flatnonzero(self.length_group[segment] >= 0)  # ellipsoids of stretched segments
         g, s = self.length_group[segment[on]], segment[on]
@@ -457,7 +457,7 @@ _PERMUTATIONS = np.array(list(itertools.permutations(range(3))))
 def _forward_kinematics(body: BodyModel, pose: np.ndarray) -> Kinematics:
     if pose.shape != (body.pose_size,):
         raise ValueError(f"pose has shape {pose.shape}, expected ({body.pose_size},)")
-    R, t, axis, origin, R_e, t_e = kernels.posed_body(body.parent, body.offset, body._dof_start, body.dof_axis,
+    R, t, axis, origin, R_e, t_e = compiled.posed_body(body.parent, body.offset, body._dof_start, body.dof_axis,
                                                        body.dof_revolute, pose, body.ellipsoid_segment,
                                                        body.ellipsoid_rotation, body.ellipsoid_centre)
     return Kinematics(R=R, t=t, axis=axis, origin=origin, ellipsoids=Ellipsoids(R=R_e, t=t_e, semi_axes=body.semi_axes))

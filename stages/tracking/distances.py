@@ -39,7 +39,7 @@ from typing import ClassVar
 import numpy as np
 from scipy.special import logsumexp
 
-from stages.tracking import kernels
+from stages.tracking import compiled
 from stages.tracking.body import BodyModel, Ellipsoids, Kinematics
 from stages.tracking.geometry import (
     Q_MIN,
@@ -232,7 +232,7 @@ class Distance:
             block = Bw[a:b].reshape(-1, 6)
             H6[p[a]] = block.T @ block
         g6[p[starts]] = np.add.reduceat(np.einsum("kai,ka->ki", Bw, r), starts)
-        return res.e, r, Bw, H6, g6, res.J_scale, kernels.whitened_norm2(W, res.e)
+        return res.e, r, Bw, H6, g6, res.J_scale, compiled.whitened_norm2(W, res.e)
 
     def covariance(self, n: np.ndarray, i: np.ndarray, p: np.ndarray, e: np.ndarray, t: np.ndarray,
                    ellipsoids: Ellipsoids, Sigma: np.ndarray, normal_noise_rad: float,
@@ -342,7 +342,7 @@ class CompiledNormals(NormalsDistance):
     def e_step(self, y, n, ellipsoids, mixture, log_outlier, normal_noise_rad, previous):
         P = len(ellipsoids.t)
         first = np.zeros(len(y), dtype=int) if previous is None else previous.best
-        t, t_outlier, log_likelihood, pairs, weights, best, explained = kernels.e_step(
+        t, t_outlier, log_likelihood, pairs, weights, best, explained = compiled.e_step(
             y, n, ellipsoids.t, *ellipsoids.shapes, ellipsoids.semi_axes,
             mixture.Sigma, np.log(mixture.pi[:P]), log_outlier, normal_noise_rad**2, np.log(NEGLIGIBLE_POSTERIOR),
             PRUNE_POSTERIOR, first)
@@ -350,28 +350,28 @@ class CompiledNormals(NormalsDistance):
                      explained=explained)
 
     def log_evidence(self, y, n, chosen, mixture, log_pi, base, normal_noise_rad):
-        return kernels.log_evidence(y, n, chosen.t, *chosen.shapes, chosen.semi_axes,
+        return compiled.log_evidence(y, n, chosen.t, *chosen.shapes, chosen.semi_axes,
                                      mixture.Sigma, log_pi, base, normal_noise_rad**2, np.log(NEGLIGIBLE_POSTERIOR))
 
     def hypothesis_scores(self, y, n, hypotheses, mixture, which, base, blocks, normal_noise_rad):
         H = len(hypotheses.t)
         R, t, semi_axes = hypotheses.R[:, which], hypotheses.t[:, which], hypotheses.semi_axes[:, which]
-        M, M2 = kernels.shapes(R.reshape(-1, 3, 3), np.ascontiguousarray(semi_axes).reshape(-1, 3))
+        M, M2 = compiled.shapes(R.reshape(-1, 3, 3), np.ascontiguousarray(semi_axes).reshape(-1, 3))
         stack = (H, len(which))
-        return kernels.hypothesis_scores(
+        return compiled.hypothesis_scores(
             y, n, blocks, np.ascontiguousarray(t), M.reshape(*stack, 3, 3), M2.reshape(*stack, 3, 3),
             np.ascontiguousarray(semi_axes), mixture.Sigma, np.log(mixture.pi[which]), base, normal_noise_rad**2,
             np.log(NEGLIGIBLE_POSTERIOR))
 
     def pair_residuals(self, y, n, i, p, kin, ellipsoids):
-        return kernels.residuals(y, n, i, p, ellipsoids.t, ellipsoids.shapes[0])
+        return compiled.residuals(y, n, i, p, ellipsoids.t, ellipsoids.shapes[0])
 
     def length_jacobian(self, y, n, i, p, body, kin, pose, e):
         dt, dM = body.length_derivatives(kin)
-        return kernels.length_columns(n, i, p, kin.ellipsoids.shapes[0], dt, dM)
+        return compiled.length_columns(n, i, p, kin.ellipsoids.shapes[0], dt, dM)
 
     def normal_equations(self, y, n, i, p, W, kin, ellipsoids, scale):
-        e, r, Bw, H6, g6, J_scale, norm2 = kernels.normal_equations(
+        e, r, Bw, H6, g6, J_scale, norm2 = compiled.normal_equations(
             y, n, i, p, W, ellipsoids.t, ellipsoids.shapes[0], kin.t[0])
         return e, r, Bw, H6, g6, J_scale if scale else None, norm2
 
@@ -389,7 +389,7 @@ class CompiledNormals(NormalsDistance):
         if not normal_noise_rad > 0.0:
             return super().covariance(n, i, p, e, t, ellipsoids, Sigma, normal_noise_rad, max_sigma_m)
         M, M2 = ellipsoids.shapes
-        return bound_covariance(kernels.noisy_covariance(n, i, p, e, t, M, M2, normal_noise_rad**2, Sigma,
+        return bound_covariance(compiled.noisy_covariance(n, i, p, e, t, M, M2, normal_noise_rad**2, Sigma,
                                                           NOISY_COVARIANCE_ITERATIONS), max_sigma_m)
 
 

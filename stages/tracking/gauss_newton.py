@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.tracking import kernels
+from stages.tracking import compiled
 from stages.tracking.body import BodyModel, Kinematics
 from stages.tracking.distances import Distance
 
@@ -83,7 +83,7 @@ def gauss_newton_step(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
         body_c = _updated_body(problem, body, step[D:])
         kin_c = body_c.fk(candidate)
         e_c = problem.residuals(body_c, kin_c)
-        if problem.cost(body_c, candidate, kernels.whitened_norm2(problem.W, e_c)) <= cost:
+        if problem.cost(body_c, candidate, compiled.whitened_norm2(problem.W, e_c)) <= cost:
             return candidate, body_c, kin_c, e_c
         damping *= LM_GROWTH
     return pose, body, kin, e
@@ -102,10 +102,10 @@ def _normal_equations(problem: LeastSquares, body: BodyModel, kin: Kinematics, p
     X = extra.shape[2]
     H = np.zeros((D + X, D + X))
     g = np.zeros(D + X)
-    H[:D, :D], g[:D] = kernels.pose_normal_equations(H6, g6, body.ellipsoid_segment, body.moves, kin.axis,
+    H[:D, :D], g[:D] = compiled.pose_normal_equations(H6, g6, body.ellipsoid_segment, body.moves, kin.axis,
                                                       kin.origin, body.dof_revolute)
     if X:
-        HX, H[D:, D:], g[D:] = kernels.extra_normal_equations(W, extra, Bw, r, problem.p, body.n_ellipsoids)
+        HX, H[D:, D:], g[D:] = compiled.extra_normal_equations(W, extra, Bw, r, problem.p, body.n_ellipsoids)
         T = body.segment_twists(kin)[body.ellipsoid_segment]  # (P,6,D); an ellipsoid without pairs adds zeros
         H[:D, D:] = np.einsum("pid,pix->dx", T, HX)
         H[D:, :D] = H[:D, D:].T

@@ -1,23 +1,16 @@
 """`python -m pipeline warmup`: afterwards numba's cache holds every signature the tracker uses, so that a new
-process (the first run) loads the compiled code instead of compiling it, and the build made ahead of time gives a new
-process the same tracker without numba."""
+process (the first run) loads the compiled code instead of compiling it."""
 
 from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
 
-import numpy as np
-import pytest
-
-from pipeline import compiled_cache
 from pipeline.commands import warmup
-from stages.tracking import kernels
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -70,18 +63,11 @@ ENTRY_POINTS = ("e_step", "log_evidence", "hypothesis_scores", "shapes", "residu
                 "posed_body", "posed_ellipsoids")
 
 
-@pytest.fixture(scope="module")
-def warmed_up() -> str:
-    """`python -m pipeline warmup --force` run once for this module's tests; its standard output."""
+def test_after_the_warmup_a_new_process_compiles_nothing():
     command = [sys.executable, "-m", "pipeline", "warmup", "--force"]
     done = subprocess.run(command, cwd=REPO, env=_env(), capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stderr
-    return done.stdout
-
-
-def test_after_the_warmup_a_new_process_compiles_nothing(warmed_up):
-    command = [sys.executable, "-m", "pipeline", "warmup", "--force"]
-    assert "loaded from the cache" in warmed_up
+    assert "loaded from the cache" in done.stdout
     cache_dir = warmup.default_cache_dir()
     assert warmup.is_fresh(cache_dir, warmup.stamp_key(warmup.compiled_source()))
     again = subprocess.run(command[:-1], cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
@@ -102,10 +88,10 @@ def test_after_the_warmup_a_new_process_compiles_nothing(warmed_up):
     assert stats["_mixture"]["indexed"] == 2  # with and without posteriors (a literal bool)
 
 
-def _stamped(folder: Path, key: str, *indexes: str, built: str = warmup.UNBUILDABLE) -> None:
+def _stamped(folder: Path, key: str, *indexes: str) -> None:
     for name in indexes:
         (folder / name).write_bytes(b"index")
-    (folder / warmup.STAMP).write_text(f"{key}{built}\n")
+    (folder / warmup.STAMP).write_text(key)
 
 
 def test_the_stamp_is_fresh_only_for_its_key_and_while_no_index_was_rewritten(tmp_path):
@@ -121,68 +107,3 @@ def test_the_stamp_is_fresh_only_for_its_key_and_while_no_index_was_rewritten(tm
     later = stamp.stat().st_mtime_ns + 1_000_000
     os.utime(tmp_path / "compiled.shapes-283.py311.nbi", ns=(later, later))  # numba compiled something since
     assert not warmup.is_fresh(tmp_path, key)
-    _stamped(tmp_path, key, built=f"{warmup.BUILT} tracker_kernels.0000.so")  # a build that is not there
-    assert not warmup.is_fresh(tmp_path, key)
-
-
-# Run in a fresh process after the warm-up: the build installed, the tracker on a walk (as above, default
-# distance); prints whether it was installed, whether numba was imported, the calls that went to numba, the joints.
-_BUILT = textwrap.dedent("""
-    import json, sys
-    from types import SimpleNamespace
-    import numpy as np
-    sys.path.insert(0, "tests/stages/tracking")
-    from tracking_testing import VOLUME, sample_ellipsoids
-    from pipeline import compiled_cache
-    from stages.tracking import kernels
-    from stages.tracking.body_file import load_body
-    from stages.tracking.params import TrackerParams
-    from stages.tracking.tracker import Tracker
-
-    installed = compiled_cache.install_built() if sys.argv[1] == "built" else False
-    to_numba = []
-    just_in_time = kernels._just_in_time
-    kernels._just_in_time = lambda name: to_numba.append(name) or just_in_time(name)
-    body = load_body()
-    rng = np.random.default_rng(5)
-    state, tracker, joints = None, Tracker(TrackerParams(), VOLUME), []
-    for f in range(4):
-        pose = body.scaled(1.7).zero_pose()
-        pose[1], pose[3] = 0.03 * f, -0.4 + 0.05 * f
-        pose[body.dof_names.index("l_thigh.flex")] = 0.3 * f
-        y, n = sample_ellipsoids(body.scaled(1.7), body.clip(pose), 500, rng, outlier_fraction=0.2)
-        result, state = tracker.track(state, SimpleNamespace(points=y, normals=n))
-        joints.append(result.joints.tolist())
-    print(json.dumps({"installed": installed, "numba": "numba" in sys.modules, "to_numba": sorted(set(to_numba)),
-                      "joints": joints}))
-""")
-
-
-def test_a_new_process_tracks_with_the_build_as_with_numba_and_without_it(warmed_up):
-    assert "built in" in warmed_up
-    runs = {}
-    for how in ("built", "numba"):
-        done = subprocess.run([sys.executable, "-c", _BUILT, how], cwd=REPO, env=_env(), capture_output=True,
-                              text=True, timeout=600)
-        assert done.returncode == 0, done.stderr
-        runs[how] = json.loads(done.stdout.strip().splitlines()[-1])
-    built, numba = runs["built"], runs["numba"]
-    assert built["installed"] and not built["numba"] and built["to_numba"] == []
-    assert not numba["installed"] and numba["numba"]
-    np.testing.assert_array_equal(built["joints"], numba["joints"])  # the same machine code's arithmetic
-
-
-def test_a_build_of_another_compiled_py_is_not_installed(warmed_up, tmp_path):
-    library, signatures = compiled_cache.built_paths(compiled_cache.build_folder(), compiled_cache.build_key())
-    copy_library, copy_signatures = compiled_cache.built_paths(tmp_path, compiled_cache.build_key())
-    shutil.copy(library, copy_library)
-    record = json.loads(signatures.read_text())
-    copy_signatures.write_text(json.dumps({**record, "key": "another"}))
-    kernels.uninstall()  # an earlier test's run in this process may have installed the build
-    try:
-        assert not compiled_cache.install_built(tmp_path)
-        copy_signatures.write_text(json.dumps(record))
-        assert compiled_cache.install_built(tmp_path)
-        assert kernels.installed()
-    finally:
-        kernels.uninstall()

@@ -21,7 +21,6 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from pipeline.compiled_cache import make_ready
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
 from pipeline.io.run_layout import RunLayout
@@ -64,15 +63,13 @@ def ms_per_frame(measure: RunMeasure) -> dict[str, float]:
 def tracker_speed(run_dir: Path, capture: Capture, frames: list[int]) -> dict:
     """Time ``Tracker.track`` over a run's observations, as the tracking stage calls it (height as given).
 
-    A first call, on the first frame and not counted, readies the compiled inner loops as the tracking stage
-    does (`pipeline.compiled_cache.make_ready`: the build made ahead of time, or numba's runtime and on-disk cache;
-    a fixed cost per process, reported as ``ms_first_call``, nothing once a process has done it), builds the
-    tracker and tracks that frame; the frames are then tracked from scratch, initialisation included.
+    A first call, on the first frame and not counted, builds the tracker and loads the compiled inner
+    loops (numba's runtime and on-disk cache: a fixed cost per process, reported as ``ms_first_call``);
+    the frames are then tracked from scratch, initialisation included.
     """
     params = TrackerParams(height_m=capture.height_m)
     observations = [frames_io.read_ply(RunLayout(run_dir).observations(frame)) for frame in frames]
     started = time.perf_counter()
-    make_ready()
     tracker = Tracker(params, capture.volume)
     tracker.track(None, Observations(*observations[0]))
     first_call = time.perf_counter() - started

@@ -81,9 +81,8 @@ def format_speed(speed: dict) -> str:
                       f"{tracker['fps_tracked']:.1f} over "
                       f"tracked frames (median {fmt(tracker.get('ms_tracked_median'), 0)} ms, 90th percentile "
                       f"{fmt(tracker.get('ms_tracked_p90'), 0)} ms per frame); an initialisation takes "
-                      f"{tracker['ms_initialisation']:.0f} ms; the process's first call (readying the compiled code "
-                      f"as the tracking stage does, building the tracker, initialising on the first frame) "
-                      f"{fmt(tracker.get('ms_first_call'), 0)} ms, not counted; statuses "
+                      f"{tracker['ms_initialisation']:.0f} ms; loading the compiled code, once per process, "
+                      f"{fmt(tracker.get('ms_first_call'), 0)} ms (first call, not counted); statuses "
                       f"{tracker['statuses']}."]
     bench = speed["made"]["bench_memory"]
     lines += ["", f"Peak memory long / short: {fmt(speed['memory_ratio'], 2)}. For the record, `getrusage` in the "
