@@ -75,7 +75,7 @@ def _summary(module_path: str) -> str:
 def _module_file(module_path: str) -> Path | None:
     """The source file of a module of one of this project's packages, found without importing it or the packages
     that hold it (``importlib.util.find_spec`` of ``a.b.c`` imports ``a.b``: for ``pipeline.lab.synth.cli`` that
-    is the synthetic renderer and scipy, a quarter of a second of every command's start); None when not found."""
+    is the synthetic renderer and scipy, which a help listing has no use for); None when not found."""
     top, *inner = module_path.split(".")
     spec = importlib.util.find_spec(top)
     for folder in (spec.submodule_search_locations or []) if spec is not None else []:
