@@ -115,7 +115,8 @@ class TrackerParams:
         suspects it, the limbs in turn (`limbs.checks_due`): a limb can settle a few centimetres off in a
         place where it explains about its usual share of the data (a planted foot's shank), and the likelihood
         level, learnt from the same track, soon takes the lower likelihood for usual, so no test ever fires;
-        0 never.
+        0 never. Why 48 (at 28 frames/s, each limb every 1.7 s): docs/results_by_hand.md, "Every limb checked
+        half as often".
     seed : int
         Seed of the random subsamples on which the initialisation and the limb recovery score their
         hypotheses (each call draws afresh from it). Another seed is another equally good draw: tracking a
@@ -152,7 +153,7 @@ class TrackerParams:
     max_sigma_m: float = 0.06
     limb_share_ratio: float = LIMB_SHARE_RATIO
     limb_min_observations: int = LIMB_MIN_OBSERVATIONS
-    limb_check_every: int = 24
+    limb_check_every: int = 48
     seed: int = 0
     body: str = "default"
 
