@@ -320,6 +320,7 @@ class BodyModel:
 
     @functools.cached_property
     def _lineage(self) -> np.ndarray:
+        """`lineage` of this body's segments, computed once per body."""
         return lineage(self.parent)
 
     def with_each_lengths(self, factors: np.ndarray) -> tuple[BodyModel, ...]:
@@ -398,11 +399,11 @@ class BodyModel:
 def lineage(parent: np.ndarray) -> np.ndarray:
     """(S, S) bool: lineage[a, s] when segment a is s or one of its ancestors, for segments in topological order
     with ``parent`` (S,) (−1 for the root): whatever moves segment a moves s."""
-    lineage = np.eye(len(parent), dtype=bool)
+    ancestry = np.eye(len(parent), dtype=bool)
     for s, a in enumerate(parent):  # a parent's column is complete before its child's
         if a >= 0:
-            lineage[:, s] |= lineage[:, a]
-    return lineage
+            ancestry[:, s] |= ancestry[:, a]
+    return ancestry
 
 
 def sample_surface(body: BodyModel, pose: np.ndarray, count: int,
