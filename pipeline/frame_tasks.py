@@ -33,6 +33,7 @@ from pipeline.io.run_layout import background_path, observations_path, silhouett
 from stages.background import CameraSamples, sample_camera, tolerated_views, working_size
 from stages.consistency import consistent_silhouettes, explained_share
 from stages.reconstruction import ReconstructionParams, reconstruct
+from stages.reconstruction.occlusion import MIN_CAMERAS, hidden_parts, hidden_votes, no_votes
 from stages.reconstruction.views import subject_cut_off
 from stages.silhouettes import (
     NOISE_SIGMA_MIN,
@@ -60,6 +61,9 @@ REFINEMENT_FRAMES = 30
 #: silhouettes than the given ones (`stages.consistency.explained_share`).
 COHERENCE_FRAMES = 10
 COHERENCE_RAYS = 100
+#: Frames, spread over the capture, whose silhouettes are searched for parts of a view hidden behind something in
+#: front of the subject (`stages.reconstruction.occlusion`): enough for the subject's limbs to sweep what hides them.
+OCCLUSION_FRAMES = 24
 
 
 @contextlib.contextmanager
@@ -157,9 +161,10 @@ def _write_masks(out_dir: Path, names: Sequence[str], frame: int, masks: Sequenc
 
 
 def reconstruction_task(chunk: Sequence[int], *, capture: Capture, rig: Rig, params: ReconstructionParams,
-                        masks_dir: Path, out_dir: Path) -> None:
+                        masks_dir: Path, out_dir: Path, hidden: Sequence[np.ndarray | None] | None = None) -> None:
     """Worker: points and normals of a chunk of frames from the silhouette stage's masks, seen by ``rig`` (the
-    capture's cameras, or as the silhouettes refined them: `pipeline.graph.refined_rig`)."""
+    capture's cameras, or as the silhouettes refined them: `pipeline.graph.refined_rig`), with the parts of the
+    views ``hidden`` behind something in front of the subject (`occlusion_task`)."""
     with single_threaded_opencv():
         for frame in chunk:
             masks = [frames_io.read_mask(silhouette_path(masks_dir, camera.name, frame), camera.size)
@@ -171,11 +176,24 @@ def reconstruction_task(chunk: Sequence[int], *, capture: Capture, rig: Rig, par
                 if subject_cut_off(mask):  # one message per camera: each folds over its frames
                     log.warning("frame %d: the subject reaches the image's border in camera %s (partly out of its "
                                 "view: that part comes from the other cameras)", frame, camera)
-            observations = reconstruct(masks, rig, capture.volume, params)
+            observations = reconstruct(masks, rig, capture.volume, params, hidden)
             if len(observations) < FEW_OBSERVATIONS:
                 log.warning("frame %d: only %d observations (person out of view or silhouettes disagree)",
                             frame, len(observations))
             frames_io.write_ply(observations_path(out_dir, frame), observations.points, observations.normals)
+
+
+def occlusion_task(capture: Capture, masks_dir: Path, rig: Rig) -> list[np.ndarray | None]:
+    """Worker: per camera of ``rig``, the part of its image hidden behind something in front of the subject, or None
+    (`stages.reconstruction.occlusion.hidden_parts`), from the silhouettes of ``OCCLUSION_FRAMES`` frames spread
+    over the capture."""
+    cameras = list(rig)
+    if len(cameras) < MIN_CAMERAS:
+        return [None] * len(cameras)
+    votes = no_votes(cameras)
+    for frame in spread_frames(capture.frame_numbers, OCCLUSION_FRAMES):
+        votes = votes + hidden_votes(frame_masks(masks_dir, cameras, frame), cameras, capture.volume)
+    return hidden_parts(votes, cameras)
 
 
 def camera_samples_task(capture: Capture, camera: str, plate: np.ndarray | None, *, frames: Sequence[int],

@@ -54,6 +54,7 @@ from pipeline.frame_tasks import (
     camera_samples_task,
     frame_images_task,
     frame_masks,
+    occlusion_task,
     reconstruction_task,
     refinement_task,
     silhouettes_task,
@@ -72,6 +73,7 @@ from pipeline.io.run_layout import (
     background_path,
     calibration_check_path,
     calibration_refinement_path,
+    hidden_part_path,
     noise_floors_path,
     observations_path,
     overlay_video_name,
@@ -314,7 +316,8 @@ def _check_calibration(capture: Capture, masks_dir: Path) -> None:
     log.warning("calibration check: the silhouettes of %s disagree with the other cameras' at the subject "
                 "(epipolar tangency, median over %d frames%s): check their calibration (two cameras' names "
                 "swapped, a camera moved since it was calibrated), then their silhouettes (something that only "
-                "they see, in every frame)", named, len(frames), agree)
+                "they see, in every frame, or something in front of the subject that hides part of him from them: "
+                "the reconstruction looks for that)", named, len(frames), agree)
 
 
 def video_chunk_size(pending: int, workers: int) -> int:
@@ -326,13 +329,38 @@ def video_chunk_size(pending: int, workers: int) -> int:
 
 def run_reconstruction(ctx: StageContext) -> int:
     """Per frame, sparse surface points with outward normals from all cameras' silhouettes, with the cameras'
-    orientations refined from the silhouettes first (``refine_calibration``, `refined_rig`)."""
+    orientations refined from the silhouettes first (``refine_calibration``, `refined_rig`) and the parts of their
+    views hidden behind something in front of the subject found (`hidden_parts_of`)."""
     masks_dir = ctx.input_dir("silhouettes")
-    rig = (refined_rig(ctx.capture, masks_dir, ctx.out_dir, ctx.params.tolerated_views, ctx.workers.executor)
+    executor = ctx.workers.executor
+    searching = ctx.params.find_hidden_parts
+    # The search runs on a worker beside the refinement, with the cameras as given; turned, they are searched again.
+    search = (executor.submit(occlusion_task, ctx.capture, masks_dir, ctx.capture.rig) if executor and searching
+              else None)
+    rig = (refined_rig(ctx.capture, masks_dir, ctx.out_dir, ctx.params.tolerated_views, executor)
            if ctx.params.refine_calibration else ctx.capture.rig)
+    hidden = None
+    if searching:
+        hidden = (search.result() if search is not None and rig is ctx.capture.rig
+                  else occlusion_task(ctx.capture, masks_dir, rig))
+        _write_hidden_parts(rig, hidden, ctx.out_dir)
     task = functools.partial(reconstruction_task, capture=ctx.capture, rig=rig, params=ctx.params,
-                             masks_dir=masks_dir, out_dir=ctx.out_dir)
+                             masks_dir=masks_dir, out_dir=ctx.out_dir, hidden=hidden)
     return ctx.map_frames(task, lambda frame: [observations_path(ctx.out_dir, frame)])
+
+
+def _write_hidden_parts(rig: Rig, hidden: Sequence[np.ndarray | None], out_dir: Path) -> None:
+    """Save each camera's part of the view hidden behind something in front of the subject
+    (`stages.reconstruction.occlusion`) and say which cameras have one."""
+    for camera, part in zip(rig, hidden, strict=True):
+        if part is None:
+            continue
+        path = hidden_part_path(out_dir, camera.name)
+        frames_io.write_mask(path, part)
+        log.warning("%s: %.0f %% of its image hides the subject behind something in front of him on the frames "
+                    "checked (the other cameras place him there, this one shows the background): it does not carve "
+                    "there, the other cameras do (the part: %s)", camera.name, 100 * np.count_nonzero(part) / part.size,
+                    path)
 
 
 def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path, tolerated: int,

@@ -93,6 +93,12 @@ def calibration_refinement_path(stage_dir: Path) -> Path:
     return stage_dir / "calibration_refinement.json"
 
 
+def hidden_part_path(stage_dir: Path, camera: str) -> Path:
+    """The part of a camera's image that the reconstruction found hidden behind something in front of the subject
+    (PNG, 255 hidden; `pipeline.graph.hidden_parts_of`), written only for cameras with such a part."""
+    return stage_dir / "hidden" / f"{camera}.png"
+
+
 def refined_rig_path(stage_dir: Path) -> Path:
     """The cameras as the reconstruction used them, when the refinement was kept (anipose TOML)."""
     return stage_dir / "rig_refined.toml"

@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from calib.camera import Rig
@@ -59,6 +60,11 @@ class ReconstructionParams:
         when that explains them clearly better (`stages.tangency.refine_turns`): a camera knocked or calibrated
         a fraction of a degree off otherwise carves limbs away. The pipeline does it (it needs many frames'
         silhouettes); `reconstruct` takes the rig it is given.
+    find_hidden_parts : bool
+        Look for parts of each view hidden behind something in front of the subject (a desk, a pillar), where the
+        other cameras place him on most frames and this one shows background, and let that view carve nothing
+        there (`stages.reconstruction.occlusion`): otherwise whatever goes behind it is carved away for every
+        view. The pipeline does it (it needs many frames' silhouettes); `reconstruct` takes the parts it is given.
     """
 
     method: str = "visual_shape"
@@ -70,10 +76,12 @@ class ReconstructionParams:
     voxel_size_m: float = 0.01
     coarse_voxel_size_m: float = 0.08
     refine_calibration: bool = True
+    find_hidden_parts: bool = True
 
     def __post_init__(self) -> None:
         check_choice("reconstruction.method", self.method, METHODS)
         check_bool("reconstruction.refine_calibration", self.refine_calibration)
+        check_bool("reconstruction.find_hidden_parts", self.find_hidden_parts)
         check_choice("reconstruction.rim_placement", self.rim_placement, RIM_PLACEMENTS)
         check_int("reconstruction.n_observations", self.n_observations, 50, 5000)
         check_int("reconstruction.tolerated_views", self.tolerated_views, 0)
@@ -129,7 +137,8 @@ def check_tolerated_views(tolerated_views: int, n_cameras: int) -> None:
                          f"(expected at most {max(n_cameras - 2, 0)}: at least two views must agree on every point)")
 
 
-def reconstruct(masks: Sequence[np.ndarray], rig: Rig, volume, params: ReconstructionParams) -> Observations:
+def reconstruct(masks: Sequence[np.ndarray], rig: Rig, volume, params: ReconstructionParams,
+                hidden: Sequence[np.ndarray | None] | None = None) -> Observations:
     """Points and outward normals of the person seen in ``masks``, inside the working ``volume``.
 
     Parameters
@@ -140,6 +149,9 @@ def reconstruct(masks: Sequence[np.ndarray], rig: Rig, volume, params: Reconstru
     volume : (2, 3) float
         Working volume ``[min, max]`` corners, metres; points outside it are dropped.
     params : ReconstructionParams
+    hidden : sequence of (H, W) uint8 or None, optional
+        Per camera, the part of its image hidden behind something in front of the subject (nonzero), found by
+        :func:`~stages.reconstruction.occlusion.hidden_parts`: the view does not carve there. None: nothing hidden.
 
     Returns
     -------
@@ -165,9 +177,14 @@ def reconstruct(masks: Sequence[np.ndarray], rig: Rig, volume, params: Reconstru
                 f"size, got {mask.shape}"
             )
         checked.append(np.where(mask > 0, np.uint8(255), np.uint8(0)) if mask.dtype != np.uint8 else mask)
+    hidden = [None] * len(rig) if hidden is None else list(hidden)
+    if len(hidden) != len(rig) or any(part is not None and part.shape != mask.shape
+                                      for part, mask in zip(hidden, checked, strict=True)):
+        raise InputError(f"hidden: expected one map per camera ({len(rig)}) of its silhouette's shape, or None")
     if params.method == "visual_hull":
         points, normals = hull_surface_points(
-            checked, rig, volume,
+            [mask if part is None else cv2.bitwise_or(mask, part) for mask, part in zip(checked, hidden, strict=True)],
+            rig, volume,
             n_observations=params.n_observations,
             tolerated_views=params.tolerated_views,
             voxel_size_m=params.voxel_size_m,
@@ -181,6 +198,7 @@ def reconstruct(masks: Sequence[np.ndarray], rig: Rig, volume, params: Reconstru
             rim_placement=params.rim_placement,
             samples_per_ray=params.samples_per_ray,
             contour_smoothing_px=params.contour_smoothing_px,
+            hidden=hidden,
         )
     return Observations(*usable_observations(points, normals))
 

@@ -25,6 +25,9 @@ BORDER_MARGIN_PX = 2.0
 OUTLINE_OFFSET_PX = 0.5
 # Offset (pixels) at which the two sides of a contour point are read to decide which side is inside.
 SIDE_PROBE_PX = 1.5
+# Outline points this close (pixels) to a part of the view hidden behind something in front of the subject lie
+# on that thing's edge, not on a rim.
+HIDDEN_MARGIN_PX = 2
 # Where an outline is concave the surface behind its rim is saddle-shaped (Koenderink: the outline's
 # curvature has the sign of the surface's Gaussian curvature), so the visual shape's rim placement, which
 # assumes a locally convex surface, misplaces the point; at the junction of a limb and the body the
@@ -53,7 +56,8 @@ class Outline:
     arc_length : (L,) float
         Cumulative outline length in pixels over the concatenated contours, for even sampling.
     usable : (L,) bool
-        False near the image border, where the outline is the frame's edge rather than a rim, and where
+        False near the image border, where the outline is the frame's edge rather than a rim, next to a part
+        of the view hidden behind something in front of the subject, where it is that thing's edge, and where
         the outline is sharply concave (see ``CONCAVE_RADIUS_PX``).
     bounds : (x, y, width, height)
         The box around every foreground pixel, specks included (all zero for an empty mask).
@@ -71,8 +75,11 @@ class Outline:
         return len(self.pixels)
 
 
-def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
+def outline(mask: np.ndarray, *, smoothing_px: float, hidden: np.ndarray | None = None) -> Outline:
     """The smoothed outline of ``mask`` (H, W) uint8, every contour (outer ones and holes).
+
+    ``hidden`` (H, W) uint8, nonzero where something in front of the subject hides him
+    (:mod:`stages.reconstruction.occlusion`), makes the outline within ``HIDDEN_MARGIN_PX`` of it unusable.
 
     Positions are smoothed along the contour without shrinking it (``_unshrunk``, a Gaussian of
     ``smoothing_px`` points; removing the pixel staircase) and moved half a pixel outwards onto the true
@@ -108,6 +115,11 @@ def outline(mask: np.ndarray, *, smoothing_px: float) -> Outline:
         & (u < width - 1 - BORDER_MARGIN_PX) & (v < height - 1 - BORDER_MARGIN_PX)
         & ~(_bending(padded, interior, outward) > 1.0 / CONCAVE_RADIUS_PX)
     )
+    if hidden is not None:
+        near = cv2.dilate(hidden, np.ones((2 * HIDDEN_MARGIN_PX + 1,) * 2, np.uint8))
+        columns = np.clip(np.round(u).astype(np.intp), 0, width - 1)
+        rows = np.clip(np.round(v).astype(np.intp), 0, height - 1)
+        usable &= near[rows, columns] == 0
     # Each point's step from the previous point of its contour (the first point's from its contour's last).
     previous = np.arange(len(raw)) - 1
     previous[np.cumsum(lengths) - lengths] += lengths

@@ -94,10 +94,18 @@ def rim_points(
     rim_placement: str,
     samples_per_ray: int,
     contour_smoothing_px: float,
+    hidden: Sequence[np.ndarray | None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Rim points (N, 3) and their unit outward normals (N, 3), at most ``n_observations`` of them."""
+    """Rim points (N, 3) and their unit outward normals (N, 3), at most ``n_observations`` of them.
+
+    ``hidden`` holds, per view, None or an (H, W) uint8 map of the part of its image hidden behind something in
+    front of the subject (:mod:`stages.reconstruction.occlusion`): a point there counts as inside the view's
+    silhouette, and the outline along it casts no ray.
+    """
     cameras = list(rig)
-    outlines = [outline(mask, smoothing_px=contour_smoothing_px) for mask in masks]
+    hidden = [None] * len(masks) if hidden is None else list(hidden)
+    outlines = [outline(mask, smoothing_px=contour_smoothing_px, hidden=part) for mask, part in zip(masks, hidden,
+                                                                                                   strict=True)]
     # Every outline point undistorted once: the convex hulls need them all, and the rays, their cone faces
     # and the snapped edge ends look theirs up instead of undistorting them again.
     normalised = [camera.undistort_pixels(ours.pixels) for camera, ours in zip(cameras, outlines, strict=True)]
@@ -115,9 +123,13 @@ def rim_points(
 
     # Inside tests accept points up to a pixel outside a silhouette: a grazing ray that runs along another
     # view's outline would otherwise flicker in and out with the pixel grid and break into pieces.
-    tolerant = [(*_dilated(mask, ours.bounds), blind_beyond_image(mask))
-                for mask, ours in zip(masks, outlines, strict=True)]
-    edges = _viewing_edges(cameras, tolerant, normalised, volume, origins, directions, camera_of,
+    tolerant = [(*(_dilated(mask, ours.bounds) if part is None else _dilated(*_with_hidden(mask, part))),
+                 blind_beyond_image(mask))
+                for mask, ours, part in zip(masks, outlines, hidden, strict=True)]
+    # The cones the rays are clipped to hold the hidden parts too.
+    bounding = [points if part is None else np.concatenate([points, _hidden_outline(camera, part)])
+                for camera, points, part in zip(cameras, normalised, hidden, strict=True)]
+    edges = _viewing_edges(cameras, tolerant, bounding, volume, origins, directions, camera_of,
                            tolerated_views=tolerated_views, samples_per_ray=samples_per_ray)
     o, d = origins.take(edges.ray, axis=0), directions.take(edges.ray, axis=0)
     count = len(edges.ray)
@@ -159,6 +171,21 @@ def _dilated(mask: np.ndarray, bounds: tuple[int, int, int, int]) -> tuple[np.nd
     top, left = max(top - 1, 0), max(left - 1, 0)
     box = mask[top:top + height + 2, left:left + width + 2]  # clipped at the image's far edges
     return cv2.dilate(box, OUTLINE_TOLERANCE_KERNEL), (left, top)
+
+
+def _with_hidden(mask: np.ndarray, hidden: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """``(union (H, W) uint8, bounds)``: the silhouette ``mask`` with the ``hidden`` part of the view, and the box
+    around both."""
+    union = cv2.bitwise_or(mask, hidden)
+    return union, cv2.boundingRect(union)
+
+
+def _hidden_outline(camera: Camera, hidden: np.ndarray) -> np.ndarray:
+    """(n, 2) the outline of the ``hidden`` part of the view (H, W) uint8 in normalised image coordinates."""
+    contours, _ = cv2.findContours(hidden, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if not contours:
+        return np.zeros((0, 2))
+    return camera.undistort_pixels(np.concatenate(contours).reshape(-1, 2).astype(np.float64))
 
 
 def _one_edge_per_ray(ray: np.ndarray, points: np.ndarray, length: np.ndarray) -> np.ndarray:
@@ -224,10 +251,10 @@ def _viewing_edges(
 ) -> ViewingEdges:
     """The viewing edges of rays ``origins + t directions`` (M, 3) cast from cameras ``camera_of`` (M,), given
     each view's mask as ``(box, corner, blind)`` (see ``_dilated``; ``blind``: the view does not frame the whole
-    person, :func:`~stages.reconstruction.views.blind_beyond_image`) and outline in normalised image coordinates
-    ``normalised``."""
+    person, :func:`~stages.reconstruction.views.blind_beyond_image`) and the points whose convex hull bounds its
+    cone, in normalised image coordinates ``normalised``."""
     t_low, t_high = box_interval(origins, directions, volume)
-    hull_low, hull_high = _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_views,
+    hull_low, hull_high = hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_views,
                                        [blind for _, _, blind in masks])
     t_low = np.maximum(t_low, hull_low - RANGE_MARGIN_M)
     t_high = np.minimum(t_high, hull_high + RANGE_MARGIN_M)
@@ -365,7 +392,7 @@ def _lexsort_mostly_distinct(key: np.ndarray, then: np.ndarray) -> np.ndarray:
     return order
 
 
-def _hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_views, blind):
+def hull_bounds(cameras, normalised, origins, directions, camera_of, tolerated_views, blind):
     """Ray parameters ``(low (M,), high (M,))`` outside which a ray leaves more than ``tolerated_views``
     silhouettes' convex hulls, given each view's outline in normalised image coordinates ``normalised``; the
     views ``blind`` (C,) bool beyond their images (:func:`~stages.reconstruction.views.blind_beyond_image`) bound

@@ -286,3 +286,40 @@ def test_a_longer_shutter_times_the_true_joints_at_the_exposures_mean(capture, t
     assert frames.tolist() == [0, 1, 3] and not (out / "groundtruth").is_symlink()
     np.testing.assert_allclose(joints[[0, 2]], truth[[0, 2]], atol=1e-6)  # no frame before them
     np.testing.assert_allclose(joints[1], 0.75 * truth[1] + 0.25 * truth[0], atol=1e-6)
+
+
+def _true_masks(capture: Path, rows: slice, columns: slice) -> None:
+    """Every camera's true masks: the subject over ``rows`` and ``columns`` of the image, on every frame."""
+    for camera in ("cam0", "cam1"):
+        (capture / "groundtruth" / "masks" / camera).mkdir(parents=True)
+        for frame in range(FRAMES):
+            mask = np.zeros((HEIGHT, WIDTH), np.uint8)
+            mask[rows, columns] = 255
+            cv2.imwrite(str(capture / "groundtruth" / "masks" / camera / f"{frame:06d}.png"), mask)
+
+
+@pytest.mark.parametrize(("kind", "hidden"), [("desk", np.s_[30:, :]), ("pillar", np.s_[:, 28:32])])
+def test_an_occluder_stands_in_one_cameras_plate_and_frames_and_hides_the_subject_from_its_truth(
+        capture, tmp_path, kind, hidden):
+    # Rows 10-39: a desk from row 10 + 0.7 (39 - 10), 30, on; columns 20-39: a pillar 2 x 2 wide about 29.5, rounded.
+    _true_masks(capture, slice(10, 40), slice(20, 40))
+    out = perturb_capture(capture, tmp_path / kind, "none", occluder={"cam1": kind})
+    region = np.zeros((HEIGHT, WIDTH), bool)
+    region[hidden] = True
+    plate = cv2.imread(str(out / "background" / "cam1.png")).astype(float)
+    frame = _frames(out / "videos" / "cam1.mp4")[2].astype(float)
+    source = _frames(capture / "videos" / "cam1.mp4")[2].astype(float)
+    # The occluder's grey, in the plate and the frames alike (medians: the codec bleeds colour across its edges).
+    assert np.abs(np.median(plate[region], axis=0) - [105, 115, 125]).max() < 4
+    assert np.abs(np.median(frame[region], axis=0) - [105, 115, 125]).max() < 6
+    assert np.abs(frame[~region] - source[~region]).mean() < 6
+    mask = cv2.imread(str(out / "groundtruth" / "masks" / "cam1" / "000002.png"), cv2.IMREAD_GRAYSCALE)
+    assert not mask[region].any() and mask[~region].sum() == 255 * (30 * 20 - (region[10:40, 20:40]).sum())
+    assert (out / "background" / "cam0.png").read_bytes() == (capture / "background" / "cam0.png").read_bytes()
+    with pytest.raises(InputError, match="expected one of desk, pillar"):
+        perturb_capture(capture, tmp_path / "bad", "none", occluder={"cam1": "wall"})
+
+
+def test_an_occluder_is_placed_by_the_true_masks(capture, tmp_path):
+    with pytest.raises(InputError, match="no true masks"):
+        perturb_capture(capture, tmp_path / "none", "none", occluder={"cam1": "desk"})

@@ -65,6 +65,7 @@ BAD = {
         "rim_placement": ["foo"], "samples_per_ray": [1, NAN], "contour_smoothing_px": [-1.0, NAN, INF],
         "voxel_size_m": [0.0, NAN, 0.1], "coarse_voxel_size_m": [NAN, INF, 0.005],
         "refine_calibration": [1, "yes", None],
+        "find_hidden_parts": [1, "yes", None],
     },
     ExportParams: {"report": [1, "yes", None], "overlay_videos": [0, "true"],
                    "filter_cutoff_hz": [0.0, -6.0, NAN, INF, True, "6"], "bvh_units": ["inch", None],

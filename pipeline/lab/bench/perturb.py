@@ -70,6 +70,15 @@ mean time, (1 − SHARE) of the frame's and SHARE of the frame before's (the pos
 images are equally near when SHARE is 0.5); its true masks stay the frame's own.
 
     python -m pipeline.lab.bench.perturb ../shared/foreign/frontkick --change none --shutter 0.5 --out runs/smear
+
+With ``--occluder NAME:KIND,...`` something stands between those cameras and the subject, in their plates and in
+every frame (painted before the change, which it undergoes like the room): ``desk``, a grey panel across the image
+from the row 70 % of the way down from the top of the subject's true masks to their bottom (medians over the
+frames), hiding his shins and feet wherever he goes; ``pillar``, a grey post over the whole image's height, a
+twentieth of its width wide, where the middle of his true masks lies in the median frame, which he passes behind.
+Their true masks lose what it hides. The subject's joints are unchanged: the other cameras see him whole.
+
+    python -m pipeline.lab.bench.perturb ../shared/foreign/taekwondo --change none --occluder cam00:desk --out runs/desk
 """
 
 from __future__ import annotations
@@ -99,6 +108,15 @@ Change = Callable[[np.ndarray, np.random.Generator, int], np.ndarray]
 #: Sensor noise on the frames where the subject is away (8-bit levels): a plate repeated as it is would be a
 #: still image, which no camera records.
 ABSENT_NOISE = 2.0
+
+#: The colour of an occluder (``--occluder``, BGR 8-bit levels), with a fixed texture of OCCLUDER_TEXTURE levels.
+OCCLUDER_COLOUR = np.array([105.0, 115.0, 125.0], np.float32)
+OCCLUDER_TEXTURE = 6.0
+#: Where a desk starts, from the top of the subject's true masks (0) to their bottom (1), and a pillar's width as a
+#: share of the image's.
+DESK_FROM = 0.7
+PILLAR_WIDTH = 0.05
+OCCLUDERS = ("desk", "pillar")
 
 #: Cameras whose automatic white balance moved since the plates: blue and red gains, alternating by camera.
 _WHITE_BALANCE = (np.array([1.08, 1.0, 0.93], np.float32), np.array([0.92, 1.0, 1.08], np.float32))
@@ -149,14 +167,15 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
                     zoom: dict[str, float] | None = None,
                     late: dict[str, int] | None = None,
                     plate_shift: dict[str, tuple[float, float]] | None = None, monochrome: bool = False,
-                    shutter: float = 0.0) -> Path:
+                    shutter: float = 0.0, occluder: dict[str, str] | None = None) -> Path:
     """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
     to every frame of its videos, and the subject away on the frames ``absent``, seen by the ``cameras`` named
     (default: all) through a calibration whose cameras are each turned by ``calibration_error_deg`` and moved by
     ``position_error_m``, the cameras of ``zoom`` zoomed by its factors (:func:`zoomed`), those of ``late`` that
     many frames behind the others, the clean plates of those of ``plate_shift`` moved by its (x, y) pixels, every
-    frame and plate in grey levels with ``monochrome``, and each frame blended with the one before in the share
-    ``shutter``; returns ``out``.
+    frame and plate in grey levels with ``monochrome``, each frame blended with the one before in the share
+    ``shutter``, and the cameras of ``occluder`` seeing the subject behind a desk or a pillar (:func:`occluder_region`);
+    returns ``out``.
 
     capture.yaml, the calibration and the background plates (unless ``plates`` is False) are copied, the ground
     truth (when there is one) linked, or rewritten without the ``absent`` frames and the cameras left out
@@ -170,7 +189,8 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         An unknown change, ``out`` already there, a capture without videos, ``absent`` frames in a capture
         without a clean plate for every camera, a camera named that has no video, an angle or a distance that is
         not finite, a zoom factor that is not a finite number of at least 1, a delay that is not a whole number of
-        frames of at least 1, a plate shift that is not two finite numbers, or a shutter share outside [0, 1).
+        frames of at least 1, a plate shift that is not two finite numbers, a shutter share outside [0, 1), or an
+        occluder of another kind or for a camera without true masks.
     """
     capture, out = Path(capture), Path(out)
     if change not in CHANGES:
@@ -196,12 +216,18 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
     for name, shift in plate_shift.items():
         if len(shift) != 2 or not np.all(np.isfinite(shift)):
             raise InputError(f"plate shift of camera {name!r}: {shift} (expected two finite numbers of pixels)")
-    unknown = sorted((set(cameras) | set(zoom) | set(late) | set(plate_shift)) - {video.stem for video in videos})
+    occluder = dict(occluder or {})
+    for name, kind in occluder.items():
+        if kind not in OCCLUDERS:
+            raise InputError(f"occluder of camera {name!r}: {kind!r} (expected one of {', '.join(OCCLUDERS)})")
+    unknown = sorted((set(cameras) | set(zoom) | set(late) | set(plate_shift) | set(occluder))
+                     - {video.stem for video in videos})
     if unknown:
         raise InputError(f"{capture / 'videos'}: no video of camera(s) {', '.join(unknown)}")
     if cameras:
         videos = [video for video in videos if video.stem in cameras]
     empty_room = [_plate(capture, video.stem) for video in videos] if absent else [None] * len(videos)
+    regions = {name: occluder_region(capture / "groundtruth" / "masks" / name, kind) for name, kind in occluder.items()}
     apply = CHANGES[change][1]
     rng = np.random.default_rng(seed)
     partial = out.with_name(out.name + ".partial")
@@ -220,27 +246,32 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         for plate in (capture / "background").iterdir():
             if plate.stem not in kept:
                 continue
-            if plate.stem in zoom or plate.stem in plate_shift or monochrome:
+            if plate.stem in zoom or plate.stem in plate_shift or monochrome or plate.stem in regions:
                 image = zoomed(cv2.imread(str(plate), cv2.IMREAD_UNCHANGED), zoom.get(plate.stem, 1.0))
                 if plate.stem in plate_shift:
                     image = shifted_plate(image, plate_shift[plate.stem])
+                if plate.stem in regions:
+                    image = _to_uint8(_occluded(image.astype(np.float32), regions[plate.stem]))
                 if monochrome and image.ndim == 3:
                     image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
                 cv2.imwrite(str(partial / "background" / plate.name), image)
             else:
                 shutil.copy2(plate, partial / "background" / plate.name)
     if (capture / "groundtruth").is_dir():
-        if absent or cameras or zoom or late or shutter:
+        if absent or cameras or zoom or late or shutter or regions:
             _truth_without(capture / "groundtruth", partial / "groundtruth", absent, {video.stem for video in videos},
-                           zoom, late, shutter)
+                           zoom, late, shutter, regions)
         else:
             (partial / "groundtruth").symlink_to((capture / "groundtruth").resolve(), target_is_directory=True)
     for camera, (video, plate) in enumerate(zip(videos, empty_room, strict=True)):
+        region = regions.get(video.stem)
+
         def changed(frame: np.ndarray, index: int, camera: int = camera, plate: np.ndarray | None = plate,
-                    factor: float = zoom.get(video.stem, 1.0)):
+                    factor: float = zoom.get(video.stem, 1.0), region: np.ndarray | None = region):
             if index in absent:
                 frame = plate + rng.normal(0.0, ABSENT_NOISE, plate.shape)
-            frame = apply(zoomed(frame, factor), rng, camera)
+            frame = zoomed(frame, factor)
+            frame = apply(frame if region is None else _occluded(frame, region), rng, camera)
             return _grey(frame) if monochrome else frame
 
         _rewrite(video, partial / "videos" / (video.stem + ".mp4"), changed, late.get(video.stem, 0), shutter)
@@ -328,12 +359,14 @@ def _plate(capture: Path, camera: str) -> np.ndarray:
 
 
 def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], zoom: dict[str, float],
-                   late: dict[str, int], shutter: float = 0.0) -> None:
+                   late: dict[str, int], shutter: float = 0.0, regions: dict[str, np.ndarray] | None = None) -> None:
     """``target``, the ground truth at ``truth`` without the ``absent`` frames, seen by ``cameras``: the absent
     frames' joints.csv rows left out and their masks empty, the other cameras' masks left out, the masks of the
-    cameras of ``zoom`` zoomed (:func:`zoomed`), those of the cameras of ``late`` the earlier frame's (the other
-    masks and files linked); with a ``shutter``, each frame's joints moved that share of the way back to the frame
-    before's (the exposure's mean time)."""
+    cameras of ``zoom`` zoomed (:func:`zoomed`), those of the cameras of ``late`` the earlier frame's, those of the
+    cameras of ``regions`` without what their occluder hides there (the other masks and files linked); with a
+    ``shutter``, each frame's joints moved that share of the way back to the frame before's (the exposure's mean
+    time)."""
+    regions = regions or {}
     target.mkdir()
     for path in sorted(truth.iterdir()):
         if path.name == "joints.csv" and shutter:
@@ -360,9 +393,11 @@ def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], 
                     if mask.stem.isdigit() and int(mask.stem) in absent:
                         image = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
                         cv2.imwrite(str(written), np.zeros_like(image))
-                    elif camera.name in zoom:
-                        image = cv2.imread(str(shown), cv2.IMREAD_GRAYSCALE)
-                        cv2.imwrite(str(written), zoomed(image, zoom[camera.name]))
+                    elif camera.name in zoom or camera.name in regions:
+                        image = zoomed(cv2.imread(str(shown), cv2.IMREAD_GRAYSCALE), zoom.get(camera.name, 1.0))
+                        if camera.name in regions:
+                            image[regions[camera.name]] = 0
+                        cv2.imwrite(str(written), image)
                     else:
                         written.symlink_to(shown.resolve())
         else:
@@ -404,6 +439,42 @@ def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray, int], np.
             writer.release()
     if writer is None:
         raise InputError(f"{source}: no frame could be decoded")
+
+
+def occluder_region(masks: Path, kind: str) -> np.ndarray:
+    """(H, W) bool: where a ``kind`` of occluder (``OCCLUDERS``) stands in the view whose true masks are in the
+    folder ``masks``, placed by where those masks lie (see the module's docstring)."""
+    paths = sorted(masks.glob("*.png"))
+    if not paths:
+        raise InputError(f"{masks}: no true masks to place the occluder by")
+    tops, bottoms, middles, shape = [], [], [], None
+    for path in paths:
+        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        shape = mask.shape
+        rows, columns = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+        if len(rows):
+            tops.append(rows[0])
+            bottoms.append(rows[-1])
+            middles.append(0.5 * (columns[0] + columns[-1]))
+    if not tops:
+        raise InputError(f"{masks}: every true mask is empty; no place for the occluder")
+    region = np.zeros(shape, bool)
+    if kind == "desk":
+        top, bottom = np.median(tops), np.median(bottoms)
+        region[round(top + DESK_FROM * (bottom - top)):] = True
+    else:
+        half = max(1, round(PILLAR_WIDTH * shape[1] / 2))
+        middle = round(np.median(middles))
+        region[:, max(0, middle - half):middle + half] = True
+    return region
+
+
+def _occluded(image: np.ndarray, region: np.ndarray) -> np.ndarray:
+    """``image`` (float32, BGR) with the occluder painted over ``region`` (its texture the same in every image)."""
+    texture = np.random.default_rng(0).normal(0.0, OCCLUDER_TEXTURE, image.shape[:2]).astype(np.float32)
+    painted = image.copy()
+    painted[region] = OCCLUDER_COLOUR + texture[region][:, None]
+    return painted
 
 
 def _exposure(now: np.ndarray, before: np.ndarray, shutter: float) -> np.ndarray:
@@ -452,6 +523,11 @@ def _pair(text: str) -> tuple[float, float]:
     return dx, dy
 
 
+def _occluders(text: str) -> dict[str, str]:
+    """``NAME:KIND,...`` as {camera: kind}."""
+    return _per_camera(text, str, "KIND")
+
+
 def _delays(text: str) -> dict[str, int]:
     """``NAME:FRAMES,...`` as {camera: frames}."""
     return _per_camera(text, int, "FRAMES")
@@ -488,13 +564,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shutter", type=float, default=0.0, metavar="SHARE",
                         help="each frame blended with the one before in this share (a longer exposure: moving "
                              "limbs smeared)")
+    parser.add_argument("--occluder", type=_occluders, default={}, metavar="NAME:KIND,...",
+                        help=f"something between these cameras and the subject, in their plates and frames: one of "
+                             f"{', '.join(OCCLUDERS)}")
     args = parser.parse_args(argv)
     try:
         perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates,
                         absent=args.absent, cameras=args.cameras, calibration_error_deg=args.calibration_error,
                         position_error_m=args.position_error,
                         zoom=args.zoom, late=args.late, plate_shift=args.plate_shift, monochrome=args.monochrome,
-                        shutter=args.shutter)
+                        shutter=args.shutter, occluder=args.occluder)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

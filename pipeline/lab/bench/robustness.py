@@ -3,7 +3,8 @@
 The foreign suite (:mod:`pipeline.lab.bench.foreign`) measures four captures as another program made them; a real
 studio differs from them in ways that each stage meets on its own: a codec that blocks, a noisy sensor, mains
 flicker, an automatic exposure acting before the camera's gamma, no clean plate, fewer cameras, a camera that does
-not frame the whole volume, a calibration slightly off, a camera knocked after its clean plate was taken. Each of
+not frame the whole volume, a calibration slightly off, a camera knocked after its clean plate was taken, something
+standing between a camera and the subject. Each of
 :data:`VARIANTS` makes one such change to every foreign capture with
 :func:`~pipeline.lab.bench.perturb.perturb_capture` (seed 0), so that what it costs is read against the foreign
 suite's figures for the same capture (roughly: every copy's videos are also encoded a second time, which a copy
@@ -62,8 +63,9 @@ class Variant:
 
     The arguments that name cameras cannot be written once for four rigs, so they are given relative to the
     capture's cameras sorted by name: ``first_cameras`` keeps that many of the first (None: all of them),
-    ``first_camera_zoom`` zooms the first by that factor (None: no zoom) and ``first_plate_shift`` moves the first's
-    clean plate by those (x, y) pixels (None: no shift). :meth:`arguments` spells them out.
+    ``first_camera_zoom`` zooms the first by that factor (None: no zoom), ``first_plate_shift`` moves the first's
+    clean plate by those (x, y) pixels (None: no shift) and ``first_occluder`` puts that kind of occluder before the
+    first (None: none). :meth:`arguments` spells them out.
     """
 
     name: str
@@ -75,6 +77,7 @@ class Variant:
     position_error_m: float = 0.0
     first_plate_shift: tuple[float, float] | None = None
     shutter: float = 0.0
+    first_occluder: str | None = None
 
     @property
     def slug(self) -> str:
@@ -83,8 +86,8 @@ class Variant:
 
     def arguments(self, cameras: Sequence[str]) -> dict:
         """:func:`perturb_capture`'s keyword arguments for a capture whose cameras are ``cameras`` (sorted); a position
-        error, a plate shift and a shutter only when there are, so that the other copies keep their cache keys
-        (:func:`cache_key`)."""
+        error, a plate shift, a shutter and an occluder only when there are, so that the other copies keep their
+        cache keys (:func:`cache_key`)."""
         arguments = {"change": self.change, "seed": SEED, "plates": self.plates,
                      "cameras": tuple(cameras[:self.first_cameras]) if self.first_cameras is not None else (),
                      "calibration_error_deg": self.calibration_error_deg,
@@ -95,6 +98,8 @@ class Variant:
             arguments["plate_shift"] = {cameras[0]: self.first_plate_shift}
         if self.shutter:
             arguments["shutter"] = self.shutter
+        if self.first_occluder is not None:
+            arguments["occluder"] = {cameras[0]: self.first_occluder}
         return arguments
 
 
@@ -111,6 +116,8 @@ VARIANTS = (
     Variant("cameras moved 2 cm", position_error_m=0.02),
     Variant("one plate 5 px off", first_plate_shift=(4.0, 3.0)),
     Variant("shutter open the whole frame", shutter=0.5),
+    Variant("a desk before one camera", first_occluder="desk"),
+    Variant("a pillar before one camera", first_occluder="pillar"),
 )
 #: The variants of a quick run (a smoke test): one that changes the frames, one that changes the rig and the truth.
 QUICK_VARIANTS = ("compression", "4 cameras")
