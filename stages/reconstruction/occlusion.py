@@ -112,30 +112,39 @@ def hidden_votes(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volume:
     shapes = [_cells_shape(camera) for camera in cameras]
     placed = [np.zeros(shape, int) for shape in shapes]
     hidden = [np.zeros((1, *shape), bool) for shape in shapes]
-    centres = tuple(_centre(mask)[None] for mask in masks)
-    X = _ray_points(masks, cameras, np.asarray(volume, dtype=float)) if len(cameras) >= MIN_CAMERAS else []
+    pixels = [_silhouette_pixels(mask) for mask in masks]
+    centres = tuple(ours.mean(axis=0, keepdims=True) if len(ours) else np.full((1, 2), np.nan) for ours in pixels)
+    if len(cameras) < MIN_CAMERAS:
+        return CellVotes(tuple(placed), tuple(hidden), centres)
+    X = _ray_points(masks, pixels, cameras, np.asarray(volume, dtype=float))
     if len(X) == 0:
         return CellVotes(tuple(placed), tuple(hidden), centres)
-    seen = np.zeros((len(cameras), len(X)), bool)
+    # The cameras are asked one after the other about the points still in the running: a point that a camera does
+    # not see, or that two see outside their silhouettes, is placed for none of them.
     inside = np.zeros((len(cameras), len(X)), bool)
     cells = np.zeros((len(cameras), len(X)), np.intp)
-    for index, (camera, mask) in enumerate(zip(cameras, masks, strict=True)):
-        uv = camera.project(X)
-        seen[index] = camera.sees(X) & camera.in_image(uv)
-        pixel = np.floor(uv.compress(seen[index], axis=0) + 0.5).astype(np.intp)
+    misses = np.zeros(len(X), np.int8)
+    running = np.arange(len(X))
+    for index, (camera, mask, shape) in enumerate(zip(cameras, masks, shapes, strict=True)):
+        Y = X.take(running, axis=0)
+        uv = camera.project(Y)
+        seen = camera.sees(Y) & camera.in_image(uv)
+        running, uv = running.compress(seen), uv.compress(seen, axis=0)
+        pixel = np.floor(uv + 0.5).astype(np.intp)
         height, width = mask.shape
         rows = np.minimum(np.maximum(pixel[:, 1], 0), height - 1)
         cols = np.minimum(np.maximum(pixel[:, 0], 0), width - 1)
-        inside[index, seen[index]] = mask.ravel().take(rows * width + cols) > 0
-        cell = cell_size(camera)
-        cells[index, seen[index]] = (rows // cell) * shapes[index][1] + cols // cell
-    hits = inside.sum(axis=0)
-    everyone = seen.all(axis=0)
+        hit = mask.ravel().take(rows * width + cols) > 0
+        inside[index, running] = hit
+        cells[index, running] = (rows // cell_size(camera)) * shape[1] + cols // cell_size(camera)
+        misses[running] += ~hit
+        running = running.compress(misses.take(running) < 2)
     for index, shape in enumerate(shapes):
         # Placed by the others: seen by every camera and inside every other one's silhouette.
-        others_agree = everyone & (hits - inside[index] == len(cameras) - 1)
-        count = np.bincount(cells[index, others_agree], minlength=shape[0] * shape[1]).reshape(shape)
-        background = np.bincount(cells[index, others_agree & ~inside[index]],
+        others_agree = running.compress(misses.take(running) == (~inside[index]).take(running))
+        at = cells[index].take(others_agree)
+        count = np.bincount(at, minlength=shape[0] * shape[1]).reshape(shape)
+        background = np.bincount(at.compress(~inside[index].take(others_agree)),
                                  minlength=shape[0] * shape[1]).reshape(shape)
         placed[index] = (count > 0).astype(int)
         hidden[index][0] = (count > 0) & (background >= HIDDEN_SHARE * count)
@@ -180,12 +189,11 @@ def _cells_shape(camera: Camera) -> tuple[int, int]:
     return -(-camera.size[1] // cell), -(-camera.size[0] // cell)
 
 
-def _centre(mask: np.ndarray) -> np.ndarray:
-    """(2,) (u, v) the centroid of a silhouette (H, W) uint8, NaN when it is empty."""
-    moments = cv2.moments(mask, binaryImage=True)
-    if moments["m00"] == 0:
-        return np.full(2, np.nan)
-    return np.array([moments["m10"], moments["m01"]]) / moments["m00"]
+def _silhouette_pixels(mask: np.ndarray) -> np.ndarray:
+    """(n, 2) float (u, v) every ``PIXEL_STRIDE``-th pixel of a silhouette (H, W) uint8 along both axes: the rays
+    are cast through some of them, and their mean is where the silhouette is."""
+    pixels = cv2.findNonZero(np.ascontiguousarray(mask[::PIXEL_STRIDE, ::PIXEL_STRIDE]))
+    return np.zeros((0, 2)) if pixels is None else pixels.reshape(-1, 2).astype(float) * PIXEL_STRIDE
 
 
 def _travel(centres: np.ndarray) -> float:
@@ -195,21 +203,20 @@ def _travel(centres: np.ndarray) -> float:
     return float(np.hypot(*np.ptp(centres, axis=0))) if len(centres) > 1 else 0.0
 
 
-def _ray_points(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volume: np.ndarray) -> np.ndarray:
-    """(N, 3) points along rays through ``RAYS_PER_VIEW`` pixels of each view's silhouette, ``POINTS_PER_RAY`` per
-    ray, evenly over the ray's stretch in the working volume that lies inside the convex hulls of the other views'
-    silhouettes, all of them but one (`hull_bounds`)."""
+def _ray_points(masks: Sequence[np.ndarray], pixels: Sequence[np.ndarray], cameras: Sequence[Camera],
+                volume: np.ndarray) -> np.ndarray:
+    """(N, 3) points along rays through ``RAYS_PER_VIEW`` of each view's silhouette ``pixels`` (n, 2), spread evenly,
+    ``POINTS_PER_RAY`` per ray, evenly over the ray's stretch in the working volume that lies inside the convex
+    hulls of the other views' silhouettes ``masks``, all of them but one (`hull_bounds`)."""
     origins, directions, camera_of, outlines = [], [], [], []
-    for index, (camera, mask) in enumerate(zip(cameras, masks, strict=True)):
+    for index, (camera, mask, ours) in enumerate(zip(cameras, masks, pixels, strict=True)):
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         outline = np.concatenate(contours).reshape(-1, 2).astype(float) if contours else np.zeros((0, 2))
         outlines.append(camera.undistort_pixels(outline) if len(outline) else outline)
-        pixels = cv2.findNonZero(np.ascontiguousarray(mask[::PIXEL_STRIDE, ::PIXEL_STRIDE]))
-        if pixels is None:
+        if not len(ours):
             continue
-        pixels = pixels.reshape(-1, 2) * PIXEL_STRIDE
-        chosen = np.unique(np.linspace(0, len(pixels) - 1, min(RAYS_PER_VIEW, len(pixels))).round().astype(int))
-        directions.append(camera.pixel_rays(pixels[chosen].astype(float)))
+        chosen = np.unique(np.linspace(0, len(ours) - 1, min(RAYS_PER_VIEW, len(ours))).round().astype(int))
+        directions.append(camera.pixel_rays(ours[chosen]))
         origins.append(np.repeat(camera.centre[None], len(chosen), axis=0))
         camera_of.append(np.full(len(chosen), index))
     if not origins:
