@@ -1,18 +1,18 @@
 """Parts of a view hidden behind something that stands in front of the subject (a desk, a pillar, a tripod).
 
-A static object between a camera and the subject is part of that camera's background: wherever it hides the
-subject, the camera's silhouette shows background, and the visual hull, which keeps only what every view sees
-inside its silhouette, carves away whatever goes behind it (a desk that hides the feet in one view takes the feet
-off the hull, for every view). The other views still see the hidden part, and that is how it is found, in the
-manner of Guan, Franco & Pollefeys (CVPR 2007), who learn such occluders from the silhouettes' disagreement over
-time: rays through each view's silhouette are sampled across the working volume, and the points that every other
-view sees inside its silhouette are projected into the camera; where that camera shows background at them, it
-alone contradicts the others there. A camera's silhouette errs here and there, and where the other views leave
-room (the visual hull's phantom volume, which moves with the subject) it contradicts them rightly; but the same
-part of its image contradicting them on nearly every frame where they place the subject there, while the subject
-moves, is something in front of him. The reconstruction then lets that camera decide nothing there: a point that
-projects into the hidden part counts as inside its silhouette, and the outline along it, the occluder's edge rather
-than the subject's, casts no ray (`stages.reconstruction`).
+A static object between a camera and the subject is part of that camera's background: wherever it hides the subject,
+the camera's silhouette shows background, and the visual hull, which keeps only what every view sees inside its
+silhouette, carves away whatever goes behind it (a desk that hides the feet in one view takes the feet off the hull,
+for every view). The other views still see the hidden part, and that is how it is found, in the manner of Guan,
+Franco & Pollefeys (CVPR 2007), who learn such occluders from the silhouettes' disagreement over time: rays through
+each view's silhouette are sampled where they lie inside the other silhouettes' convex hulls, and the points that
+every camera sees and every other one sees inside its silhouette are projected into the camera; where that camera
+shows background at them, it alone contradicts the others there. A camera's silhouette errs here and there, and
+where the other views leave room (the visual hull's phantom volume, which moves with the subject) it contradicts
+them rightly; but the same part of its image contradicting them on nearly every frame where they place the subject
+there, while the subject moves, is something in front of him. The reconstruction then lets that camera decide
+nothing there: a point that projects into the hidden part counts as inside its silhouette, and the outline along it,
+the occluder's edge rather than the subject's, casts no ray (`stages.reconstruction`).
 
 The votes are counted per frame on cells of the image (:func:`hidden_votes`) and weighed over frames spread over
 the capture (:func:`hidden_parts`).
@@ -76,6 +76,7 @@ class CellVotes:
 
     @property
     def frames(self) -> int:
+        """How many frames voted."""
         return len(self.centres[0]) if self.centres else 0
 
     def __add__(self, other: CellVotes) -> CellVotes:
@@ -98,8 +99,8 @@ def no_votes(cameras: Sequence[Camera]) -> CellVotes:
 
 def hidden_votes(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volume: np.ndarray) -> CellVotes:
     """One frame's votes: for each camera, the cells where the other views place the subject (points that every
-    camera sees and every other one sees inside its silhouette) and which of them the camera shows background at,
-    at most of those points.
+    camera sees and every other one sees inside its silhouette), those of them where the camera shows background
+    at ``HIDDEN_SHARE`` of the points or more, and where the camera's silhouette lies.
 
     Parameters
     ----------
