@@ -32,7 +32,7 @@ from stages.reconstruction.views import blind_beyond_image
 from stages.reconstruction.visual_shape import hull_bounds
 
 #: Cells of this many across the image's width count the votes (8 pixels a side on a 780 x 580 image): finer than
-#: a limb, coarse enough for a few hundred rays per view to reach every cell the subject covers.
+#: a limb, coarse enough for the points of a hundred rays per view to reach most cells the subject covers.
 CELLS_ACROSS = 100
 #: Pixels of each view's silhouette whose rays are sampled per frame, spread evenly over it ...
 RAYS_PER_VIEW = 100
