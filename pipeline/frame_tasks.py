@@ -33,7 +33,7 @@ from pipeline.io.run_layout import background_path, observations_path, silhouett
 from stages.background import CameraSamples, sample_camera, tolerated_views, working_size
 from stages.consistency import consistent_silhouettes, explained_share
 from stages.reconstruction import ReconstructionParams, reconstruct
-from stages.reconstruction.occlusion import MIN_CAMERAS, hidden_parts, hidden_votes, no_votes
+from stages.reconstruction.occlusion import search_hidden_parts
 from stages.reconstruction.views import subject_cut_off
 from stages.silhouettes import (
     NOISE_SIGMA_MIN,
@@ -185,15 +185,12 @@ def reconstruction_task(chunk: Sequence[int], *, capture: Capture, rig: Rig, par
 
 def occlusion_task(capture: Capture, masks_dir: Path, rig: Rig) -> list[np.ndarray | None]:
     """Worker: per camera of ``rig``, the part of its image hidden behind something in front of the subject, or None
-    (`stages.reconstruction.occlusion.hidden_parts`), from the silhouettes of ``OCCLUSION_FRAMES`` frames spread
-    over the capture."""
+    (`stages.reconstruction.occlusion.search_hidden_parts`), from the silhouettes of ``OCCLUSION_FRAMES`` frames
+    spread over the capture."""
     cameras = list(rig)
-    if len(cameras) < MIN_CAMERAS:
-        return [None] * len(cameras)
-    votes = no_votes(cameras)
-    for frame in spread_frames(capture.frame_numbers, OCCLUSION_FRAMES):
-        votes = votes + hidden_votes(frame_masks(masks_dir, cameras, frame), cameras, capture.volume)
-    return hidden_parts(votes, cameras)
+    frames = spread_frames(capture.frame_numbers, OCCLUSION_FRAMES)
+    return search_hidden_parts(lambda: (frame_masks(masks_dir, cameras, frame) for frame in frames), cameras,
+                               capture.volume)
 
 
 def camera_samples_task(capture: Capture, camera: str, plate: np.ndarray | None, *, frames: Sequence[int],

@@ -20,7 +20,7 @@ the capture (:func:`hidden_parts`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -97,7 +97,8 @@ def no_votes(cameras: Sequence[Camera]) -> CellVotes:
                      tuple(np.zeros((0, *shape), bool) for shape in shapes), tuple(np.zeros((0, 2)) for _ in shapes))
 
 
-def hidden_votes(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volume: np.ndarray) -> CellVotes:
+def hidden_votes(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volume: np.ndarray,
+                 found: Sequence[np.ndarray | None] | None = None) -> CellVotes:
     """One frame's votes: for each camera, the cells where the other views place the subject (points that every
     camera sees and every other one sees inside its silhouette), those of them where the camera shows background
     at ``HIDDEN_SHARE`` of the points or more, and where the camera's silhouette lies.
@@ -109,7 +110,12 @@ def hidden_votes(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volume:
     cameras : sequence of Camera
     volume : (2, 3) float
         Working volume [min; max], metres: the rays are sampled within it.
+    found : sequence of (H, W) uint8 or None, optional
+        Parts of the views already found hidden (:func:`search_hidden_parts`): as one of the others, a camera
+        counts a point there as inside its silhouette, as the reconstruction does; its own votes are its
+        silhouette's.
     """
+    found = [None] * len(cameras) if found is None else list(found)
     shapes = [_cells_shape(camera) for camera in cameras]
     placed = [np.zeros(shape, int) for shape in shapes]
     hidden = [np.zeros((1, *shape), bool) for shape in shapes]
@@ -117,16 +123,19 @@ def hidden_votes(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volume:
     centres = tuple(ours.mean(axis=0, keepdims=True) if len(ours) else np.full((1, 2), np.nan) for ours in pixels)
     if len(cameras) < MIN_CAMERAS:
         return CellVotes(tuple(placed), tuple(hidden), centres)
-    X = _ray_points(masks, pixels, cameras, np.asarray(volume, dtype=float))
+    X = _ray_points([mask if part is None else cv2.bitwise_or(mask, part) for mask, part in zip(masks, found,
+                                                                                                 strict=True)],
+                    pixels, cameras, np.asarray(volume, dtype=float))
     if len(X) == 0:
         return CellVotes(tuple(placed), tuple(hidden), centres)
     # The cameras are asked one after the other about the points still in the running: a point that a camera does
     # not see, or that two see outside their silhouettes, is placed for none of them.
-    inside = np.zeros((len(cameras), len(X)), bool)
+    inside = np.zeros((len(cameras), len(X)), bool)  # as one of the others: with the part found hidden, if any
+    own = np.zeros((len(cameras), len(X)), bool)  # in the camera's silhouette
     cells = np.zeros((len(cameras), len(X)), np.intp)
     misses = np.zeros(len(X), np.int8)
     running = np.arange(len(X))
-    for index, (camera, mask, shape) in enumerate(zip(cameras, masks, shapes, strict=True)):
+    for index, (camera, mask, part, shape) in enumerate(zip(cameras, masks, found, shapes, strict=True)):
         Y = X.take(running, axis=0)
         uv = camera.project(Y)
         seen = camera.sees(Y) & camera.in_image(uv)
@@ -135,7 +144,11 @@ def hidden_votes(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volume:
         height, width = mask.shape
         rows = np.minimum(np.maximum(pixel[:, 1], 0), height - 1)
         cols = np.minimum(np.maximum(pixel[:, 0], 0), width - 1)
-        hit = mask.ravel().take(rows * width + cols) > 0
+        at = rows * width + cols
+        hit = mask.ravel().take(at) > 0
+        own[index, running] = hit
+        if part is not None:
+            hit |= part.ravel().take(at) > 0
         inside[index, running] = hit
         cells[index, running] = (rows // cell_size(camera)) * shape[1] + cols // cell_size(camera)
         misses[running] += ~hit
@@ -145,11 +158,43 @@ def hidden_votes(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volume:
         others_agree = running.compress(misses.take(running) == (~inside[index]).take(running))
         at = cells[index].take(others_agree)
         count = np.bincount(at, minlength=shape[0] * shape[1]).reshape(shape)
-        background = np.bincount(at.compress(~inside[index].take(others_agree)),
+        background = np.bincount(at.compress(~own[index].take(others_agree)),
                                  minlength=shape[0] * shape[1]).reshape(shape)
         placed[index] = (count > 0).astype(int)
         hidden[index][0] = (count > 0) & (background >= HIDDEN_SHARE * count)
     return CellVotes(tuple(placed), tuple(hidden), centres)
+
+
+def search_hidden_parts(frames: Callable[[], Iterable[Sequence[np.ndarray]]], cameras: Sequence[Camera],
+                        volume: np.ndarray) -> list[np.ndarray | None]:
+    """Each camera's (H, W) uint8 part of the view hidden behind something in front of the subject, or None, from
+    the silhouettes of the frames that ``frames()`` yields (one sequence of masks per frame, every call the same).
+
+    The search goes in rounds: a part found is counted inside its camera's silhouette when that camera is one of the
+    others in the next round (:func:`hidden_votes`), so that a thing that hides the subject from two cameras at once
+    (a desk before two of them) is found in the second once it is found in the first, where it hides less; the
+    rounds end when one finds nothing new. Without anything hidden that is one round.
+    """
+    found: list[np.ndarray | None] = [None] * len(cameras)
+    if len(cameras) < MIN_CAMERAS:
+        return found
+    for _ in range(len(cameras)):
+        votes = no_votes(cameras)
+        for masks in frames():
+            votes = votes + hidden_votes(masks, cameras, volume, found)
+        merged = [_union(before, now) for before, now in zip(found, hidden_parts(votes, cameras), strict=True)]
+        if all(_same(before, after) for before, after in zip(found, merged, strict=True)):
+            break
+        found = merged
+    return found
+
+
+def _union(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+    return b if a is None else a if b is None else cv2.bitwise_or(a, b)
+
+
+def _same(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+    return (a is None) == (b is None) and (a is None or np.array_equal(a, b))
 
 
 def hidden_parts(votes: CellVotes, cameras: Sequence[Camera]) -> list[np.ndarray | None]:

@@ -4,7 +4,7 @@ from sphere_scene import RADIUS, VOLUME, render_spheres, ring_rig
 
 from stages.reconstruction import ReconstructionParams, reconstruct
 from stages.reconstruction.contours import outline
-from stages.reconstruction.occlusion import MIN_CAMERAS, hidden_parts, hidden_votes, no_votes
+from stages.reconstruction.occlusion import MIN_CAMERAS, hidden_parts, hidden_votes, no_votes, search_hidden_parts
 
 #: The subject, a ball, crosses camera 0's view at this height, ...
 PATH = [np.array([0.1 * np.sin(3 * y), y, 1.0]) for y in np.linspace(-0.6, 0.6, 16)]
@@ -19,13 +19,15 @@ def rig():
     return ring_rig(6)
 
 
-def frames_seen(rig, path=PATH, desk_row=None):
-    """Per frame, every camera's silhouette of the ball, camera 0's without the rows below ``desk_row``."""
+def frames_seen(rig, path=PATH, desk_row=None, desks=None):
+    """Per frame, every camera's silhouette of the ball, camera 0's without the rows below ``desk_row``, or each
+    camera of ``desks`` (camera -> row) without the rows below its row."""
+    desks = ({0: desk_row} if desk_row is not None else {}) if desks is None else desks
     frames = []
     for centre in path:
         masks = [render_spheres(camera, centre, RADIUS) for camera in rig]
-        if desk_row is not None:
-            masks[0][desk_row:] = 0
+        for camera, row in desks.items():
+            masks[camera][row:] = 0
         frames.append(masks)
     return frames
 
@@ -48,6 +50,22 @@ def test_what_a_desk_hides_from_one_camera_is_found_in_that_camera_only(rig):
     behind[:DESK_ROW] = False
     assert (found & behind).sum() > 0.8 * behind.sum()
     assert not found[:DESK_ROW - 2 * 4].any()  # a cell (4 px here) and its growth above the desk's edge at most
+
+
+def test_a_desk_before_two_cameras_is_found_in_both_in_turn():
+    # Camera 3's desk hides more of the ball than camera 0's: the part only camera 3 misses is found first, and
+    # with it counted inside, camera 0's, which camera 3 misses too.
+    rig = ring_rig(8)
+    desks = {0: DESK_ROW, 3: DESK_ROW - 15}
+    frames = frames_seen(rig, desks=desks)
+    once = searched(rig, frames)
+    assert [index for index, part in enumerate(once) if part is not None] == [3]
+    parts = search_hidden_parts(lambda: iter(frames), list(rig), VOLUME)
+    assert [index for index, part in enumerate(parts) if part is not None] == [0, 3]
+    for camera, row in desks.items():
+        behind = np.maximum.reduce([render_spheres(rig[camera], centre, RADIUS) for centre in PATH]) > 0
+        behind[:row] = False
+        assert (parts[camera] > 0)[behind].mean() > 0.8
 
 
 def test_nothing_is_found_where_every_camera_sees_the_subject(rig):
