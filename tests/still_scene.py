@@ -7,10 +7,14 @@ the sampling. Each frame adds Gaussian sensor noise.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
+import yaml
 
 from calib.camera import Camera, Rig
+from calib.formats import save_rig
 
 SIZE = (160, 120)
 VOLUME = np.array([[-1.5, -1.5, 0.0], [1.5, 1.5, 2.2]])
@@ -76,3 +80,21 @@ def still_then_moving(n_frames: int = 30, still: int = 18) -> np.ndarray:
     angles = np.linspace(0.0, 2 * np.pi, n_frames - still, endpoint=False)
     walk = 0.8 * np.column_stack([np.cos(angles), np.sin(angles)])
     return np.vstack([np.zeros((still, 2)), walk])
+
+
+def write_capture(root: Path, rig: Rig, views: list[list[np.ndarray]], plates: list[np.ndarray] | None = None) -> Path:
+    """A capture folder at ``root`` of each camera's frames ``views`` (image folders), with clean ``plates`` (one
+    per camera) if given; returns ``root``."""
+    save_rig(rig, "anipose", root / "calibration" / "calibration.toml")
+    config = {"fps": 25.0, "calibration": {"format": "anipose", "path": "calibration/calibration.toml"},
+              "volume": {"min": VOLUME[0].tolist(), "max": VOLUME[1].tolist()}}
+    (root / "capture.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+    for index, (camera, images) in enumerate(zip(rig, views, strict=True)):
+        folder = root / "images" / camera.name
+        folder.mkdir(parents=True)
+        for frame, image in enumerate(images):
+            cv2.imwrite(str(folder / f"{frame:06d}.png"), image)
+        if plates is not None:
+            (root / "background").mkdir(exist_ok=True)
+            cv2.imwrite(str(root / "background" / f"{camera.name}.png"), plates[index])
+    return root

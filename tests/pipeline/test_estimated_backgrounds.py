@@ -10,9 +10,7 @@ import cv2
 import numpy as np
 import pytest
 import still_scene as scene
-import yaml
 
-from calib.formats import save_rig
 from pipeline import graph
 from pipeline.engine.executors import make_executor
 from pipeline.io import frames_io
@@ -26,19 +24,7 @@ def _write_capture(root: Path, path: np.ndarray, *, plates: bool = False) -> tup
     """A capture of the still scene's subject walking ``path`` (F, 2); returns it and the true rooms."""
     rig = scene.ring()
     rooms = scene.rooms(rig, seed=2)
-    save_rig(rig, "anipose", root / "calibration" / "calibration.toml")
-    config = {"fps": 25.0, "calibration": {"format": "anipose", "path": "calibration/calibration.toml"},
-              "volume": {"min": scene.VOLUME[0].tolist(), "max": scene.VOLUME[1].tolist()}}
-    (root / "capture.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
-    for camera, room, images in zip(rig, rooms, scene.frames(rig, rooms, path), strict=True):
-        folder = root / "images" / camera.name
-        folder.mkdir(parents=True)
-        for frame, image in enumerate(images):
-            cv2.imwrite(str(folder / f"{frame:06d}.png"), image)
-        if plates:
-            (root / "background").mkdir(exist_ok=True)
-            cv2.imwrite(str(root / "background" / f"{camera.name}.png"), room)
-    return root, rooms
+    return scene.write_capture(root, rig, scene.frames(rig, rooms, path), rooms if plates else None), rooms
 
 
 def test_a_subject_who_stood_still_leaves_no_ghost_and_the_log_says_how(tmp_path, caplog):

@@ -4,13 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 import still_scene as scene
-import yaml
 
-from calib.formats import save_rig
 from pipeline.cli import main
 from pipeline.io import frames_io
 from pipeline.io.run_layout import hidden_part_path, observations_path
@@ -25,25 +22,12 @@ DESK = (110, 120, 130)
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("desk") / "capture"
     rig = scene.ring()
     rooms = scene.rooms(rig, seed=2)
-    save_rig(rig, "anipose", root / "calibration" / "calibration.toml")
-    config = {"fps": 25.0, "calibration": {"format": "anipose", "path": "calibration/calibration.toml"},
-              "volume": {"min": scene.VOLUME[0].tolist(), "max": scene.VOLUME[1].tolist()}}
-    (root / "capture.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
-    (root / "background").mkdir()
-    for index, (camera, room, images) in enumerate(zip(rig, rooms, scene.frames(rig, rooms, PATH), strict=True)):
-        if index == 0:
-            room, images = room.copy(), [image.copy() for image in images]
-            for image in (room, *images):
-                image[DESK_ROW:] = DESK
-        cv2.imwrite(str(root / "background" / f"{camera.name}.png"), room)
-        folder = root / "images" / camera.name
-        folder.mkdir(parents=True)
-        for frame, image in enumerate(images):
-            cv2.imwrite(str(folder / f"{frame:06d}.png"), image)
-    return root
+    views = scene.frames(rig, rooms, PATH)
+    for image in (rooms[0], *views[0]):  # the desk, in camera 0's plate and frames
+        image[DESK_ROW:] = DESK
+    return scene.write_capture(tmp_path_factory.mktemp("desk") / "capture", rig, views, rooms)
 
 
 def _lowest_points(out: Path) -> float:
