@@ -171,6 +171,9 @@ class RunLayout:
     def refined_rig(self) -> Path:
         return refined_rig_path(self.stage_dir("reconstruction"))
 
+    def hidden_part(self, camera: str) -> Path:
+        return hidden_part_path(self.stage_dir("reconstruction"), camera)
+
     @property
     def tracking_dir(self) -> Path:
         return self.stage_dir("tracking")

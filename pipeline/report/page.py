@@ -213,6 +213,8 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
             cells.append((mask, f"silhouette, frame {frame}"))
         if background := _mask_thumb(layout.background(camera)):
             cells.append((background, "background"))
+        if hidden := _mask_thumb(layout.hidden_part(camera)):
+            cells.append((hidden, "hidden behind something, not carved"))
         figures = "".join(f"<figure><img alt='{html.escape(camera)} {html.escape(caption)}' src='{uri}'>"
                           f"<figcaption>{html.escape(caption)}</figcaption></figure>" for uri, caption in cells)
         video = overlay_video_name(camera)
@@ -221,7 +223,7 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
                         f"<figcaption><a href='{html.escape(video)}'>{html.escape(video)}</a></figcaption></figure>")
         if figures:
             rows.append(f"<h3>{html.escape(camera)}</h3>{_agreement(check, camera)}{_turn(refinement, camera)}"
-                        f"<div class='stills'>{figures}</div>")
+                        f"{_hidden_note(layout.hidden_part(camera))}<div class='stills'>{figures}</div>")
     if not rows:
         return ""
     drawn = [what for what, sequence in (("estimate in colour (subject's left blue, right red)", run.estimate),
@@ -272,6 +274,15 @@ def _turn(refinement: dict | None, camera: str) -> str:
     if not isinstance(turn, (int, float)):
         return ""
     return f"<p class='note'>Calibration refined from the silhouettes: turned by {turn:.2f}° about its centre.</p>"
+
+
+def _hidden_note(path: Path) -> str:
+    """A note on the part of the camera's view found hidden behind something in front of the subject, if any."""
+    if not path.is_file():
+        return ""
+    return ("<p class='note'>Part of its view is <strong>hidden behind something</strong> in front of the subject on "
+            "most frames (the other cameras place him there, this one shows the background): it does not carve "
+            "there (white in the figure).</p>")
 
 
 def _agreement(check: dict | None, camera: str) -> str:

@@ -293,3 +293,15 @@ def test_every_plot_is_well_formed_svg_and_no_png_figure_is_left(shared_text):
         ElementTree.fromstring(plot)
     assert "data:image/png" not in shared_text.split("<h2>Cameras")[0]   # PNGs are only the silhouettes below
     assert "failure check" in plots[0] and "knee flexion" in plots[1] and "l_wrist (truth)" in plots[2]
+
+
+def test_a_part_of_a_view_found_hidden_behind_something_is_shown_in_its_camera_section(full_run):
+    assert "hidden behind something" not in build_report(full_run, rig=_rig(), images=_images())
+    part = np.zeros((120, 160), np.uint8)
+    part[80:] = 255
+    frames_io.write_mask(full_run / "reconstruction" / "hidden" / "side.png", part)
+    text = build_report(full_run, rig=_rig(), images=_images())
+    side = text[text.index("<h3>side</h3>"):]
+    assert "Part of its view is <strong>hidden behind something</strong>" in side
+    assert "alt='side hidden behind something, not carved'" in side
+    assert "hidden behind something" not in text[text.index("<h3>front</h3>"):text.index("<h3>side</h3>")]
