@@ -330,13 +330,13 @@ def video_chunk_size(pending: int, workers: int) -> int:
 def run_reconstruction(ctx: StageContext) -> int:
     """Per frame, sparse surface points with outward normals from all cameras' silhouettes, with the cameras'
     orientations refined from the silhouettes first (``refine_calibration``, `refined_rig`) and the parts of their
-    views hidden behind something in front of the subject found (`hidden_parts_of`)."""
+    views hidden behind something in front of the subject found (`frame_tasks.occlusion_task`)."""
     masks_dir = ctx.input_dir("silhouettes")
     executor = ctx.workers.executor
     searching = ctx.params.find_hidden_parts
     # The search runs on a worker beside the refinement, with the cameras as given; turned, they are searched again.
-    search = (executor.submit(occlusion_task, ctx.capture, masks_dir, ctx.capture.rig) if executor and searching
-              else None)
+    search = (executor.submit(occlusion_task, ctx.capture, masks_dir, ctx.capture.rig)
+              if executor is not None and searching else None)
     rig = (refined_rig(ctx.capture, masks_dir, ctx.out_dir, ctx.params.tolerated_views, executor)
            if ctx.params.refine_calibration else ctx.capture.rig)
     hidden = None
@@ -357,10 +357,10 @@ def _write_hidden_parts(rig: Rig, hidden: Sequence[np.ndarray | None], out_dir: 
             continue
         path = hidden_part_path(out_dir, camera.name)
         frames_io.write_mask(path, part)
-        log.warning("%s: %.0f %% of its image hides the subject behind something in front of him on the frames "
-                    "checked (the other cameras place him there, this one shows the background): it does not carve "
-                    "there, the other cameras do (the part: %s)", camera.name, 100 * np.count_nonzero(part) / part.size,
-                    path)
+        log.warning("%s: something in front of the subject hides part of him from this camera on most frames checked "
+                    "(%.0f %% of its image, where the other cameras place him and this one shows the background): it "
+                    "does not carve there, the other cameras do (the part: %s)", camera.name,
+                    100 * np.count_nonzero(part) / part.size, path)
 
 
 def refined_rig(capture: Capture, masks_dir: Path, out_dir: Path, tolerated: int,
