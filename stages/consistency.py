@@ -92,7 +92,7 @@ def explained_share(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volu
         if points is None:
             continue
         points = points.reshape(-1, 2)
-        uv = points[_evenly_spread(len(points), rays_per_view)].astype(float)
+        uv = points[evenly_spread(len(points), rays_per_view)].astype(float)
         others = [(other, masks[o]) for o, other in enumerate(cameras) if o != c]
         explained += int(_explained(camera, uv, others, volume, tolerated).sum())
         tested += len(uv)
@@ -140,11 +140,25 @@ def _spread_pixels(mask: np.ndarray, labels: np.ndarray, stats: np.ndarray, corn
     box = mask[y * cell : (y + h) * cell, x * cell : (x + w) * cell]
     points = cv2.findNonZero(cv2.bitwise_and(blocks[: box.shape[0], : box.shape[1]], box))  # (n, 1, 2) raster order
     cols, rows = points.reshape(-1, 2).T
-    chosen = _evenly_spread(len(rows), RAYS_PER_PART)
+    chosen = evenly_spread(len(rows), RAYS_PER_PART)
     return np.column_stack([cols[chosen] + x * cell, rows[chosen] + y * cell]).astype(float)
 
 
-def _evenly_spread(count: int, wanted: int) -> np.ndarray:
+def pixels_seen(camera: Camera, X: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``(visible (N,) bool, at (M,) intp)``: which world points ``X`` (N, 3) the camera sees in its image (in view
+    without the distortion's fold-back and with it), and the flat index, in an image of ``shape`` (H, W), of the
+    pixel each of those M points falls on."""
+    uv = camera.project(X)
+    visible = camera.sees(X) & camera.in_image(uv)
+    pixel = np.floor(uv.compress(visible, axis=0) + 0.5).astype(np.intp)
+    height, width = shape
+    # Clipped by np.maximum and np.minimum: np.clip's wrapper costs several times the arithmetic here.
+    rows = np.minimum(np.maximum(pixel[:, 1], 0), height - 1)
+    cols = np.minimum(np.maximum(pixel[:, 0], 0), width - 1)
+    return visible, rows * width + cols
+
+
+def evenly_spread(count: int, wanted: int) -> np.ndarray:
     """At most ``wanted`` indices of ``count`` items (count > 0), evenly spread from the first to the last."""
     return np.unique(np.linspace(0, count - 1, min(wanted, count)).round().astype(int))
 
@@ -174,18 +188,11 @@ def _explained(camera: Camera, uv: np.ndarray, others: Sequence[tuple[Camera, np
     inside = np.zeros(len(X), np.int32)
     misses = np.zeros(len(X), np.int32)
     for other, mask in others:
-        Y = X.take(running, axis=0)
-        uv_other = other.project(Y)
-        # In view without the distortion's fold-back and with it; only these points are counted, by flat
-        # indices (gathers and scatters of the points in view rather than masks over all the running ones).
-        visible = np.flatnonzero(other.sees(Y) & other.in_image(uv_other))
-        pixel = np.floor(uv_other.take(visible, axis=0) + 0.5).astype(np.intp)
-        height, width = mask.shape
-        # Clipped by np.maximum and np.minimum: np.clip's wrapper costs several times the arithmetic here.
-        rows = np.minimum(np.maximum(pixel[:, 1], 0), height - 1)
-        cols = np.minimum(np.maximum(pixel[:, 0], 0), width - 1)
-        hit = mask.ravel().take(rows * width + cols) > 0
-        seen = running.take(visible)  # (m,) indices in X of the points in view, each once
+        # Only the points in view are counted, by flat indices (gathers and scatters of the points in view rather
+        # than masks over all the running ones).
+        visible, at = pixels_seen(other, X.take(running, axis=0), mask.shape)
+        hit = mask.ravel().take(at) > 0
+        seen = running.take(np.flatnonzero(visible))  # (m,) indices in X of the points in view, each once
         inside[seen[hit]] += 1
         misses[seen[~hit]] += 1
         running = running[misses.take(running) <= tolerated]

@@ -27,9 +27,10 @@ import cv2
 import numpy as np
 
 from calib.camera import Camera
+from stages.consistency import evenly_spread, pixels_seen
 from stages.rays import box_interval
 from stages.reconstruction.views import blind_beyond_image
-from stages.reconstruction.visual_shape import hull_bounds
+from stages.reconstruction.visual_shape import hull_bounds, outline_points
 
 #: Cells of this many across the image's width count the votes (8 pixels a side on a 780 x 580 image): finer than
 #: a limb, coarse enough for the points of a hundred rays per view to reach most cells the subject covers.
@@ -136,15 +137,9 @@ def hidden_votes(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volume:
     misses = np.zeros(len(X), np.int8)
     running = np.arange(len(X))
     for index, (camera, mask, part, shape) in enumerate(zip(cameras, masks, found, shapes, strict=True)):
-        Y = X.take(running, axis=0)
-        uv = camera.project(Y)
-        seen = camera.sees(Y) & camera.in_image(uv)
-        running, uv = running.compress(seen), uv.compress(seen, axis=0)
-        pixel = np.floor(uv + 0.5).astype(np.intp)
-        height, width = mask.shape
-        rows = np.minimum(np.maximum(pixel[:, 1], 0), height - 1)
-        cols = np.minimum(np.maximum(pixel[:, 0], 0), width - 1)
-        at = rows * width + cols
+        seen, at = pixels_seen(camera, X.take(running, axis=0), mask.shape)
+        running = running.compress(seen)
+        rows, cols = np.divmod(at, mask.shape[1])
         hit = mask.ravel().take(at) > 0
         own[index, running] = hit
         if part is not None:
@@ -204,9 +199,9 @@ def hidden_parts(votes: CellVotes, cameras: Sequence[Camera]) -> list[np.ndarray
     A cell is hidden when the camera showed background there on ``PERSISTENT_SHARE`` of the frames where the
     others placed the subject in it and on at least ``MIN_HIDDEN_FRAMES``, and its connected part of such cells is
     large (``MIN_PART_SHARE``); the camera's large parts count when they were hidden while the subject's image
-    moved (``MIN_TRAVEL``). The parts found are
-    filled (a cell inside one that the sampled frames missed is hidden too) and grown by a cell, so that the band
-    between the subject's visible part and the first cell found is covered too.
+    moved (``MIN_TRAVEL``). The parts found are filled (a cell inside one that the sampled frames missed is hidden
+    too) and grown by a cell, so that the band between the subject's visible part and the first cell found is
+    covered too.
     """
     maps = []
     for camera, placed, hidden, centres in zip(cameras, votes.placed, votes.hidden, votes.centres, strict=True):
@@ -256,12 +251,10 @@ def _ray_points(masks: Sequence[np.ndarray], pixels: Sequence[np.ndarray], camer
     hulls of the other views' silhouettes ``masks``, all of them but one (`hull_bounds`)."""
     origins, directions, camera_of, outlines = [], [], [], []
     for index, (camera, mask, ours) in enumerate(zip(cameras, masks, pixels, strict=True)):
-        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-        outline = np.concatenate(contours).reshape(-1, 2).astype(float) if contours else np.zeros((0, 2))
-        outlines.append(camera.undistort_pixels(outline) if len(outline) else outline)
+        outlines.append(outline_points(camera, mask))
         if not len(ours):
             continue
-        chosen = np.unique(np.linspace(0, len(ours) - 1, min(RAYS_PER_VIEW, len(ours))).round().astype(int))
+        chosen = evenly_spread(len(ours), RAYS_PER_VIEW)
         directions.append(camera.pixel_rays(ours[chosen]))
         origins.append(np.repeat(camera.centre[None], len(chosen), axis=0))
         camera_of.append(np.full(len(chosen), index))

@@ -127,7 +127,7 @@ def rim_points(
                  blind_beyond_image(mask))
                 for mask, ours, part in zip(masks, outlines, hidden, strict=True)]
     # The cones the rays are clipped to hold the hidden parts too.
-    bounding = [points if part is None else np.concatenate([points, _hidden_outline(camera, part)])
+    bounding = [points if part is None else np.concatenate([points, outline_points(camera, part)])
                 for camera, points, part in zip(cameras, normalised, hidden, strict=True)]
     edges = _viewing_edges(cameras, tolerant, bounding, volume, origins, directions, camera_of,
                            tolerated_views=tolerated_views, samples_per_ray=samples_per_ray)
@@ -180,9 +180,10 @@ def _with_hidden(mask: np.ndarray, hidden: np.ndarray) -> tuple[np.ndarray, tupl
     return union, cv2.boundingRect(union)
 
 
-def _hidden_outline(camera: Camera, hidden: np.ndarray) -> np.ndarray:
-    """(n, 2) the outline of the ``hidden`` part of the view (H, W) uint8 in normalised image coordinates."""
-    contours, _ = cv2.findContours(hidden, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+def outline_points(camera: Camera, mask: np.ndarray) -> np.ndarray:
+    """(n, 2) the vertices of the outer outlines of ``mask`` (H, W) uint8 in normalised image coordinates: enough for
+    its convex hull (`hull_bounds`)."""
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     if not contours:
         return np.zeros((0, 2))
     return camera.undistort_pixels(np.concatenate(contours).reshape(-1, 2).astype(np.float64))

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 from sphere_scene import RADIUS, VOLUME, render_spheres, ring_rig
 
+from calib.errors import InputError
 from stages.reconstruction import ReconstructionParams, reconstruct
 from stages.reconstruction.contours import outline
 from stages.reconstruction.occlusion import MIN_CAMERAS, hidden_parts, hidden_votes, no_votes, search_hidden_parts
@@ -117,5 +118,5 @@ def test_a_hidden_part_no_longer_carves_the_subject(rig):
 
 def test_hidden_parts_must_fit_the_cameras(rig):
     masks = frames_seen(rig)[0]
-    with pytest.raises(Exception, match="one map per camera"):
+    with pytest.raises(InputError, match="one map per camera"):
         reconstruct(masks, rig, VOLUME, ReconstructionParams(), [None] * (len(rig) - 1))
