@@ -84,6 +84,8 @@ from pipeline.io.tracking_io import read_tracking
 from pipeline.report.page import write_report
 from stages.background import BackgroundEstimate, estimate_backgrounds, sample_count
 from stages.background.plates import MIN_PLATE_MATCH, PLATE_SHIFT_PX, PlateFit, plate_fit, shifted_plate
+from stages.background.room import PATCH_FRAMES, patched_plate, static_parts
+from stages.consistency import evenly_spread
 from stages.export import ExportParams
 from stages.export.quality import FrameQuality
 from stages.joints import JOINT_NAMES
@@ -247,8 +249,10 @@ def _intact(path: Path) -> bool:
 
 
 def run_silhouettes(ctx: StageContext) -> int:
-    """Per frame and camera, the person's mask: given ones as they are, else background subtraction."""
-    floors = {} if ctx.capture.silhouettes_given else _backgrounds(ctx)
+    """Per frame and camera, the person's mask: given ones as they are, else background subtraction (made again,
+    every camera's, when a camera's clean plate is found out of date: :func:`mend_room_changes`)."""
+    given = ctx.capture.silhouettes_given
+    floors = {} if given else _backgrounds(ctx)
     names = ctx.capture.rig.names
     task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
                              noise_floors=floors)
@@ -256,12 +260,49 @@ def run_silhouettes(ctx: StageContext) -> int:
     def outputs_of(frame: int) -> list[Path]:
         return [silhouette_path(ctx.out_dir, camera, frame) for camera in names]
 
-    chunk_size = None
-    if ctx.capture.media == "videos" and not ctx.capture.silhouettes_given:
-        chunk_size = video_chunk_size(len(ctx.pending_frames(outputs_of)), ctx.workers.count)
-    count = ctx.map_frames(task, outputs_of, chunk_size=chunk_size)
+    def make_masks() -> int:
+        chunk_size = None
+        if ctx.capture.media == "videos" and not given:
+            chunk_size = video_chunk_size(len(ctx.pending_frames(outputs_of)), ctx.workers.count)
+        return ctx.map_frames(task, outputs_of, chunk_size=chunk_size)
+
+    count = make_masks()
+    plated = [camera for camera in names if camera not in floors]
+    if not given and ctx.params.find_room_changes and plated and mend_room_changes(ctx.capture, ctx.out_dir, plated):
+        for frame in ctx.capture.frame_numbers:  # every view's, since the views settle shadows and parts together
+            for path in outputs_of(frame):
+                path.unlink(missing_ok=True)
+        count = make_masks()
     _check_calibration(ctx.capture, ctx.out_dir)
     return count
+
+
+#: Frames, spread over the capture, whose silhouettes are searched for parts of the room changed since the plates.
+ROOM_CHECK_FRAMES = 24
+
+
+def mend_room_changes(capture: Capture, masks_dir: Path, cameras: Sequence[str]) -> list[str]:
+    """Mend the background of each of ``cameras`` (those with a clean plate) whose silhouettes hold a part of the room
+    that changed since its plate (`stages.background.room`), from frames of the capture where the subject is apart
+    from it; returns the cameras mended, each named in a warning. Their silhouettes are then out of date."""
+    frames = spread_frames(capture.frame_numbers, ROOM_CHECK_FRAMES)
+    mended = []
+    for camera in cameras:
+        masks = [frames_io.read_mask(silhouette_path(masks_dir, camera, frame)) for frame in frames]
+        region, apart = static_parts(masks)
+        if not region.any():
+            continue
+        chosen = [apart[int(k)] for k in evenly_spread(len(apart), PATCH_FRAMES)]
+        images = [image for _, image in capture.iter_images(camera, [frames[k] for k in chosen])]
+        path = background_path(masks_dir, camera)
+        patched = patched_plate(frames_io.read_image(path), region, images, [masks[k] for k in chosen])
+        frames_io.write_image(path, patched)
+        mended.append(camera)
+        log.warning("silhouettes: camera %s: %.1f %% of its view differs from its clean plate in nearly every frame "
+                    "and not with the subject (something put down or moved after the plate was taken?); its "
+                    "background there is taken from the frames, and the silhouettes are made again", camera,
+                    100 * region.mean())
+    return mended
 
 
 #: Frames, spread over the capture, on which the silhouettes are checked against the calibration.

@@ -11,7 +11,10 @@ that see the point, but ``tolerated`` ones, and at least two, or the only other 
 A bystander seen by two cameras fails: at his place, the other cameras see bare room.
 
 A view whose silhouette is a single part is left as it is: that part is the subject or nothing can be said
-(the test costs a few milliseconds per tested part, so it runs only where there is a choice to make).
+(the test costs a few milliseconds per tested part, so it runs only where there is a choice to make). Nor is a
+view emptied of every part while the other views confirm some of one: there the subject is merged, in this view,
+with something they do not see (he passes before a bystander, or before a thing the other views have in their
+backgrounds), and an empty view would carve him away; the best confirmed part stays.
 """
 
 from __future__ import annotations
@@ -72,6 +75,10 @@ def consistent_silhouettes(masks: Sequence[np.ndarray], cameras: Sequence[Camera
         starts = np.cumsum([0] + [len(part) for part in pixels[:-1]])
         shares = np.add.reduceat(explained, starts) / np.array([len(part) for part in pixels])
         dropped = np.flatnonzero(shares < EXPLAINED_SHARE) + 1  # labels of the parts to drop
+        if len(dropped) == count - 1 and shares.max() > 0:
+            # Every part would go, yet the others confirm some of one: the subject merged in this view with
+            # something they do not see (he passes before it). Emptied, the view would carve all of him away.
+            dropped = dropped[dropped != np.argmax(shares) + 1]
         if not len(dropped):
             kept.append(mask)
             continue

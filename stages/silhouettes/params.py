@@ -64,6 +64,11 @@ class SilhouetteParams:
         Drop the connected parts of a view's silhouette that the other views do not confirm (a bystander
         seen by one or two cameras, a reflection, a phantom): see :mod:`stages.consistency`. Applies to
         given silhouettes too (a person segmenter marks every person).
+    find_room_changes : bool
+        Look for parts of the room that changed since a camera's clean plate was taken (a box put down, a chair
+        moved): foreground in nearly every frame and apart from the subject's moving silhouette in most, see
+        :mod:`stages.background.room`. That camera's background there is taken from the frames, and the
+        silhouettes are made again. The pipeline does it (it needs many frames' silhouettes).
     """
 
     downsample: int = 2
@@ -80,9 +85,11 @@ class SilhouetteParams:
     min_component_area_fraction: float = 2e-4
     max_hole_fraction: float = 0.01
     multiview_check: bool = True
+    find_room_changes: bool = True
 
     def __post_init__(self) -> None:
         check_bool("silhouettes.multiview_check", self.multiview_check)
+        check_bool("silhouettes.find_room_changes", self.find_room_changes)
         check_int("silhouettes.downsample", self.downsample, 1)
         for name in ("opening_px", "closing_px"):
             check_int(f"silhouettes.{name}", getattr(self, name), 0)

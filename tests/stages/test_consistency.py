@@ -51,6 +51,22 @@ def test_a_blob_in_one_view_goes_and_the_subject_stays_when_that_view_misses_a_p
     assert all(np.array_equal(checked[index], masks[index]) for index in (0, 1, 3, 4, 5))
 
 
+def test_a_view_is_not_emptied_of_the_subject_merged_with_something_the_others_do_not_see(scene):
+    rig, masks = scene
+    masks = [mask.copy() for mask in masks]
+    x, y, w, h = cv2.boundingRect(masks[1])
+    thing = np.zeros_like(masks[1])  # in this view only: a large box away from the subject, joined to him by a strip
+    thing[75:115, 2:42] = 255
+    thing[y + h // 2:y + h // 2 + 2, 40:x + w // 2] = 255
+    thing[y + h // 2:76, 40:42] = 255
+    merged = np.maximum(masks[1], thing)
+    masks[1] = merged.copy()
+    cv2.circle(masks[1], (150, 110), 5, 255, -1)  # and a speck
+    checked = consistent_silhouettes(masks, list(rig), VOLUME, tolerated=1)
+    # Their part holds more of the box than of the subject and alone would not pass; the speck goes.
+    assert np.array_equal(checked[1], merged)
+
+
 def test_one_mask_per_camera():
     rig = ring(3)
     with pytest.raises(InputError, match="2 masks for 3 cameras"):

@@ -1,0 +1,81 @@
+"""The silhouette stage's search for parts of the room changed since the clean plates were taken."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import still_scene as scene
+
+from pipeline.cli import main
+from pipeline.io import frames_io
+from pipeline.io.run_layout import background_path, silhouette_path
+
+#: The subject walks a circle around the middle of the volume, ...
+PATH = 0.6 * np.column_stack([np.cos(np.linspace(0, 2 * np.pi, 24, endpoint=False)),
+                              np.sin(np.linspace(0, 2 * np.pi, 24, endpoint=False))])
+#: ... and a box stands by the wall, put there after the plates were taken (centre and semi-axes, metres; colour).
+BOX_CENTRE, BOX_AXES, BOX_COLOUR = np.array([-1.05, -0.9, 0.3]), np.array([0.2, 0.2, 0.3]), (150, 170, 60)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    rig = scene.ring()
+    rooms = scene.rooms(rig, seed=3)
+    rng = np.random.default_rng(4)
+    views = []
+    for camera, room in zip(rig, rooms, strict=True):
+        box = scene.ellipsoid_mask(camera, BOX_CENTRE, BOX_AXES) > 0
+        box_nearer = np.linalg.norm(camera.centre - BOX_CENTRE)
+        images = []
+        for centre in PATH:
+            image = room.astype(np.float32)
+            person = scene.subject_mask(camera, centre) > 0
+            in_front = np.linalg.norm(camera.centre[:2] - centre) < box_nearer
+            for region, colour in ((box, BOX_COLOUR), (person, scene.COLOUR))[:: 1 if in_front else -1]:
+                image[region] = colour
+            image += rng.normal(0.0, scene.NOISE_SIGMA, image.shape)
+            images.append(np.clip(image, 0, 255).round().astype(np.uint8))
+        views.append(images)
+    return scene.write_capture(tmp_path_factory.mktemp("box") / "capture", rig, views, rooms)
+
+
+def _box_share(out: Path) -> float:
+    """The share of the box's pixels that the silhouettes hold, over every camera and frame where the subject is
+    apart from it."""
+    held, total = 0, 0
+    for camera in scene.ring():
+        box = scene.ellipsoid_mask(camera, BOX_CENTRE, BOX_AXES) > 0
+        for frame, centre in enumerate(PATH):
+            if (scene.subject_mask(camera, centre) > 0)[box].any():
+                continue
+            mask = frames_io.read_mask(silhouette_path(out / "silhouettes", camera.name, frame)) > 0
+            held += int(mask[box].sum())
+            total += int(box.sum())
+    return held / total
+
+
+def test_a_box_put_down_after_the_plates_is_taken_into_the_backgrounds(capture, tmp_path, capfd):
+    out = tmp_path / "out"
+    assert main(["run", str(capture), "--out", str(out), "--to", "silhouettes", "-q", "--workers", "1"]) == 0
+    err = capfd.readouterr().err
+    mended = [camera.name for camera in scene.ring() if any(
+        f"camera {camera.name}: " in line and "differs from its clean plate in nearly every frame" in line
+        for line in err.splitlines())]
+    assert len(mended) >= 3
+    assert _box_share(out) < 0.05
+    rig = scene.ring()
+    for frame, centre in enumerate(PATH):  # the subject is all there
+        for camera in rig:
+            mask = frames_io.read_mask(silhouette_path(out / "silhouettes", camera.name, frame)) > 0
+            person = scene.subject_mask(camera, centre) > 0
+            assert (mask & person).sum() > 0.95 * person.sum()
+    plate = frames_io.read_image(capture / "background" / f"{mended[0]}.png")
+    assert not np.array_equal(frames_io.read_image(background_path(out / "silhouettes", mended[0])), plate)
+
+    kept = tmp_path / "kept"
+    assert main(["run", str(capture), "--out", str(kept), "--to", "silhouettes", "-q", "--workers", "1",
+                 "--set", "silhouettes.find_room_changes=false"]) == 0
+    assert "differs from its clean plate" not in capfd.readouterr().err
+    assert _box_share(kept) > 0.9
