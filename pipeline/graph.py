@@ -39,7 +39,7 @@ import dataclasses
 import functools
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +78,7 @@ from pipeline.io.run_layout import (
     observations_path,
     overlay_video_name,
     refined_rig_path,
+    remaking_path,
     silhouette_path,
 )
 from pipeline.io.tracking_io import read_tracking
@@ -250,15 +251,26 @@ def _intact(path: Path) -> bool:
 
 def run_silhouettes(ctx: StageContext) -> int:
     """Per frame and camera, the person's mask: given ones as they are, else background subtraction (made again,
-    every camera's, when a camera's clean plate is found out of date: :func:`mend_room_changes`)."""
+    every camera's, when a camera's clean plate is found out of date: :func:`mended_backgrounds`)."""
     given = ctx.capture.silhouettes_given
-    floors = {} if given else _backgrounds(ctx)
     names = ctx.capture.rig.names
-    task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
-                             noise_floors=floors)
+    plated = [] if given else [camera for camera in names if camera in ctx.capture.background_paths]
 
     def outputs_of(frame: int) -> list[Path]:
         return [silhouette_path(ctx.out_dir, camera, frame) for camera in names]
+
+    def remove(paths: Iterable[Path]) -> None:
+        for path in paths:
+            path.unlink(missing_ok=True)
+
+    remaking = remaking_path(ctx.out_dir)
+    if remaking.exists():  # stopped while remaking: masks and backgrounds of two kinds, so start over
+        remove(path for frame in ctx.capture.frame_numbers for path in outputs_of(frame))
+        remove(background_path(ctx.out_dir, camera) for camera in plated)
+        remaking.unlink()
+    floors = {} if given else _backgrounds(ctx)
+    task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
+                             noise_floors=floors)
 
     def make_masks() -> int:
         chunk_size = None
@@ -267,12 +279,16 @@ def run_silhouettes(ctx: StageContext) -> int:
         return ctx.map_frames(task, outputs_of, chunk_size=chunk_size)
 
     count = make_masks()
-    plated = [camera for camera in names if camera not in floors]
-    if not given and ctx.params.find_room_changes and plated and mend_room_changes(ctx.capture, ctx.out_dir, plated):
-        for frame in ctx.capture.frame_numbers:  # every view's, since the views settle shadows and parts together
-            for path in outputs_of(frame):
-                path.unlink(missing_ok=True)
+    plated = [camera for camera in plated if camera not in floors]  # a plate left out has an estimate instead
+    mended = mended_backgrounds(ctx.capture, ctx.out_dir, plated) if ctx.params.find_room_changes and plated else {}
+    if mended:
+        atomic.write_text(remaking, "")
+        for camera, image in mended.items():
+            frames_io.write_image(background_path(ctx.out_dir, camera), image)
+        # Every view's masks, since the views settle shadows and parts together.
+        remove(path for frame in ctx.capture.frame_numbers for path in outputs_of(frame))
         count = make_masks()
+        remaking.unlink()
     _check_calibration(ctx.capture, ctx.out_dir)
     return count
 
@@ -281,12 +297,12 @@ def run_silhouettes(ctx: StageContext) -> int:
 ROOM_CHECK_FRAMES = 24
 
 
-def mend_room_changes(capture: Capture, masks_dir: Path, cameras: Sequence[str]) -> list[str]:
-    """Mend the background of each of ``cameras`` (those with a clean plate) whose silhouettes hold a part of the room
-    that changed since its plate (`stages.background.room`), from frames of the capture where the subject is apart
-    from it; returns the cameras mended, each named in a warning. Their silhouettes are then out of date."""
+def mended_backgrounds(capture: Capture, masks_dir: Path, cameras: Sequence[str]) -> dict[str, np.ndarray]:
+    """The background of each of ``cameras`` (those with a clean plate) whose silhouettes hold a part of the room
+    that changed since its plate (`stages.background.room`), mended from frames of the capture where the subject is
+    apart from it, by camera; each camera mended is named in a warning. Their silhouettes are then out of date."""
     frames = spread_frames(capture.frame_numbers, ROOM_CHECK_FRAMES)
-    mended = []
+    mended = {}
     for camera in cameras:
         masks = [frames_io.read_mask(silhouette_path(masks_dir, camera, frame)) for frame in frames]
         region, apart = static_parts(masks)
@@ -294,10 +310,8 @@ def mend_room_changes(capture: Capture, masks_dir: Path, cameras: Sequence[str])
             continue
         chosen = [apart[int(k)] for k in evenly_spread(len(apart), PATCH_FRAMES)]
         images = [image for _, image in capture.iter_images(camera, [frames[k] for k in chosen])]
-        path = background_path(masks_dir, camera)
-        patched = patched_plate(frames_io.read_image(path), region, images, [masks[k] for k in chosen])
-        frames_io.write_image(path, patched)
-        mended.append(camera)
+        background = frames_io.read_image(background_path(masks_dir, camera))
+        mended[camera] = patched_plate(background, region, images, [masks[k] for k in chosen])
         log.warning("silhouettes: camera %s: %.1f %% of its view differs from its clean plate in nearly every frame "
                     "and not with the subject (something put down or moved after the plate was taken?); its "
                     "background there is taken from the frames, and the silhouettes are made again", camera,

@@ -83,6 +83,13 @@ def noise_floors_path(stage_dir: Path) -> Path:
     return stage_dir / "background" / "noise_floors.json"
 
 
+def remaking_path(stage_dir: Path) -> Path:
+    """Present in the silhouette stage's folder while its silhouettes are made again against backgrounds mended for
+    parts of the room changed since the plates (`pipeline.graph.run_silhouettes`): a run that stopped then left masks
+    and backgrounds of two kinds, and the stage starts over."""
+    return stage_dir / "remaking"
+
+
 def calibration_check_path(stage_dir: Path) -> Path:
     """The silhouette stage's check of the calibration (JSON, `pipeline.graph._check_calibration`)."""
     return stage_dir / "calibration_check.json"

@@ -79,3 +79,22 @@ def test_a_box_put_down_after_the_plates_is_taken_into_the_backgrounds(capture, 
                  "--set", "silhouettes.find_room_changes=false"]) == 0
     assert "differs from its clean plate" not in capfd.readouterr().err
     assert _box_share(kept) > 0.9
+
+
+def test_a_run_stopped_while_the_silhouettes_are_made_again_starts_the_stage_over(capture, tmp_path):
+    out = tmp_path / "out"
+    assert main(["run", str(capture), "--out", str(out), "--to", "silhouettes", "-q", "--workers", "1"]) == 0
+    stage = out / "silhouettes"
+    made = {path.relative_to(stage): path.read_bytes() for path in stage.rglob("*.png")}
+    # As a stop would leave it: the backgrounds mended (one of them half written over), a few masks of the
+    # second pass written and the others still the first pass's, no manifest.
+    (stage / "manifest.json").unlink()
+    (stage / "remaking").write_text("")
+    first = scene.ring()[0].name
+    background = frames_io.read_image(background_path(stage, first))
+    frames_io.write_image(background_path(stage, first), background // 2)
+    for frame in range(5):
+        silhouette_path(stage, first, frame).unlink()
+    assert main(["run", str(capture), "--out", str(out), "--to", "silhouettes", "-q", "--workers", "1"]) == 0
+    assert not (stage / "remaking").exists()
+    assert {path.relative_to(stage): path.read_bytes() for path in stage.rglob("*.png")} == made
