@@ -323,3 +323,64 @@ def test_an_occluder_stands_in_one_cameras_plate_and_frames_and_hides_the_subjec
 def test_an_occluder_is_placed_by_the_true_masks(capture, tmp_path):
     with pytest.raises(InputError, match="no true masks"):
         perturb_capture(capture, tmp_path / "none", "none", occluder={"cam1": "desk"})
+
+
+def test_a_box_put_down_after_the_plates_stands_in_every_frame_and_not_in_the_plates(tmp_path):
+    import still_scene as scene
+
+    from calib.formats import save_rig as save
+    from pipeline.lab.bench.box import box_corners, box_view
+
+    rig = scene.ring(3)
+    rooms = scene.rooms(rig, seed=5)
+    path = 0.3 * np.column_stack([np.cos(np.linspace(0, 2 * np.pi, 6)), np.zeros(6)])  # to and fro along x
+    views = scene.frames(rig, rooms, path)
+    root = tmp_path / "capture"
+    for folder in ("videos", "background", "groundtruth/masks"):
+        (root / folder).mkdir(parents=True)
+    save(rig, "anipose", root / "calibration" / "calibration.toml")
+    (root / "capture.yaml").write_text(
+        "fps: 25\ncalibration: {format: anipose, path: calibration/calibration.toml}\n"
+        f"volume: {{min: {scene.VOLUME[0].tolist()}, max: {scene.VOLUME[1].tolist()}}}\n")
+    pelvis = np.column_stack([path, np.full(len(path), 0.85)])[:, None, :]
+    write_joints_csv(root / "groundtruth" / "joints.csv", np.arange(len(path)), pelvis, ("pelvis",))
+    for camera, room, images in zip(rig, rooms, views, strict=True):
+        cv2.imwrite(str(root / "background" / f"{camera.name}.png"), room)
+        writer = cv2.VideoWriter(str(root / "videos" / f"{camera.name}.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 25,
+                                 scene.SIZE)
+        (root / "groundtruth" / "masks" / camera.name).mkdir()
+        for frame, (image, centre) in enumerate(zip(images, path, strict=True)):
+            writer.write(image)
+            cv2.imwrite(str(root / "groundtruth" / "masks" / camera.name / f"{frame:06d}.png"),
+                        scene.subject_mask(camera, centre))
+        writer.release()
+
+    out = perturb_capture(root, tmp_path / "box", "none", box=True)
+    corners = box_corners(pelvis[:, 0], scene.VOLUME)
+    for camera in rig:
+        assert (out / "background" / f"{camera.name}.png").read_bytes() == \
+            (root / "background" / f"{camera.name}.png").read_bytes()
+        view = box_view(camera, corners)
+        assert view.region.sum() > 200
+        inner = cv2.erode(view.region.view(np.uint8), np.ones((5, 5), np.uint8)) > 0  # away from the codec's edges
+        checked = 0
+        for index, frame in enumerate(_frames(out / "videos" / f"{camera.name}.mp4")):
+            given = cv2.imread(str(root / "groundtruth" / "masks" / camera.name / f"{index:06d}.png"), 0) > 0
+            kept = cv2.imread(str(out / "groundtruth" / "masks" / camera.name / f"{index:06d}.png"), 0) > 0
+            shown = inner & ~cv2.dilate(given.view(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+            if shown.sum() > 50:  # the box, where he is not
+                assert np.abs(frame[shown].astype(float) - view.image[shown]).mean() < 6
+                checked += 1
+            # The true masks lose the subject where the box hides him, and only there.
+            assert not (kept & ~given).any() and not (given & ~kept & ~view.region).any()
+        assert checked >= len(path) // 2
+    with pytest.raises(InputError, match="no true joints and masks"):
+        perturb_capture(_bare(tmp_path / "bare", root), tmp_path / "nobox", "none", box=True)
+
+
+def _bare(folder: Path, root: Path) -> Path:
+    """A copy of the capture at ``root`` without its ground truth."""
+    import shutil
+
+    shutil.copytree(root, folder, ignore=shutil.ignore_patterns("groundtruth"))
+    return folder

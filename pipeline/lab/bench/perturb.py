@@ -79,6 +79,11 @@ twentieth of its width wide, where the middle of his true masks lies in the medi
 Their true masks lose what it hides. The subject's joints are unchanged: the other cameras see him whole.
 
     python -m pipeline.lab.bench.perturb ../shared/foreign/taekwondo --change none --occluder cam00:desk --out runs/desk
+
+With ``--box`` a box stands on the floor beside where the subject moves, in every frame and not in the plates:
+something put down after the plates were taken (:mod:`pipeline.lab.bench.box`). The true masks lose what it hides.
+
+    python -m pipeline.lab.bench.perturb ../shared/foreign/walk --change none --box --out runs/walk-box
 """
 
 from __future__ import annotations
@@ -88,7 +93,7 @@ import csv
 import shutil
 import sys
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -100,6 +105,7 @@ from calib.formats import load_rig, save_rig
 from calib.world import UNIT_SCALE
 from pipeline.io.capture import Capture
 from pipeline.io.export_io import read_joints_csv, write_joints_csv
+from pipeline.lab.bench.box import BoxView, box_corners, box_view, pelvis_track, with_box
 from stages.background.plates import shifted_plate
 
 # What each change does to a frame (float32 8-bit levels, BGR), given a random generator and the camera's index.
@@ -167,15 +173,15 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
                     zoom: dict[str, float] | None = None,
                     late: dict[str, int] | None = None,
                     plate_shift: dict[str, tuple[float, float]] | None = None, monochrome: bool = False,
-                    shutter: float = 0.0, occluder: dict[str, str] | None = None) -> Path:
+                    shutter: float = 0.0, occluder: dict[str, str] | None = None, box: bool = False) -> Path:
     """Write to ``out`` (which must not exist) a copy of ``capture`` with ``change`` (a key of ``CHANGES``) applied
     to every frame of its videos, and the subject away on the frames ``absent``, seen by the ``cameras`` named
     (default: all) through a calibration whose cameras are each turned by ``calibration_error_deg`` and moved by
     ``position_error_m``, the cameras of ``zoom`` zoomed by its factors (:func:`zoomed`), those of ``late`` that
     many frames behind the others, the clean plates of those of ``plate_shift`` moved by its (x, y) pixels, every
     frame and plate in grey levels with ``monochrome``, each frame blended with the one before in the share
-    ``shutter``, and the cameras of ``occluder`` seeing the subject behind a desk or a pillar (:func:`occluder_region`);
-    returns ``out``.
+    ``shutter``, the cameras of ``occluder`` seeing the subject behind a desk or a pillar (:func:`occluder_region`), and
+    with ``box`` a box put down beside him after the plates were taken (:mod:`pipeline.lab.bench.box`); returns ``out``.
 
     capture.yaml, the calibration and the background plates (unless ``plates`` is False) are copied, the ground
     truth (when there is one) linked, or rewritten without the ``absent`` frames and the cameras left out
@@ -190,7 +196,7 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         without a clean plate for every camera, a camera named that has no video, an angle or a distance that is
         not finite, a zoom factor that is not a finite number of at least 1, a delay that is not a whole number of
         frames of at least 1, a plate shift that is not two finite numbers, a shutter share outside [0, 1), or an
-        occluder of another kind or for a camera without true masks.
+        occluder of another kind or for a camera without true masks, or a box in a capture without true joints.
     """
     capture, out = Path(capture), Path(out)
     if change not in CHANGES:
@@ -228,6 +234,7 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         videos = [video for video in videos if video.stem in cameras]
     empty_room = [_plate(capture, video.stem) for video in videos] if absent else [None] * len(videos)
     regions = {name: occluder_region(capture / "groundtruth" / "masks" / name, kind) for name, kind in occluder.items()}
+    boxes = _box_views(capture, {video.stem for video in videos}) if box else {}
     apply = CHANGES[change][1]
     rng = np.random.default_rng(seed)
     partial = out.with_name(out.name + ".partial")
@@ -258,18 +265,22 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
             else:
                 shutil.copy2(plate, partial / "background" / plate.name)
     if (capture / "groundtruth").is_dir():
-        if absent or cameras or zoom or late or shutter or regions:
+        if absent or cameras or zoom or late or shutter or regions or boxes:
             _truth_without(capture / "groundtruth", partial / "groundtruth", absent, {video.stem for video in videos},
-                           zoom, late, shutter, regions)
+                           zoom, late, shutter, regions, boxes)
         else:
             (partial / "groundtruth").symlink_to((capture / "groundtruth").resolve(), target_is_directory=True)
     for camera, (video, plate) in enumerate(zip(videos, empty_room, strict=True)):
         region = regions.get(video.stem)
 
         def changed(frame: np.ndarray, index: int, camera: int = camera, plate: np.ndarray | None = plate,
-                    factor: float = zoom.get(video.stem, 1.0), region: np.ndarray | None = region):
+                    factor: float = zoom.get(video.stem, 1.0), region: np.ndarray | None = region,
+                    name: str = video.stem):
             if index in absent:
                 frame = plate + rng.normal(0.0, ABSENT_NOISE, plate.shape)
+            if name in boxes:
+                shown = max(0, index - late.get(name, 0))
+                frame = with_box(frame, boxes[name].view, *boxes[name].subject(shown))
             frame = zoomed(frame, factor)
             frame = apply(frame if region is None else _occluded(frame, region), rng, camera)
             return _grey(frame) if monochrome else frame
@@ -359,14 +370,16 @@ def _plate(capture: Path, camera: str) -> np.ndarray:
 
 
 def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], zoom: dict[str, float],
-                   late: dict[str, int], shutter: float = 0.0, regions: dict[str, np.ndarray] | None = None) -> None:
+                   late: dict[str, int], shutter: float = 0.0, regions: dict[str, np.ndarray] | None = None,
+                   boxes: dict[str, _BoxCamera] | None = None) -> None:
     """``target``, the ground truth at ``truth`` without the ``absent`` frames, seen by ``cameras``: the absent
     frames' joints.csv rows left out and their masks empty, the other cameras' masks left out, the masks of the
     cameras of ``zoom`` zoomed (:func:`zoomed`), those of the cameras of ``late`` the earlier frame's, those of the
-    cameras of ``regions`` without what their occluder hides there (the other masks and files linked); with a
+    cameras of ``regions`` without what their occluder hides there, those of ``boxes`` without what the box hides
+    (the other masks and files linked); with a
     ``shutter``, each frame's joints moved that share of the way back to the frame before's (the exposure's mean
     time)."""
-    regions = regions or {}
+    regions, boxes = regions or {}, boxes or {}
     target.mkdir()
     for path in sorted(truth.iterdir()):
         if path.name == "joints.csv" and shutter:
@@ -393,8 +406,12 @@ def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], 
                     if mask.stem.isdigit() and int(mask.stem) in absent:
                         image = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
                         cv2.imwrite(str(written), np.zeros_like(image))
-                    elif camera.name in zoom or camera.name in regions:
-                        image = zoomed(cv2.imread(str(shown), cv2.IMREAD_GRAYSCALE), zoom.get(camera.name, 1.0))
+                    elif camera.name in zoom or camera.name in regions or camera.name in boxes:
+                        image = cv2.imread(str(shown), cv2.IMREAD_GRAYSCALE)
+                        if camera.name in boxes and shown.stem.isdigit() and not boxes[camera.name].nearer(
+                                int(shown.stem)):
+                            image[boxes[camera.name].view.region] = 0
+                        image = zoomed(image, zoom.get(camera.name, 1.0))
                         if camera.name in regions:
                             image[regions[camera.name]] = 0
                         cv2.imwrite(str(written), image)
@@ -402,6 +419,36 @@ def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], 
                         written.symlink_to(shown.resolve())
         else:
             (target / path.name).symlink_to(path.resolve(), target_is_directory=path.is_dir())
+
+
+@dataclass(frozen=True)
+class _BoxCamera:
+    """The box as one camera sees it, and whether the subject is nearer that camera than the box in a frame."""
+
+    camera: Camera
+    view: BoxView
+    pelvis: dict[int, np.ndarray]  # the true pelvis by frame
+    masks: Path  # the camera's true masks
+
+    def nearer(self, frame: int) -> bool:
+        return frame in self.pelvis and float(self.camera.depth(self.pelvis[frame][None])[0]) < self.view.depth
+
+    def subject(self, frame: int) -> tuple[np.ndarray | None, bool]:
+        """The subject's true mask (H, W) bool in ``frame`` (None without one), and whether he is nearer."""
+        mask = cv2.imread(str(self.masks / f"{frame:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        return (None if mask is None else mask > 0), self.nearer(frame)
+
+
+def _box_views(capture: Path, kept: set[str]) -> dict[str, _BoxCamera]:
+    """The box of ``--box`` as each of the ``kept`` cameras of ``capture`` sees it (its own calibration, unchanged)."""
+    truth = capture / "groundtruth"
+    if not (truth / "joints.csv").is_file() or not (truth / "masks").is_dir():
+        raise InputError(f"{truth}: no true joints and masks to place the box by and to draw the subject over it")
+    source = Capture.open(capture)
+    pelvis = pelvis_track(truth)
+    corners = box_corners(np.array(list(pelvis.values())), source.volume)
+    return {camera.name: _BoxCamera(camera, box_view(camera, corners), pelvis, truth / "masks" / camera.name)
+            for camera in source.rig if camera.name in kept}
 
 
 def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray, int], np.ndarray], late: int = 0,
@@ -567,13 +614,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--occluder", type=_occluders, default={}, metavar="NAME:KIND,...",
                         help=f"something between these cameras and the subject, in their plates and frames: one of "
                              f"{', '.join(OCCLUDERS)}")
+    parser.add_argument("--box", action="store_true",
+                        help="a box put down beside the subject after the plates were taken: in every frame, not in "
+                             "the plates")
     args = parser.parse_args(argv)
     try:
         perturb_capture(args.capture, args.out, args.change, seed=args.seed, plates=not args.no_plates,
                         absent=args.absent, cameras=args.cameras, calibration_error_deg=args.calibration_error,
                         position_error_m=args.position_error,
                         zoom=args.zoom, late=args.late, plate_shift=args.plate_shift, monochrome=args.monochrome,
-                        shutter=args.shutter, occluder=args.occluder)
+                        shutter=args.shutter, occluder=args.occluder, box=args.box)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -78,6 +78,7 @@ class Variant:
     first_plate_shift: tuple[float, float] | None = None
     shutter: float = 0.0
     first_occluder: str | None = None
+    box: bool = False
 
     @property
     def slug(self) -> str:
@@ -86,7 +87,7 @@ class Variant:
 
     def arguments(self, cameras: Sequence[str]) -> dict:
         """:func:`perturb_capture`'s keyword arguments for a capture whose cameras are ``cameras`` (sorted); a position
-        error, a plate shift, a shutter and an occluder only when there are, so that the other copies keep their
+        error, a plate shift, a shutter, an occluder and a box only when there are, so that the other copies keep their
         cache keys (:func:`cache_key`)."""
         arguments = {"change": self.change, "seed": SEED, "plates": self.plates,
                      "cameras": tuple(cameras[:self.first_cameras]) if self.first_cameras is not None else (),
@@ -100,6 +101,8 @@ class Variant:
             arguments["shutter"] = self.shutter
         if self.first_occluder is not None:
             arguments["occluder"] = {cameras[0]: self.first_occluder}
+        if self.box:
+            arguments["box"] = True
         return arguments
 
 
@@ -118,6 +121,7 @@ VARIANTS = (
     Variant("shutter open the whole frame", shutter=0.5),
     Variant("a desk before one camera", first_occluder="desk"),
     Variant("a pillar before one camera", first_occluder="pillar"),
+    Variant("a box put down after the plates", box=True),
 )
 #: The variants of a quick run (a smoke test): one that changes the frames, one that changes the rig and the truth.
 QUICK_VARIANTS = ("compression", "4 cameras")
