@@ -39,7 +39,7 @@ import dataclasses
 import functools
 import logging
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -302,16 +302,20 @@ def mended_backgrounds(capture: Capture, masks_dir: Path, cameras: Sequence[str]
     that changed since its plate (`stages.background.room`), mended from frames of the capture where the subject is
     apart from it, by camera; each camera mended is named in a warning. Their silhouettes are then out of date."""
     frames = spread_frames(capture.frame_numbers, ROOM_CHECK_FRAMES)
+
+    def masks(camera: str, chosen: Sequence[int]) -> Iterator[np.ndarray]:
+        return (frames_io.read_mask(silhouette_path(masks_dir, camera, frame)) for frame in chosen)
+
+    with cf.ThreadPoolExecutor(usable_cpus()) as pool:  # the decoding and OpenCV's work let go of the GIL
+        found = dict(zip(cameras, pool.map(lambda camera: static_parts(masks(camera, frames)), cameras), strict=True))
     mended = {}
-    for camera in cameras:
-        masks = [frames_io.read_mask(silhouette_path(masks_dir, camera, frame)) for frame in frames]
-        region, apart = static_parts(masks)
+    for camera, (region, apart) in found.items():
         if not region.any():
             continue
-        chosen = [apart[int(k)] for k in evenly_spread(len(apart), PATCH_FRAMES)]
-        images = [image for _, image in capture.iter_images(camera, [frames[k] for k in chosen])]
+        chosen = [frames[apart[int(k)]] for k in evenly_spread(len(apart), PATCH_FRAMES)]
+        images = [image for _, image in capture.iter_images(camera, chosen)]
         background = frames_io.read_image(background_path(masks_dir, camera))
-        mended[camera] = patched_plate(background, region, images, [masks[k] for k in chosen])
+        mended[camera] = patched_plate(background, region, images, list(masks(camera, chosen)))
         log.warning("silhouettes: camera %s: %.1f %% of its view differs from its clean plate in nearly every frame "
                     "and not with the subject (something put down or moved after the plate was taken?); its "
                     "background there is taken from the frames, and the silhouettes are made again", camera,

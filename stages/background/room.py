@@ -21,7 +21,7 @@ something differs from the plate, and a few frames' images what the room now loo
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -44,14 +44,15 @@ MIN_PART_CELLS = 8
 PATCH_FRAMES = 5
 
 
-def static_parts(masks: Sequence[np.ndarray]) -> tuple[np.ndarray, list[int]]:
+def static_parts(masks: Iterable[np.ndarray]) -> tuple[np.ndarray, list[int]]:
     """Where one camera's silhouettes hold a part of the room that changed since its plate, and the frames that show
     that part apart from the subject.
 
     Parameters
     ----------
-    masks : sequence of (H, W) uint8
-        The camera's silhouettes (0 = background) of frames spread over the capture.
+    masks : iterable of (H, W) uint8
+        The camera's silhouettes (0 = background) of frames spread over the capture (one at a time: only their blocks
+        are kept).
 
     Returns
     -------
@@ -61,19 +62,22 @@ def static_parts(masks: Sequence[np.ndarray]) -> tuple[np.ndarray, list[int]]:
         Indices into ``masks`` of the frames in which every one of those parts is apart from the subject's moving
         silhouette (empty when there is no part).
     """
-    if not len(masks):
+    shape, blocks = None, []
+    for mask in masks:
+        shape = mask.shape
+        blocks.append(_cells(mask))
+    if not blocks:
         raise ValueError("static_parts: expected the masks of at least one frame")
-    shape = masks[0].shape
-    cells = np.stack([_cells(mask) for mask in masks])  # (K, h, w) bool
-    persistent = cells.sum(axis=0) >= np.ceil(PERSISTENT_SHARE * len(masks))
+    cells = np.stack(blocks)  # (K, h, w) bool
+    persistent = cells.sum(axis=0) >= np.ceil(PERSISTENT_SHARE * len(cells))
     nothing = np.zeros(shape, bool), []
     if persistent.sum() < MIN_PART_CELLS:
         return nothing
     count, parts = cv2.connectedComponents(persistent.view(np.uint8), connectivity=8)
     # The persistent parts' edges flicker in and out with the outline: not movement.
     edge = cv2.dilate(persistent.view(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    touched = np.zeros((len(masks), count), bool)  # frame, part: joined to moving blocks
-    moving = np.zeros(len(masks), bool)
+    touched = np.zeros((len(cells), count), bool)  # frame, part: joined to moving blocks
+    moving = np.zeros(len(cells), bool)
     for k, frame_cells in enumerate(cells):
         movement = frame_cells & ~edge
         if movement.sum() < MIN_MOVING_CELLS:
@@ -133,8 +137,10 @@ def _cells(mask: np.ndarray) -> np.ndarray:
     edges included)."""
     height, width = mask.shape
     rows, cols = -(-height // CELL_PX), -(-width // CELL_PX)
-    padded = np.zeros((rows * CELL_PX, cols * CELL_PX), np.uint8)
-    padded[:height, :width] = mask
+    padded = mask
+    if (rows * CELL_PX, cols * CELL_PX) != mask.shape:
+        padded = np.zeros((rows * CELL_PX, cols * CELL_PX), np.uint8)
+        padded[:height, :width] = mask
     # Area averaging by a whole factor is the exact mean of each block: above 0 where a pixel is set.
     return cv2.resize(padded, (cols, rows), interpolation=cv2.INTER_AREA) > 0
 
