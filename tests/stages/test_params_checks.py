@@ -58,7 +58,7 @@ BAD = {
         "weak_threshold": [-1.0, NAN], "shadow_min": [NAN, 0.0], "shadow_max": [NAN, 1.5], "shadows": ["foo"],
         "background_jitter_px": [-0.2, NAN, INF], "opening_px": [-1, 1.5], "closing_px": [-2, NAN],
         "min_component_fraction": [-0.05, NAN], "min_component_area_fraction": [NAN, -1.0],
-        "max_hole_fraction": [INF, -0.01], "multiview_check": [1, "yes", None],
+        "max_hole_fraction": [INF, -0.01], "multiview_check": [1, "yes", None], "find_room_changes": [1, "yes", None],
     },
     ReconstructionParams: {
         "method": ["foo"], "n_observations": [49, 5001, 1000.0, True], "tolerated_views": [-1, 0.5],
