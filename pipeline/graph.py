@@ -79,6 +79,7 @@ from pipeline.io.run_layout import (
     overlay_video_name,
     refined_rig_path,
     remaking_path,
+    room_change_path,
     silhouette_path,
 )
 from pipeline.io.tracking_io import read_tracking
@@ -266,7 +267,8 @@ def run_silhouettes(ctx: StageContext) -> int:
     remaking = remaking_path(ctx.out_dir)
     if remaking.exists():  # stopped while remaking: masks and backgrounds of two kinds, so start over
         remove(path for frame in ctx.capture.frame_numbers for path in outputs_of(frame))
-        remove(background_path(ctx.out_dir, camera) for camera in plated)
+        remove(path for camera in plated for path in (background_path(ctx.out_dir, camera),
+                                                      room_change_path(ctx.out_dir, camera)))
         remaking.unlink()
     floors = {} if given else _backgrounds(ctx)
     task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
@@ -283,8 +285,9 @@ def run_silhouettes(ctx: StageContext) -> int:
     mended = mended_backgrounds(ctx.capture, ctx.out_dir, plated) if ctx.params.find_room_changes and plated else {}
     if mended:
         atomic.write_text(remaking, "")
-        for camera, image in mended.items():
+        for camera, (image, region) in mended.items():
             frames_io.write_image(background_path(ctx.out_dir, camera), image)
+            frames_io.write_mask(room_change_path(ctx.out_dir, camera), region.view(np.uint8) * np.uint8(255))
         # Every view's masks, since the views settle shadows and parts together.
         remove(path for frame in ctx.capture.frame_numbers for path in outputs_of(frame))
         count = make_masks()
@@ -297,10 +300,12 @@ def run_silhouettes(ctx: StageContext) -> int:
 ROOM_CHECK_FRAMES = 24
 
 
-def mended_backgrounds(capture: Capture, masks_dir: Path, cameras: Sequence[str]) -> dict[str, np.ndarray]:
+def mended_backgrounds(capture: Capture, masks_dir: Path,
+                       cameras: Sequence[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The background of each of ``cameras`` (those with a clean plate) whose silhouettes hold a part of the room
     that changed since its plate (`stages.background.room`), mended from frames of the capture where the subject is
-    apart from it, by camera; each camera mended is named in a warning. Their silhouettes are then out of date."""
+    apart from it, with that part (H, W) bool, by camera; each camera mended is named in a warning. Their
+    silhouettes are then out of date."""
     frames = spread_frames(capture.frame_numbers, ROOM_CHECK_FRAMES)
 
     def masks(camera: str, chosen: Sequence[int]) -> Iterator[np.ndarray]:
@@ -315,10 +320,11 @@ def mended_backgrounds(capture: Capture, masks_dir: Path, cameras: Sequence[str]
         chosen = [frames[apart[int(k)]] for k in evenly_spread(len(apart), PATCH_FRAMES)]
         images = [image for _, image in capture.iter_images(camera, chosen)]
         background = frames_io.read_image(background_path(masks_dir, camera))
-        mended[camera] = patched_plate(background, region, images, list(masks(camera, chosen)))
+        mended[camera] = patched_plate(background, region, images, list(masks(camera, chosen))), region
         log.warning("silhouettes: camera %s: %.1f %% of its view differs from its clean plate in nearly every frame "
                     "and not with the subject (something put down or moved after the plate was taken?); its "
-                    "background there is taken from the frames, and the silhouettes are made again", camera,
+                    "background there is taken from the frames, the silhouettes are made again, and the "
+                    "reconstruction does not let this camera carve there (the thing may hide the subject)", camera,
                     100 * region.mean())
     return mended
 
@@ -403,9 +409,19 @@ def run_reconstruction(ctx: StageContext) -> int:
         hidden = (search.result() if search is not None and rig is ctx.capture.rig
                   else occlusion_task(ctx.capture, masks_dir, rig))
         _write_hidden_parts(rig, hidden, ctx.out_dir)
+    # Where the room changed since a plate, something solid stands that may hide the subject: not carved either.
+    changed = [room_change_path(masks_dir, camera.name) for camera in rig]
+    if any(path.exists() for path in changed):
+        hidden = [_union(part, frames_io.read_mask(path) if path.exists() else None)
+                  for part, path in zip(hidden or [None] * len(rig), changed, strict=True)]
     task = functools.partial(reconstruction_task, capture=ctx.capture, rig=rig, params=ctx.params,
                              masks_dir=masks_dir, out_dir=ctx.out_dir, hidden=hidden)
     return ctx.map_frames(task, lambda frame: [observations_path(ctx.out_dir, frame)])
+
+
+def _union(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+    """The union of two (H, W) uint8 parts of a view, either of them None (none)."""
+    return b if a is None else a if b is None else np.maximum(a, b)
 
 
 def _write_hidden_parts(rig: Rig, hidden: Sequence[np.ndarray | None], out_dir: Path) -> None:

@@ -83,6 +83,13 @@ def noise_floors_path(stage_dir: Path) -> Path:
     return stage_dir / "background" / "noise_floors.json"
 
 
+def room_change_path(stage_dir: Path, camera: str) -> Path:
+    """The part of a camera's view where the room changed since its clean plate (PNG, 255 there; written by the
+    silhouette stage only for cameras with such a part, `pipeline.graph.mended_backgrounds`): its background is
+    mended there, and the reconstruction does not let that camera carve there."""
+    return stage_dir / "room_changes" / f"{camera}.png"
+
+
 def remaking_path(stage_dir: Path) -> Path:
     """Present in the silhouette stage's folder while its silhouettes are made again against backgrounds mended for
     parts of the room changed since the plates (`pipeline.graph.run_silhouettes`): a run that stopped then left masks

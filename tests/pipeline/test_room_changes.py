@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ import still_scene as scene
 
 from pipeline.cli import main
 from pipeline.io import frames_io
-from pipeline.io.run_layout import background_path, silhouette_path
+from pipeline.io.run_layout import background_path, observations_path, room_change_path, silhouette_path
 
 #: The subject walks a circle around the middle of the volume, ...
 PATH = 0.6 * np.column_stack([np.cos(np.linspace(0, 2 * np.pi, 24, endpoint=False)),
@@ -73,12 +74,19 @@ def test_a_box_put_down_after_the_plates_is_taken_into_the_backgrounds(capture, 
             assert (mask & person).sum() > 0.95 * person.sum()
     plate = frames_io.read_image(capture / "background" / f"{mended[0]}.png")
     assert not np.array_equal(frames_io.read_image(background_path(out / "silhouettes", mended[0])), plate)
+    for camera in rig:  # where the box stands, that camera will not carve
+        path = room_change_path(out / "silhouettes", camera.name)
+        assert path.exists() == (camera.name in mended)
+        if path.exists():
+            box = scene.ellipsoid_mask(camera, BOX_CENTRE, BOX_AXES) > 0
+            assert (frames_io.read_mask(path) > 0)[box].mean() > 0.95
 
     kept = tmp_path / "kept"
     assert main(["run", str(capture), "--out", str(kept), "--to", "silhouettes", "-q", "--workers", "1",
                  "--set", "silhouettes.find_room_changes=false"]) == 0
     assert "differs from its clean plate" not in capfd.readouterr().err
     assert _box_share(kept) > 0.9
+    assert not (kept / "silhouettes" / "room_changes").exists()
 
 
 def test_a_run_stopped_while_the_silhouettes_are_made_again_starts_the_stage_over(capture, tmp_path):
@@ -98,3 +106,34 @@ def test_a_run_stopped_while_the_silhouettes_are_made_again_starts_the_stage_ove
     assert main(["run", str(capture), "--out", str(out), "--to", "silhouettes", "-q", "--workers", "1"]) == 0
     assert not (stage / "remaking").exists()
     assert {path.relative_to(stage): path.read_bytes() for path in stage.rglob("*.png")} == made
+
+
+def test_a_camera_does_not_carve_where_the_room_changed_since_its_plate(capture, tmp_path):
+    # As if something put down before cam0 hid the subject's lower half from it in every frame: where the silhouette
+    # stage says the room changed, the reconstruction lets cam0 carve nothing, and the other cameras reach his feet.
+    out = tmp_path / "out"
+    assert main(["run", str(capture), "--out", str(out), "--to", "silhouettes", "-q", "--workers", "1",
+                 "--set", "silhouettes.find_room_changes=false"]) == 0
+    stage, row = out / "silhouettes", 60
+    for frame in range(len(PATH)):
+        mask = frames_io.read_mask(silhouette_path(stage, "cam0", frame))
+        mask[row:] = 0
+        frames_io.write_mask(silhouette_path(stage, "cam0", frame), mask)
+    assert main(["run", str(capture), "--out", str(out), "--from", "reconstruction", "--to", "reconstruction", "-q",
+                 "--workers", "1", "--set", "silhouettes.find_room_changes=false",
+                 "--set", "reconstruction.find_hidden_parts=false"]) == 0
+    assert _lowest(out) > 0.3  # carved
+    changed = np.zeros((scene.SIZE[1], scene.SIZE[0]), np.uint8)
+    changed[row:] = 255
+    frames_io.write_mask(room_change_path(stage, "cam0"), changed)
+    shutil.rmtree(out / "reconstruction")  # the silhouettes' manifest does not know the file written here
+    assert main(["run", str(capture), "--out", str(out), "--from", "reconstruction", "--to", "reconstruction", "-q",
+                 "--workers", "1", "--set", "silhouettes.find_room_changes=false",
+                 "--set", "reconstruction.find_hidden_parts=false"]) == 0
+    assert _lowest(out) < 0.15
+
+
+def _lowest(out: Path) -> float:
+    """The median over frames of each frame's lowest observation's height, metres."""
+    return float(np.median([frames_io.read_ply(observations_path(out / "reconstruction", frame))[0][:, 2].min()
+                            for frame in range(len(PATH))]))
