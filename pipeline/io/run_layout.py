@@ -170,6 +170,9 @@ class RunLayout:
     def background(self, camera: str) -> Path:
         return background_path(self.silhouettes_dir, camera)
 
+    def room_change(self, camera: str) -> Path:
+        return room_change_path(self.silhouettes_dir, camera)
+
     @property
     def calibration_check(self) -> Path:
         return calibration_check_path(self.silhouettes_dir)

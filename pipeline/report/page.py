@@ -215,6 +215,8 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
             cells.append((background, "background"))
         if hidden := _mask_thumb(layout.hidden_part(camera)):
             cells.append((hidden, "hidden behind something, not carved"))
+        if changed := _mask_thumb(layout.room_change(camera)):
+            cells.append((changed, "changed since the plate, not carved"))
         figures = "".join(f"<figure><img alt='{html.escape(camera)} {html.escape(caption)}' src='{uri}'>"
                           f"<figcaption>{html.escape(caption)}</figcaption></figure>" for uri, caption in cells)
         video = overlay_video_name(camera)
@@ -223,7 +225,8 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
                         f"<figcaption><a href='{html.escape(video)}'>{html.escape(video)}</a></figcaption></figure>")
         if figures:
             rows.append(f"<h3>{html.escape(camera)}</h3>{_agreement(check, camera)}{_turn(refinement, camera)}"
-                        f"{_hidden_note(layout.hidden_part(camera))}<div class='stills'>{figures}</div>")
+                        f"{_hidden_note(layout.hidden_part(camera))}{_room_note(layout.room_change(camera))}"
+                        f"<div class='stills'>{figures}</div>")
     if not rows:
         return ""
     drawn = [what for what, sequence in (("estimate in colour (subject's left blue, right red)", run.estimate),
@@ -283,6 +286,15 @@ def _hidden_note(path: Path) -> str:
     return ("<p class='note'>Part of its view is <strong>hidden behind something</strong> in front of the subject on "
             "most frames (the other cameras place him there, this one shows the background): it does not carve "
             "there (white in the figure).</p>")
+
+
+def _room_note(path: Path) -> str:
+    """A note on the part of the camera's view where the room changed since its clean plate, if any."""
+    if not path.is_file():
+        return ""
+    return ("<p class='note'>Part of its view <strong>changed since its clean plate</strong> (something put down or "
+            "moved after it was taken, in nearly every frame and apart from the subject): the background there is "
+            "taken from the frames, and it does not carve there (white in the figure).</p>")
 
 
 def _agreement(check: dict | None, camera: str) -> str:

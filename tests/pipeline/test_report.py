@@ -305,3 +305,15 @@ def test_a_part_of_a_view_found_hidden_behind_something_is_shown_in_its_camera_s
     assert "Part of its view is <strong>hidden behind something</strong>" in side
     assert "alt='side hidden behind something, not carved'" in side
     assert "hidden behind something" not in text[text.index("<h3>front</h3>"):text.index("<h3>side</h3>")]
+
+
+def test_a_part_of_a_view_changed_since_its_plate_is_shown_in_its_camera_section(full_run):
+    assert "changed since its clean plate" not in build_report(full_run, rig=_rig(), images=_images())
+    part = np.zeros((120, 160), np.uint8)
+    part[70:100, 10:40] = 255
+    frames_io.write_mask(full_run / "silhouettes" / "room_changes" / "front.png", part)
+    text = build_report(full_run, rig=_rig(), images=_images())
+    front = text[text.index("<h3>front</h3>"):text.index("<h3>side</h3>")]
+    assert "Part of its view <strong>changed since its clean plate</strong>" in front
+    assert "alt='front changed since the plate, not carved'" in front
+    assert "changed since its clean plate" not in text[text.index("<h3>side</h3>"):]
