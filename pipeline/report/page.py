@@ -225,7 +225,8 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
                         f"<figcaption><a href='{html.escape(video)}'>{html.escape(video)}</a></figcaption></figure>")
         if figures:
             rows.append(f"<h3>{html.escape(camera)}</h3>{_agreement(check, camera)}{_turn(refinement, camera)}"
-                        f"{_hidden_note(layout.hidden_part(camera))}{_room_note(layout.room_change(camera))}"
+                        f"{_part_note(layout.hidden_part(camera), HIDDEN_NOTE)}"
+                        f"{_part_note(layout.room_change(camera), ROOM_NOTE)}"
                         f"<div class='stills'>{figures}</div>")
     if not rows:
         return ""
@@ -279,22 +280,18 @@ def _turn(refinement: dict | None, camera: str) -> str:
     return f"<p class='note'>Calibration refined from the silhouettes: turned by {turn:.2f}° about its centre.</p>"
 
 
-def _hidden_note(path: Path) -> str:
-    """A note on the part of the camera's view found hidden behind something in front of the subject, if any."""
-    if not path.is_file():
-        return ""
-    return ("<p class='note'>Part of its view is <strong>hidden behind something</strong> in front of the subject on "
-            "most frames (the other cameras place him there, this one shows the background): it does not carve "
-            "there (white in the figure).</p>")
+#: The notes on the parts of a camera's view that it does not carve (each shown when its file exists).
+HIDDEN_NOTE = ("Part of its view is <strong>hidden behind something</strong> in front of the subject on most "
+               "frames (the other cameras place him there, this one shows the background): it does not carve there "
+               "(white in the figure).")
+ROOM_NOTE = ("Part of its view <strong>changed since its clean plate</strong> (something put down or moved after it "
+             "was taken, in nearly every frame and apart from the subject): the background there is taken from the "
+             "frames, and it does not carve there (white in the figure).")
 
 
-def _room_note(path: Path) -> str:
-    """A note on the part of the camera's view where the room changed since its clean plate, if any."""
-    if not path.is_file():
-        return ""
-    return ("<p class='note'>Part of its view <strong>changed since its clean plate</strong> (something put down or "
-            "moved after it was taken, in nearly every frame and apart from the subject): the background there is "
-            "taken from the frames, and it does not carve there (white in the figure).</p>")
+def _part_note(path: Path, note: str) -> str:
+    """``note`` as a paragraph when the part of the camera's view at ``path`` exists, else nothing."""
+    return f"<p class='note'>{note}</p>" if path.is_file() else ""
 
 
 def _agreement(check: dict | None, camera: str) -> str:
