@@ -93,9 +93,10 @@ def static_parts(masks: Iterable[np.ndarray]) -> tuple[np.ndarray, list[int]]:
     room = [part for part in range(1, count) if sizes[part] >= MIN_PART_CELLS and apart_share[part] >= APART_SHARE]
     if not room:
         return nothing
-    cells_region = np.isin(parts, room)
     apart = [int(k) for k in np.flatnonzero(moving & ~touched[:, room].any(axis=1))]
-    return _pixels(cells_region, shape), apart
+    if not apart:  # no frame shows every part bare at once (parts the subject takes turns before): nothing to take
+        return nothing
+    return _pixels(np.isin(parts, room), shape), apart
 
 
 def patched_plate(plate: np.ndarray, region: np.ndarray, frames: Sequence[np.ndarray],
