@@ -87,11 +87,11 @@ from pipeline.report.page import write_report
 from stages.background import BackgroundEstimate, estimate_backgrounds, sample_count
 from stages.background.plates import MIN_PLATE_MATCH, PLATE_SHIFT_PX, PlateFit, plate_fit, shifted_plate
 from stages.background.room import PATCH_FRAMES, patched_plate, static_parts
-from stages.consistency import evenly_spread
 from stages.export import ExportParams
 from stages.export.quality import FrameQuality
 from stages.joints import JOINT_NAMES
 from stages.reconstruction import Observations, ReconstructionParams
+from stages.reconstruction.occlusion import parts_union
 from stages.reconstruction.views import VOLUME_FACES, faces_reached
 from stages.silhouettes import SilhouetteParams
 from stages.tangency import (
@@ -264,9 +264,10 @@ def run_silhouettes(ctx: StageContext) -> int:
         for path in paths:
             path.unlink(missing_ok=True)
 
+    every_mask = [path for frame in ctx.capture.frame_numbers for path in outputs_of(frame)]
     remaking = remaking_path(ctx.out_dir)
     if remaking.exists():  # stopped while remaking: masks and backgrounds of two kinds, so start over
-        remove(path for frame in ctx.capture.frame_numbers for path in outputs_of(frame))
+        remove(every_mask)
         remove(path for camera in plated for path in (background_path(ctx.out_dir, camera),
                                                       room_change_path(ctx.out_dir, camera)))
         remaking.unlink()
@@ -288,8 +289,7 @@ def run_silhouettes(ctx: StageContext) -> int:
         for camera, (image, region) in mended.items():
             frames_io.write_image(background_path(ctx.out_dir, camera), image)
             frames_io.write_mask(room_change_path(ctx.out_dir, camera), region.view(np.uint8) * np.uint8(255))
-        # Every view's masks, since the views settle shadows and parts together.
-        remove(path for frame in ctx.capture.frame_numbers for path in outputs_of(frame))
+        remove(every_mask)  # every view's, since the views settle shadows and parts together
         count = make_masks()
         remaking.unlink()
     _check_calibration(ctx.capture, ctx.out_dir)
@@ -317,7 +317,7 @@ def mended_backgrounds(capture: Capture, masks_dir: Path,
     for camera, (region, apart) in found.items():
         if not region.any():
             continue
-        chosen = [frames[apart[int(k)]] for k in evenly_spread(len(apart), PATCH_FRAMES)]
+        chosen = spread_frames([frames[k] for k in apart], PATCH_FRAMES)
         images = [image for _, image in capture.iter_images(camera, chosen)]
         background = frames_io.read_image(background_path(masks_dir, camera))
         mended[camera] = patched_plate(background, region, images, list(masks(camera, chosen))), region
@@ -412,16 +412,11 @@ def run_reconstruction(ctx: StageContext) -> int:
     # Where the room changed since a plate, something solid stands that may hide the subject: not carved either.
     changed = [room_change_path(masks_dir, camera.name) for camera in rig]
     if any(path.exists() for path in changed):
-        hidden = [_union(part, frames_io.read_mask(path) if path.exists() else None)
+        hidden = [parts_union(part, frames_io.read_mask(path) if path.exists() else None)
                   for part, path in zip(hidden or [None] * len(rig), changed, strict=True)]
     task = functools.partial(reconstruction_task, capture=ctx.capture, rig=rig, params=ctx.params,
                              masks_dir=masks_dir, out_dir=ctx.out_dir, hidden=hidden)
     return ctx.map_frames(task, lambda frame: [observations_path(ctx.out_dir, frame)])
-
-
-def _union(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
-    """The union of two (H, W) uint8 parts of a view, either of them None (none)."""
-    return b if a is None else a if b is None else np.maximum(a, b)
 
 
 def _write_hidden_parts(rig: Rig, hidden: Sequence[np.ndarray | None], out_dir: Path) -> None:

@@ -109,7 +109,7 @@ def calibration_refinement_path(stage_dir: Path) -> Path:
 
 def hidden_part_path(stage_dir: Path, camera: str) -> Path:
     """The part of a camera's image that the reconstruction found hidden behind something in front of the subject
-    (PNG, 255 hidden; `pipeline.graph.hidden_parts_of`), written only for cameras with such a part."""
+    (PNG, 255 hidden; `pipeline.frame_tasks.occlusion_task`), written only for cameras with such a part."""
     return stage_dir / "hidden" / f"{camera}.png"
 
 

@@ -177,14 +177,15 @@ def search_hidden_parts(frames: Callable[[], Iterable[Sequence[np.ndarray]]], ca
         votes = no_votes(cameras)
         for masks in frames():
             votes = votes + hidden_votes(masks, cameras, volume, found)
-        merged = [_union(before, now) for before, now in zip(found, hidden_parts(votes, cameras), strict=True)]
+        merged = [parts_union(before, now) for before, now in zip(found, hidden_parts(votes, cameras), strict=True)]
         if all(_same(before, after) for before, after in zip(found, merged, strict=True)):
             break
         found = merged
     return found
 
 
-def _union(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+def parts_union(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+    """The union of two (H, W) uint8 parts of a view, either of them None (no part)."""
     return b if a is None else a if b is None else cv2.bitwise_or(a, b)
 
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from calib.camera import Camera
 from calib.errors import InputError
+from pipeline.io.capture import Capture
 from pipeline.io.export_io import read_joints_csv
 
 #: The box (metres: across, deep, high), its distance from the subject's mean place and its colour (BGR 8-bit levels).
@@ -87,3 +88,34 @@ def with_box(frame: np.ndarray, view: BoxView, subject: np.ndarray | None, subje
     if subject is not None and subject_nearer:
         drawn[subject] = frame[subject]
     return drawn
+
+
+@dataclass(frozen=True)
+class BoxCamera:
+    """The box as one camera sees it, and whether the subject is nearer that camera than the box in a frame."""
+
+    camera: Camera
+    view: BoxView
+    pelvis: dict[int, np.ndarray]  # the true pelvis by frame
+    masks: Path  # the camera's true masks
+
+    def nearer(self, frame: int) -> bool:
+        return frame in self.pelvis and float(self.camera.depth(self.pelvis[frame][None])[0]) < self.view.depth
+
+    def subject(self, frame: int) -> tuple[np.ndarray | None, bool]:
+        """The subject's true mask (H, W) bool in ``frame`` (None without one), and whether he is nearer."""
+        mask = cv2.imread(str(self.masks / f"{frame:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        return (None if mask is None else mask > 0), self.nearer(frame)
+
+
+def box_cameras(capture: Path, kept: set[str]) -> dict[str, BoxCamera]:
+    """The box as each of the ``kept`` cameras of ``capture`` sees it (the capture's own calibration), placed by
+    its true pelvis track, with its true masks to draw the subject over it."""
+    truth = capture / "groundtruth"
+    if not (truth / "joints.csv").is_file() or not (truth / "masks").is_dir():
+        raise InputError(f"{truth}: no true joints and masks to place the box by and to draw the subject over it")
+    source = Capture.open(capture)
+    pelvis = pelvis_track(truth)
+    corners = box_corners(np.array(list(pelvis.values())), source.volume)
+    return {camera.name: BoxCamera(camera, box_view(camera, corners), pelvis, truth / "masks" / camera.name)
+            for camera in source.rig if camera.name in kept}

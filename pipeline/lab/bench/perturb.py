@@ -93,7 +93,7 @@ import csv
 import shutil
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -105,7 +105,7 @@ from calib.formats import load_rig, save_rig
 from calib.world import UNIT_SCALE
 from pipeline.io.capture import Capture
 from pipeline.io.export_io import read_joints_csv, write_joints_csv
-from pipeline.lab.bench.box import BoxView, box_corners, box_view, pelvis_track, with_box
+from pipeline.lab.bench.box import BoxCamera, box_cameras, with_box
 from stages.background.plates import shifted_plate
 
 # What each change does to a frame (float32 8-bit levels, BGR), given a random generator and the camera's index.
@@ -234,7 +234,7 @@ def perturb_capture(capture: Path, out: Path, change: str, *, seed: int = 0, pla
         videos = [video for video in videos if video.stem in cameras]
     empty_room = [_plate(capture, video.stem) for video in videos] if absent else [None] * len(videos)
     regions = {name: occluder_region(capture / "groundtruth" / "masks" / name, kind) for name, kind in occluder.items()}
-    boxes = _box_views(capture, {video.stem for video in videos}) if box else {}
+    boxes = box_cameras(capture, {video.stem for video in videos}) if box else {}
     apply = CHANGES[change][1]
     rng = np.random.default_rng(seed)
     partial = out.with_name(out.name + ".partial")
@@ -371,7 +371,7 @@ def _plate(capture: Path, camera: str) -> np.ndarray:
 
 def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], zoom: dict[str, float],
                    late: dict[str, int], shutter: float = 0.0, regions: dict[str, np.ndarray] | None = None,
-                   boxes: dict[str, _BoxCamera] | None = None) -> None:
+                   boxes: dict[str, BoxCamera] | None = None) -> None:
     """``target``, the ground truth at ``truth`` without the ``absent`` frames, seen by ``cameras``: the absent
     frames' joints.csv rows left out and their masks empty, the other cameras' masks left out, the masks of the
     cameras of ``zoom`` zoomed (:func:`zoomed`), those of the cameras of ``late`` the earlier frame's, those of the
@@ -419,36 +419,6 @@ def _truth_without(truth: Path, target: Path, absent: range, cameras: set[str], 
                         written.symlink_to(shown.resolve())
         else:
             (target / path.name).symlink_to(path.resolve(), target_is_directory=path.is_dir())
-
-
-@dataclass(frozen=True)
-class _BoxCamera:
-    """The box as one camera sees it, and whether the subject is nearer that camera than the box in a frame."""
-
-    camera: Camera
-    view: BoxView
-    pelvis: dict[int, np.ndarray]  # the true pelvis by frame
-    masks: Path  # the camera's true masks
-
-    def nearer(self, frame: int) -> bool:
-        return frame in self.pelvis and float(self.camera.depth(self.pelvis[frame][None])[0]) < self.view.depth
-
-    def subject(self, frame: int) -> tuple[np.ndarray | None, bool]:
-        """The subject's true mask (H, W) bool in ``frame`` (None without one), and whether he is nearer."""
-        mask = cv2.imread(str(self.masks / f"{frame:06d}.png"), cv2.IMREAD_GRAYSCALE)
-        return (None if mask is None else mask > 0), self.nearer(frame)
-
-
-def _box_views(capture: Path, kept: set[str]) -> dict[str, _BoxCamera]:
-    """The box of ``--box`` as each of the ``kept`` cameras of ``capture`` sees it (its own calibration, unchanged)."""
-    truth = capture / "groundtruth"
-    if not (truth / "joints.csv").is_file() or not (truth / "masks").is_dir():
-        raise InputError(f"{truth}: no true joints and masks to place the box by and to draw the subject over it")
-    source = Capture.open(capture)
-    pelvis = pelvis_track(truth)
-    corners = box_corners(np.array(list(pelvis.values())), source.volume)
-    return {camera.name: _BoxCamera(camera, box_view(camera, corners), pelvis, truth / "masks" / camera.name)
-            for camera in source.rig if camera.name in kept}
 
 
 def _rewrite(source: Path, target: Path, change: Callable[[np.ndarray, int], np.ndarray], late: int = 0,
