@@ -43,6 +43,9 @@ from stages.silhouettes import (
     background_model,
     extract_silhouettes,
     floor_geometry,
+    floor_shifts,
+    measure_evidence,
+    shifted_floor,
 )
 from stages.tangency import Refinement, refine_turns, turned
 
@@ -55,6 +58,9 @@ CACHED_BACKGROUNDS = 32
 #: Given masks marking more than this share of every camera's image as person are reported: a subject that a
 #: studio's cameras frame whole covers far less, and masks saved the other way round (person 0) cover most.
 MAX_GIVEN_COVERAGE = 0.5
+#: The first frames of a capture, on which the floor test's shifts between the views are measured: decoded first
+#: and cheaply, they show the subject's shadow at one place, and one shift per pair of views serves every frame.
+FLOOR_SHIFT_FRAMES = 4
 #: Frames, spread over the capture, whose silhouettes refine the cameras' orientations, ...
 REFINEMENT_FRAMES = 30
 #: ... and, among them, the frames and the rays per view on which the refined cameras must explain more of the
@@ -89,14 +95,25 @@ def cached_background_model(path: Path, params: SilhouetteParams, noise_floor: f
     return _background_model(str(path), status.st_mtime_ns, status.st_size, params, noise_floor, tone_curve)
 
 
+def background_models(out_dir: Path, cameras: Sequence[str], params: SilhouetteParams,
+                      noise_floors: Mapping[str, float]) -> list[BackgroundModel]:
+    """The background models of ``cameras`` from the silhouette stage's folder ``out_dir``: a ratio per channel for
+    those with a noise floor (estimated from the frames), a tone curve for the plates (`cached_background_model`)."""
+    return [cached_background_model(background_path(out_dir, camera), params,
+                                    noise_floors.get(camera, NOISE_SIGMA_MIN), tone_curve=camera not in noise_floors)
+            for camera in cameras]
+
+
 @functools.lru_cache(maxsize=CACHED_BACKGROUNDS)
 def _background_model(path: str, mtime_ns: int, size: int, params: SilhouetteParams,
                       noise_floor: float, tone_curve: bool) -> BackgroundModel:
     return background_model(frames_io.read_image(path), params, noise_floor=noise_floor, tone_curve=tone_curve)
 
 
-def cached_floor_geometry(rig: Rig, volume: np.ndarray, params: SilhouetteParams) -> FloorGeometry:
-    """The rig's floor geometry for the shadow test, made once per worker (tens of ms per camera).
+def cached_floor_geometry(rig: Rig, volume: np.ndarray, params: SilhouetteParams,
+                          shifts: np.ndarray | None = None) -> FloorGeometry:
+    """The rig's floor geometry for the shadow test, made once per worker (tens of ms per camera), with the views'
+    ``shifts`` (:func:`~stages.silhouettes.floor_shifts`; None: none).
 
     Keyed by the cameras' numbers, the volume and the working resolution: a worker that meets another
     capture, or a recalibrated one, makes it again.
@@ -111,18 +128,20 @@ def cached_floor_geometry(rig: Rig, volume: np.ndarray, params: SilhouetteParams
     if digest not in _FLOOR_GEOMETRIES:
         _FLOOR_GEOMETRIES.clear()  # one rig at a time: a worker serves one capture
         _FLOOR_GEOMETRIES[digest] = floor_geometry(list(rig), volume, params)
-    return _FLOOR_GEOMETRIES[digest]
+    floor = _FLOOR_GEOMETRIES[digest]
+    return floor if shifts is None or not np.any(shifts) else shifted_floor(floor, shifts)  # a millisecond or two
 
 
 _FLOOR_GEOMETRIES: dict[str, FloorGeometry] = {}
 
 
 def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: SilhouetteParams, out_dir: Path,
-                     noise_floors: Mapping[str, float] | None = None) -> None:
+                     noise_floors: Mapping[str, float] | None = None, floor_shifts: np.ndarray | None = None) -> None:
     """Worker: masks of every camera for a chunk of consecutive frames (one decoder per camera).
 
     The cameras of a frame are segmented together: whether a darker patch is the person's shadow on the
-    floor is settled across the views (:func:`stages.silhouettes.extract_silhouettes`). ``noise_floors``
+    floor is settled across the views (:func:`stages.silhouettes.extract_silhouettes`), where ``floor_shifts``
+    says they see the floor (`pipeline.graph.floor_shifts_of`; None: where the calibration says). ``noise_floors``
     holds the noise floor of each camera whose background was estimated from the frames; their frames' exposure
     is fitted as one ratio per channel, not as a tone curve (:func:`~stages.silhouettes.background_model`).
     """
@@ -137,15 +156,29 @@ def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: Silhouet
                                 "(expected 0 = background, 255 = person: are they inverted?)", frame)
                 _write_masks(out_dir, names, frame, _checked(masks, capture, params))
             return
-        backgrounds = [cached_background_model(background_path(out_dir, camera), params,
-                                               floors.get(camera, NOISE_SIGMA_MIN), tone_curve=camera not in floors)
-                       for camera in names]
-        floor = cached_floor_geometry(capture.rig, capture.volume, params)
+        backgrounds = background_models(out_dir, names, params, floors)
+        floor = cached_floor_geometry(capture.rig, capture.volume, params, floor_shifts)
         # A frame's images are done with once its masks are written, before the next frame is decoded.
         streams = [capture.iter_images(camera, chunk, reuse=True) for camera in names]
         for frame, views in zip(chunk, zip(*streams, strict=True), strict=True):
             masks = extract_silhouettes([image for _, image in views], backgrounds, floor, params)
             _write_masks(out_dir, names, frame, _checked(masks, capture, params))
+
+
+def floor_shifts_task(capture: Capture, params: SilhouetteParams, out_dir: Path,
+                      noise_floors: Mapping[str, float]) -> np.ndarray:
+    """Worker: the floor test's shifts between the views (:func:`stages.silhouettes.floor_shifts`) on the capture's
+    first `FLOOR_SHIFT_FRAMES` frames, against the backgrounds in the silhouette stage's folder ``out_dir``. The
+    worker keeps the rig's floor geometry for the masks it makes next."""
+    names = capture.rig.names
+    frames = capture.frame_numbers[:FLOOR_SHIFT_FRAMES]
+    with single_threaded_opencv():
+        models = background_models(out_dir, names, params, noise_floors)
+        streams = [capture.iter_images(camera, frames, reuse=True) for camera in names]
+        # One frame's views at a time: floor_shifts is done with them before the next frame is decoded into them.
+        views = ([measure_evidence(image, model, params) for (_, image), model in zip(images, models, strict=True)]
+                 for images in zip(*streams, strict=True))
+        return floor_shifts(views, cached_floor_geometry(capture.rig, capture.volume, params), params)
 
 
 def _checked(masks: list[np.ndarray], capture: Capture, params: SilhouetteParams) -> list[np.ndarray]:

@@ -51,7 +51,9 @@ from pipeline.engine.context import StageContext
 from pipeline.engine.executors import usable_cpus
 from pipeline.engine.stage import Stage
 from pipeline.frame_tasks import (
+    FLOOR_SHIFT_FRAMES,
     camera_samples_task,
+    floor_shifts_task,
     frame_images_task,
     frame_masks,
     occlusion_task,
@@ -73,6 +75,7 @@ from pipeline.io.run_layout import (
     background_path,
     calibration_check_path,
     calibration_refinement_path,
+    floor_shifts_path,
     hidden_part_path,
     noise_floors_path,
     observations_path,
@@ -272,13 +275,16 @@ def run_silhouettes(ctx: StageContext) -> int:
                                                       room_change_path(ctx.out_dir, camera)))
         remaking.unlink()
     floors = {} if given else _backgrounds(ctx)
-    task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
-                             noise_floors=floors)
 
     def make_masks() -> int:
-        chunk_size = None
-        if ctx.capture.media == "videos" and not given:
-            chunk_size = video_chunk_size(len(ctx.pending_frames(outputs_of)), ctx.workers.count)
+        pending = ctx.pending_frames(outputs_of)
+        if not pending:
+            return 0
+        shifts = None if given else floor_shifts_of(ctx.capture, ctx.out_dir, ctx.params, floors, ctx.workers.executor)
+        task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
+                                 noise_floors=floors, floor_shifts=shifts)
+        chunk_size = video_chunk_size(len(pending), ctx.workers.count) if ctx.capture.media == "videos" and not given \
+            else None
         return ctx.map_frames(task, outputs_of, chunk_size=chunk_size)
 
     count = make_masks()
@@ -294,6 +300,32 @@ def run_silhouettes(ctx: StageContext) -> int:
         remaking.unlink()
     _check_calibration(ctx.capture, ctx.out_dir)
     return count
+
+
+def floor_shifts_of(capture: Capture, out_dir: Path, params: SilhouetteParams, noise_floors: Mapping[str, float],
+                    executor: cf.Executor) -> np.ndarray | None:
+    """The floor test's shifts between the views (`frame_tasks.floor_shifts_task`, on ``executor``), or None without
+    a floor test. Written to `floor_shifts_path` (image pixels) and named in a line when any is taken: the
+    calibration then maps the floor that far off where the views see it.
+    """
+    names = capture.rig.names
+    if params.shadows != "floor" or len(names) < 2:
+        return None
+    shifts = executor.submit(floor_shifts_task, capture, params, out_dir, noise_floors).result()
+    pixels = shifts * params.downsample
+    frames_io.write_json(floor_shifts_path(out_dir), {
+        "method": "shadows' darkening compared between the views",
+        "frames": list(capture.frame_numbers[:FLOOR_SHIFT_FRAMES]),
+        "shifts_px": {camera: {other: pixels[index, column].tolist() for column, other in enumerate(names)
+                               if column != index} for index, camera in enumerate(names)}})
+    lengths = np.linalg.norm(pixels, axis=2)
+    if lengths.max() > 0:
+        index, other = np.unravel_index(np.argmax(lengths), lengths.shape)
+        log.info("silhouettes: the floor test compares %d of the %d pairs of views shifted off the calibration's "
+                 "mapping, by up to %.0f pixels (%s's floor points in %s's view): the calibration is off by about "
+                 "that at the floor (shifts: %s)", np.count_nonzero(lengths), len(names) * (len(names) - 1),
+                 lengths.max(), names[index], names[other], floor_shifts_path(out_dir))
+    return shifts
 
 
 #: Frames, spread over the capture, whose silhouettes are searched for parts of the room changed since the plates.

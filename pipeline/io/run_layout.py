@@ -97,6 +97,12 @@ def remaking_path(stage_dir: Path) -> Path:
     return stage_dir / "remaking"
 
 
+def floor_shifts_path(stage_dir: Path) -> Path:
+    """The floor test's shifts between the views (JSON, `pipeline.graph.floor_shifts_of`) in the silhouette stage's
+    folder: where each camera's floor points are compared in each other camera, off the calibration's mapping."""
+    return stage_dir / "floor_shifts.json"
+
+
 def calibration_check_path(stage_dir: Path) -> Path:
     """The silhouette stage's check of the calibration (JSON, `pipeline.graph._check_calibration`)."""
     return stage_dir / "calibration_check.json"

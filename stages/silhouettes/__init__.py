@@ -31,6 +31,8 @@ grey shirt on a lighter grey wall), and taking every such pixel for a shadow cut
 Geometry can: a person's shadow lies on the floor and darkens it alike from every side, so a
 shadow-like pixel is a shadow only when the other cameras see the floor point behind it darkened too
 (:func:`floor_shadows`; all the views of a frame are segmented together, :func:`extract_silhouettes`).
+Where the calibration maps a view's floor points a few pixels off where the others see them, the shadows
+themselves say where they do (:func:`floor_shifts`, :func:`shifted_floor`).
 Pixels above ``strong_threshold`` seed the person; connected regions above
 ``weak_threshold`` join them (hysteresis, as in Canny's edge detector), so clothing close to the
 background is kept without letting isolated noise in; a weak region must be more than a line, so that
@@ -63,7 +65,7 @@ from stages.silhouettes.evidence import (
 )
 from stages.silhouettes.outline import disk, silhouette_from_evidence
 from stages.silhouettes.params import SHADOW_TESTS, SilhouetteParams
-from stages.silhouettes.shadows import FloorGeometry, floor_geometry, floor_shadows
+from stages.silhouettes.shadows import FloorGeometry, floor_geometry, floor_shadows, floor_shifts, shifted_floor
 
 __all__ = [
     "CHANNEL_SUM",
@@ -81,8 +83,10 @@ __all__ = [
     "extract_silhouettes",
     "floor_geometry",
     "floor_shadows",
+    "floor_shifts",
     "measure_evidence",
     "median_background",
+    "shifted_floor",
     "silhouette_from_evidence",
 ]
 

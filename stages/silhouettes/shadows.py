@@ -1,11 +1,13 @@
 """The floor test of shadows: a shadow-like pixel is a shadow when the other views see its floor point
-darkened too (:func:`floor_shadows`).
+darkened too (:func:`floor_shadows`), where the calibration says they see it, or where the shadows themselves
+say they do (:func:`floor_shifts`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+import functools
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -25,6 +27,19 @@ FLOOR_BLOCK = 2
 # pixels that a calibration error can shift; the lower legs, whose floor points lie in the lighter outer
 # part of the shadow, see less than that.
 SHADOW_AGREEMENT = 0.8
+# The shifts of the floor test (:func:`floor_shifts`): the largest tried, as a share of the working image's width
+# (16 pixels at 390: a camera turned by 0.3° or moved by 2 cm shifts its floor points by up to 9 in the other
+# views), ...
+MAX_FLOOR_SHIFT = 0.04
+# ... the share by which a shift must lower the mean difference of the darkenings compared: with a sound
+# calibration the best shift is the one the calibration gives or a pixel away, within a few hundredths of it
+# (the shadow's noise and the blocks' quantisation), and the test is left as the calibration has it ...
+FLOOR_SHIFT_GAIN = 0.1
+# ... the shadow-like pixels compared per view, frame and other view, spread over the view's (the darkening
+# changes over many pixels: a few hundred of them say as much as all), ...
+FLOOR_SHIFT_SAMPLES = 300
+# ... and the floor points that must be compared over all frames for a shift to be decided (fewer: none taken).
+FLOOR_SHIFT_MIN_SAMPLES = 200
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,6 +56,9 @@ class FloorGeometry:
     # behind each block of camera c; -1 where that ray misses the floor or the footprint, or b does not
     # see the point. None for b = c.
     seen_at: tuple[tuple[np.ndarray | None, ...], ...]
+    # shifted_at[c][b]: as seen_at, where the shadows say b sees c's floor points (:func:`floor_shifts`); None
+    # (all of it, or a pair's) where they say nothing else than the calibration.
+    shifted_at: tuple[tuple[np.ndarray | None, ...], ...] | None = None
 
 
 def floor_geometry(cameras: Sequence[Camera], volume: np.ndarray, params: SilhouetteParams) -> FloorGeometry:
@@ -131,26 +149,153 @@ def floor_shadows(views: Sequence[Evidence], floor: FloorGeometry, params: Silho
     shadows = []
     for index, (view, darkening) in enumerate(zip(views, darkenings, strict=True)):
         shadow = np.zeros(view.shadow_like.shape, bool)
-        at = flat_nonzero(view.shadow_like.view(np.uint8)) if shadow.size else np.zeros(0, np.int32)
+        at, blocks = _shadow_like_blocks(view)
         if len(at) == 0:
             shadows.append(shadow)
             continue
-        rows, cols = np.divmod(at, np.int32(shadow.shape[1]))  # (n,) in the region
-        blocks = (((rows + view.region[0].start) // FLOOR_BLOCK) * _blocks(view.I_sharp.shape[1])
-                  + (cols + view.region[1].start) // FLOOR_BLOCK)
         needed = SHADOW_AGREEMENT * darkening.ravel().take(at)  # (n,)
-        votes_for = np.zeros(len(rows), np.int32)
-        votes_against = np.zeros(len(rows), np.int32)
+        votes_for = np.zeros(len(at), np.int32)
+        votes_against = np.zeros(len(at), np.int32)
         for other, look in enumerate(looks):
             if other == index:
                 continue
             pixels = floor.seen_at[index][other].take(blocks)  # (n,) -1 where there is no floor point to see
             seen_darkening = look.take(pixels)  # NaN where the floor point is not seen: no vote either way
+            shifted = floor.shifted_at[index][other] if floor.shifted_at is not None else None
+            if shifted is not None:  # the darker of the two places counts (fmax: NaN where neither is seen)
+                seen_darkening = np.fmax(seen_darkening, look.take(shifted.take(blocks)))
             votes_for += seen_darkening >= needed
             votes_against += seen_darkening < needed
         shadow.ravel()[at] = (votes_for > 0) & (votes_for >= votes_against)
         shadows.append(shadow)
     return shadows
+
+
+def floor_shifts(frames: Iterable[Sequence[Evidence]], floor: FloorGeometry, params: SilhouetteParams) -> np.ndarray:
+    """(C, C, 2) int: for each camera c and other camera o, the shift (rows, columns, working pixels of o) that
+    makes o's darkening of the floor agree with c's where c's shadow-like pixels see the floor; 0 where the
+    calibration's own mapping (``floor``) agrees about as well (`FLOOR_SHIFT_GAIN`) or too few points are compared.
+
+    A shadow darkens a matt floor alike from every side, so where o sees c's floor point it sees c's darkening;
+    the floor test (:func:`floor_shadows`) looks there. A calibration off by a fraction of a degree or by a
+    couple of centimetres maps c's floor points several pixels away from where o sees them, onto the shadow's
+    lighter rim or the bare floor beyond: o votes against, and c's shadow is kept as the person's feet. The
+    shadows say where o sees the points: the shift whose darkenings differ least from c's, on average over the
+    ``frames`` (each a sequence of every view's :class:`Evidence`, cameras in ``floor``'s order), found coarse to
+    fine within `MAX_FLOOR_SHIFT` of the calibration's mapping. Over the few metres of floor a subject's shadow
+    covers, a calibration's error moves the mapping about alike, so one shift per pair of views serves every
+    frame.
+    """
+    count = len(floor.working_shapes)
+    # Per pair (c, o): o's flat look index base (its frame's place in the looks laid end to end), the rows and
+    # columns of o where c's floor points are seen, and c's darkening there; then the looks end to end.
+    pairs: dict[tuple[int, int], list[tuple[np.ndarray, ...]]] = {}
+    looks, base = [[] for _ in range(count)], np.zeros(count, np.int64)
+    for views in frames:
+        if len(views) != count:
+            raise InputError(f"floor_shifts: a frame of {len(views)} views for a floor geometry of {count} cameras")
+        darkenings = [view.darkening() for view in views]
+        for index, (view, darkening) in enumerate(zip(views, darkenings, strict=True)):
+            looks[index].append(_floor_look(view, darkening, params))
+            at, blocks = _shadow_like_blocks(view)
+            chosen = np.unique(np.linspace(0, len(at) - 1, min(len(at), FLOOR_SHIFT_SAMPLES)).round().astype(int))
+            at, blocks = at[chosen], blocks[chosen]
+            for other in range(count):
+                if other == index:
+                    continue
+                pixels = floor.seen_at[index][other].take(blocks)
+                seen = pixels >= 0
+                rows, cols = np.divmod(pixels[seen], floor.working_shapes[other][1])
+                pairs.setdefault((index, other), []).append(
+                    (np.full(len(rows), base[other]), rows, cols, darkening.ravel().take(at[seen])))
+        base += [len(look[-1]) for look in looks]
+    shifts = np.zeros((count, count, 2), int)
+    if not pairs:
+        return shifts
+    flat_looks = [np.concatenate(look) for look in looks]
+    for (index, other), parts in pairs.items():
+        starts, rows, cols, darkening = (np.concatenate(column) for column in zip(*parts, strict=True))
+        if len(rows) < FLOOR_SHIFT_MIN_SAMPLES:
+            continue
+        shape = floor.working_shapes[other]
+        differences = functools.partial(_darkening_differences, flat_looks[other], shape, starts, rows, cols,
+                                        darkening)
+        shift, least = _coarse_to_fine(differences, round(MAX_FLOOR_SHIFT * shape[1]))
+        if shift is not None and least <= (1.0 - FLOOR_SHIFT_GAIN) * differences(np.zeros((1, 2), int))[0]:
+            shifts[index, other] = shift
+    return shifts
+
+
+def _darkening_differences(look: np.ndarray, shape: tuple[int, int], starts: np.ndarray, rows: np.ndarray,
+                           cols: np.ndarray, darkening: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """(K,) for each of ``shifts`` (K, 2), the mean |o's darkening ``look`` at the points (``rows``, ``cols``) of o's
+    frames beginning at ``starts`` in it, shifted − c's ``darkening`` there|, over the points o sees; inf where it
+    sees none. A point shifted out of o's frame (of ``shape``) reads its frame's last entry, NaN: not seen."""
+    height, width = shape
+    r = rows[None, :] + shifts[:, :1]
+    c = cols[None, :] + shifts[:, 1:]
+    inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+    seen = look.take(starts[None, :] + np.where(inside, r * width + c, height * width))
+    compared = ~np.isnan(seen)
+    total = np.where(compared, np.abs(seen - darkening[None, :]), 0.0).sum(axis=1)
+    counts = compared.sum(axis=1)
+    return np.where(counts > 0, total / np.maximum(counts, 1), np.inf)
+
+
+def _coarse_to_fine(cost, reach: int) -> tuple[np.ndarray | None, float]:
+    """The integer shift within ``reach`` (both ways, both axes) of least ``cost`` (a function of (K, 2) int shifts
+    returning (K,) costs) and that cost: a grid of a quarter of ``reach`` apart, then its best's neighbours at
+    half the spacing, down to one pixel; (None, inf) when no shift has a finite cost."""
+    spacing = max(1, reach // 4)
+    grid = np.arange(-(reach // spacing), reach // spacing + 1) * spacing
+    candidates = np.stack(np.meshgrid(grid, grid, indexing="ij"), axis=-1).reshape(-1, 2)
+    costs = cost(candidates)
+    best = int(np.argmin(costs))
+    shift, least = candidates[best], float(costs[best])
+    while spacing > 1:
+        spacing = max(1, spacing // 2)
+        around = shift + spacing * np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
+        around = around[np.all(np.abs(around) <= reach, axis=1)]
+        costs = cost(around)
+        if len(costs) and costs.min() < least:
+            shift, least = around[int(np.argmin(costs))], float(costs.min())
+    return (shift, least) if np.isfinite(least) else (None, np.inf)
+
+
+def shifted_floor(floor: FloorGeometry, shifts: np.ndarray) -> FloorGeometry:
+    """``floor`` where the floor test also looks at each camera c's floor points shifted by ``shifts[c, o]`` (rows,
+    columns) in each other camera o (:func:`floor_shifts`), and takes the darker of the two places; points shifted
+    out of o's frame are not seen there.
+
+    Both places, not the shifted one alone: one shift serves the floor around the subject's first place, and a
+    calibration's error moves the mapping differently where he walks to, while the calibration's own mapping may
+    hold there.
+    """
+    shifted_at = []
+    for index, row in enumerate(floor.seen_at):
+        shifted = []
+        for other, pixels in enumerate(row):
+            if pixels is None or not np.any(shifts[index, other]):
+                shifted.append(None)
+                continue
+            height, width = floor.working_shapes[other]
+            rows, cols = np.divmod(pixels, width)
+            rows, cols = rows + shifts[index, other, 0], cols + shifts[index, other, 1]
+            inside = (pixels >= 0) & (rows >= 0) & (rows < height) & (cols >= 0) & (cols < width)
+            shifted.append(np.where(inside, rows * width + cols, -1).astype(np.int32))
+        shifted_at.append(tuple(shifted))
+    return replace(floor, shifted_at=tuple(shifted_at))
+
+
+def _shadow_like_blocks(view: Evidence) -> tuple[np.ndarray, np.ndarray]:
+    """The view's shadow-like pixels, (n,) int32 flat in its region, and (n,) the floor block of each."""
+    if view.region is None or not view.shadow_like.size:
+        return np.zeros(0, np.int32), np.zeros(0, np.int32)
+    at = flat_nonzero(view.shadow_like.view(np.uint8))
+    rows, cols = np.divmod(at, np.int32(view.shadow_like.shape[1]))
+    blocks = (((rows + view.region[0].start) // FLOOR_BLOCK) * _blocks(view.I_sharp.shape[1])
+              + (cols + view.region[1].start) // FLOOR_BLOCK)
+    return at, blocks
 
 
 def _floor_look(view: Evidence, darkening: np.ndarray, params: SilhouetteParams) -> np.ndarray:

@@ -1,8 +1,10 @@
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
+import shadow_studio as studio
 
-from calib.camera import Camera
 from calib.errors import InputError
 from stages.silhouettes import (
     SilhouetteParams,
@@ -10,7 +12,10 @@ from stages.silhouettes import (
     extract_silhouette,
     extract_silhouettes,
     floor_geometry,
+    floor_shifts,
+    measure_evidence,
     median_background,
+    shifted_floor,
 )
 
 HEIGHT, WIDTH = 290, 390
@@ -173,57 +178,13 @@ def test_params_reject_an_unknown_shadow_test():
         SilhouetteParams(shadows="sun")
 
 
-# A studio seen by a ring of cameras: a plain floor (z = 0) under a grey wall, a person standing at the
-# origin as a vertical cylinder, and the person's soft contact shadow on the floor around the feet.
-FLOOR, WALL = np.array([80.0, 110.0, 140.0]), np.array([150.0, 150.0, 150.0])  # BGR
-PERSON_RADIUS_M, PERSON_HEIGHT_M, SHADOW_RADIUS_M = 0.2, 1.7, 0.6
-
-
-def _ring(count: int) -> list[Camera]:
-    angles = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
-    return [Camera.look_at(f"cam{i}", (3.0 * np.cos(a), 3.0 * np.sin(a), 1.6), (0.0, 0.0, 0.8), f_px=300.0,
-                           size=(WIDTH, HEIGHT)) for i, a in enumerate(angles)]
-
-
-def _render(camera: Camera, clothing: np.ndarray | None, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """(image, true mask) of the studio by ray casting; ``clothing`` None: the empty studio (the clean plate)."""
-    v, u = np.mgrid[0:HEIGHT, 0:WIDTH]
-    rays = camera.pixel_rays(np.column_stack([u.ravel(), v.ravel()]).astype(float))
-    centre = camera.centre
-    with np.errstate(divide="ignore", invalid="ignore"):
-        to_floor = -centre[2] / rays[:, 2]
-    floor = np.isfinite(to_floor) & (to_floor > 0)
-    ground = centre[:2] + np.where(floor, to_floor, 0.0)[:, None] * rays[:, :2]
-    image = np.where(floor[:, None], FLOOR, WALL)
-    if clothing is None:
-        return _noisy(image, rng), np.zeros((HEIGHT, WIDTH), np.uint8)
-    radius = np.linalg.norm(ground, axis=1)
-    darkening = 0.45 * np.clip(1.0 - radius / SHADOW_RADIUS_M, 0.0, 1.0) ** 0.5  # soft, darkest at the feet
-    image = image * (1.0 - np.where(floor, darkening, 0.0))[:, None]
-    # Ray and cylinder x² + y² = r²: a s² + b s + c = 0 along the ray, the nearer root, within the height.
-    a = (rays[:, :2] ** 2).sum(axis=1)
-    b = 2.0 * rays[:, :2] @ centre[:2]
-    c = centre[:2] @ centre[:2] - PERSON_RADIUS_M**2
-    with np.errstate(invalid="ignore"):
-        s = (-b - np.sqrt(b * b - 4.0 * a * c)) / (2.0 * a)
-    z = centre[2] + s * rays[:, 2]
-    person = np.isfinite(s) & (s > 0) & (z >= 0) & (z <= PERSON_HEIGHT_M)
-    image[person] = clothing
-    return _noisy(image, rng), (person.reshape(HEIGHT, WIDTH) * 255).astype(np.uint8)
-
-
-def _noisy(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    noisy = image.reshape(HEIGHT, WIDTH, 3) + rng.normal(0.0, 2.0, (HEIGHT, WIDTH, 3))
-    return np.clip(noisy, 0, 255).astype(np.uint8)
-
-
-@pytest.mark.parametrize("clothing", [np.array([40.0, 40.0, 160.0]), 0.55 * FLOOR], ids=["red", "floor-like"])
+@pytest.mark.parametrize("clothing", [np.array([40.0, 40.0, 160.0]), 0.55 * studio.FLOOR], ids=["red", "floor-like"])
 def test_floor_shadows_are_removed_and_dark_clothing_of_the_floor_s_hue_is_kept(clothing):
     rng = np.random.default_rng(10)
-    cameras = _ring(5)
-    backgrounds = [_render(camera, None, rng)[0] for camera in cameras]
-    frames, truths = zip(*(_render(camera, clothing, rng) for camera in cameras), strict=True)
-    floor = floor_geometry(cameras, np.array([[-2.0, -2.0, 0.0], [2.0, 2.0, 2.0]]), SilhouetteParams())
+    cameras = studio.ring(5)
+    backgrounds = [studio.render(camera, None, rng)[0] for camera in cameras]
+    frames, truths = zip(*(studio.render(camera, clothing, rng) for camera in cameras), strict=True)
+    floor = floor_geometry(cameras, studio.VOLUME, SilhouetteParams())
     masks = extract_silhouettes(frames, backgrounds, floor, SilhouetteParams())
     for mask, truth in zip(masks, truths, strict=True):
         assert _iou(mask, truth) > 0.9
@@ -231,15 +192,62 @@ def test_floor_shadows_are_removed_and_dark_clothing_of_the_floor_s_hue_is_kept(
     # the clothing of the floor's hue, darker than the floor, for a shadow.
     unshadowed = extract_silhouettes(frames, backgrounds, floor, SilhouetteParams(shadows="none"))
     assert np.mean([_iou(mask, truth) for mask, truth in zip(unshadowed, truths, strict=True)]) < 0.8
-    if np.allclose(clothing, 0.55 * FLOOR):
+    if np.allclose(clothing, 0.55 * studio.FLOOR):
         by_colour = extract_silhouettes(frames, backgrounds, floor, SilhouetteParams(shadows="colour"))
         assert np.mean([_iou(mask, truth) for mask, truth in zip(by_colour, truths, strict=True)]) < 0.5
+
+
+def test_floor_shifts_find_where_the_views_see_the_floor_under_a_calibration_off_by_centimetres():
+    # Clothing of the floor's hue, darker than it, makes the floor test decide: the cameras are calibrated 6 cm off
+    # where they stand, each in a direction of its own, so that their floor points land off the shadow in the other
+    # views, which then vote against it. The shadows' darkening says where the views see them.
+    rng = np.random.default_rng(11)
+    cameras = studio.ring(5)
+    backgrounds = [studio.render(camera, None, rng)[0] for camera in cameras]
+    params, volume = SilhouetteParams(), studio.VOLUME
+    views = []  # two frames, their noise drawn anew
+    for _ in range(2):
+        frames, truths = zip(*(studio.render(camera, 0.55 * studio.FLOOR, rng) for camera in cameras), strict=True)
+        views.append([measure_evidence(frame, background, params)
+                      for frame, background in zip(frames, backgrounds, strict=True)])
+    sound = floor_geometry(cameras, volume, params)
+    assert not np.any(floor_shifts(views, sound, params))  # the calibration's own mapping is left as it is
+    directions = rng.normal(size=(len(cameras), 3))
+    moved = [dataclasses.replace(camera, t=-camera.R @ (camera.centre + 0.06 * d / np.linalg.norm(d)))
+             for camera, d in zip(cameras, directions, strict=True)]
+    off = floor_geometry(moved, volume, params)
+    shifts = floor_shifts(views, off, params)
+    assert shifts.shape == (5, 5, 2) and np.count_nonzero(np.abs(shifts).sum(axis=2)) >= 10
+    assert not np.any(shifts[np.arange(5), np.arange(5)])
+
+    def mean_iou(floor):
+        masks = extract_silhouettes(frames, backgrounds, floor, params)
+        return np.mean([_iou(mask, truth) for mask, truth in zip(masks, truths, strict=True)])
+
+    truly, as_calibrated, shifted = mean_iou(sound), mean_iou(off), mean_iou(shifted_floor(off, shifts))
+    assert as_calibrated < truly - 0.05  # the shadows kept as the person's feet
+    assert shifted > truly - 0.03  # most of it mended
+
+
+def test_a_shifted_floor_is_also_looked_at_shifted_and_not_where_the_shift_leaves_the_view():
+    params = SilhouetteParams()
+    floor = floor_geometry(studio.ring(3), studio.VOLUME, params)
+    shifts = np.zeros((3, 3, 2), int)
+    shifts[0, 1] = (0, WIDTH)  # a whole frame across: nothing of camera 0's floor is where camera 1 sees
+    shifts[0, 2] = (1, -2)
+    moved = shifted_floor(floor, shifts)
+    assert moved.seen_at is floor.seen_at  # the calibration's own places are still looked at
+    assert np.all(moved.shifted_at[0][1] == -1) and np.any(floor.seen_at[0][1] >= 0)
+    width = floor.working_shapes[2][1]
+    kept = (floor.seen_at[0][2] >= 0) & (moved.shifted_at[0][2] >= 0)
+    assert kept.any() and np.all(moved.shifted_at[0][2][kept] - floor.seen_at[0][2][kept] == width - 2)
+    assert all(pixels is None for pixels in moved.shifted_at[1])  # no shift: nowhere else to look
 
 
 def test_extract_silhouettes_rejects_mismatched_views():
     image = np.zeros((HEIGHT, WIDTH, 3), np.uint8)
     params = SilhouetteParams()
-    floor = floor_geometry(_ring(2), np.array([[-1, -1, 0], [1, 1, 2.0]]), params)
+    floor = floor_geometry(studio.ring(2), np.array([[-1, -1, 0], [1, 1, 2.0]]), params)
     with pytest.raises(InputError, match="as many"):
         extract_silhouettes([image, image], [image], floor, params)
     with pytest.raises(InputError, match="floor geometry"):
