@@ -38,8 +38,13 @@ FLOOR_SHIFT_GAIN = 0.1
 # ... the shadow-like pixels compared per view, frame and other view, spread over the view's (the darkening
 # changes over many pixels: a few hundred of them say as much as all), ...
 FLOOR_SHIFT_SAMPLES = 300
-# ... and the floor points that must be compared over all frames for a shift to be decided (fewer: none taken).
+# ... the floor points that must be compared over all frames for a shift to be decided (fewer: none taken), ...
 FLOOR_SHIFT_MIN_SAMPLES = 200
+# ... and how well the darkening at the shifted place must match: its mean difference from c's below this share of
+# c's mean darkening. A shadow seen where it lies matches within about half (the soft rim, noise); shadow-like
+# pixels that are clothing, not a shadow (a room lit without cast shadows), differ by three quarters or more of
+# their darkening at any shift, a shift merely landing them on the next clothes.
+FLOOR_SHIFT_MATCH = 2.0 / 3.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -174,7 +179,8 @@ def floor_shadows(views: Sequence[Evidence], floor: FloorGeometry, params: Silho
 def floor_shifts(frames: Iterable[Sequence[Evidence]], floor: FloorGeometry, params: SilhouetteParams) -> np.ndarray:
     """(C, C, 2) int: for each camera c and other camera o, the shift (rows, columns, working pixels of o) that
     makes o's darkening of the floor agree with c's where c's shadow-like pixels see the floor; 0 where the
-    calibration's own mapping (``floor``) agrees about as well (`FLOOR_SHIFT_GAIN`) or too few points are compared.
+    calibration's own mapping (``floor``) agrees about as well (`FLOOR_SHIFT_GAIN`), where no shift matches c's
+    darkening (`FLOOR_SHIFT_MATCH`: not a shadow) or where too few points are compared.
 
     A shadow darkens a matt floor alike from every side, so where o sees c's floor point it sees c's darkening;
     the floor test (:func:`floor_shadows`) looks there. A calibration off by a fraction of a degree or by a
@@ -221,7 +227,8 @@ def floor_shifts(frames: Iterable[Sequence[Evidence]], floor: FloorGeometry, par
         differences = functools.partial(_darkening_differences, flat_looks[other], shape, starts, rows, cols,
                                         darkening)
         shift, least = _coarse_to_fine(differences, round(MAX_FLOOR_SHIFT * shape[1]))
-        if shift is not None and least <= (1.0 - FLOOR_SHIFT_GAIN) * differences(np.zeros((1, 2), int))[0]:
+        if (shift is not None and least <= (1.0 - FLOOR_SHIFT_GAIN) * differences(np.zeros((1, 2), int))[0]
+                and least < FLOOR_SHIFT_MATCH * darkening.mean()):
             shifts[index, other] = shift
     return shifts
 
