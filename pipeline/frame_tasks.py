@@ -45,6 +45,7 @@ from stages.silhouettes import (
     floor_geometry,
     floor_shifts,
     measure_evidence,
+    settled_silhouettes,
     shifted_floor,
 )
 from stages.tangency import Refinement, refine_turns, turned
@@ -168,17 +169,32 @@ def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: Silhouet
 def floor_shifts_task(capture: Capture, params: SilhouetteParams, out_dir: Path,
                       noise_floors: Mapping[str, float]) -> np.ndarray:
     """Worker: the floor test's shifts between the views (:func:`stages.silhouettes.floor_shifts`) on the capture's
-    first `FLOOR_SHIFT_FRAMES` frames, against the backgrounds in the silhouette stage's folder ``out_dir``. The
-    worker keeps the rig's floor geometry for the masks it makes next."""
+    first `FLOOR_SHIFT_FRAMES` frames, against the backgrounds in the silhouette stage's folder ``out_dir``, and
+    those frames' masks made with them from the same evidence (written as :func:`silhouettes_task` writes them).
+    The worker keeps the rig's floor geometry for the masks it makes next."""
     names = capture.rig.names
     frames = capture.frame_numbers[:FLOOR_SHIFT_FRAMES]
     with single_threaded_opencv():
         models = background_models(out_dir, names, params, noise_floors)
-        streams = [capture.iter_images(camera, frames, reuse=True) for camera in names]
-        # One frame's views at a time: floor_shifts is done with them before the next frame is decoded into them.
-        views = ([measure_evidence(image, model, params) for (_, image), model in zip(images, models, strict=True)]
-                 for images in zip(*streams, strict=True))
-        return floor_shifts(views, cached_floor_geometry(capture.rig, capture.volume, params), params)
+        streams = [capture.iter_images(camera, frames) for camera in names]
+        views = [[measure_evidence(image, model, params) for (_, image), model in zip(images, models, strict=True)]
+                 for images in zip(*streams, strict=True)]
+        floor = cached_floor_geometry(capture.rig, capture.volume, params)
+        shifts = floor_shifts(views, floor, params)
+        shifted = shifted_floor(floor, shifts) if np.any(shifts) else floor
+        for frame, frame_views in zip(frames, views, strict=True):
+            _write_masks(out_dir, names, frame, _checked(settled_silhouettes(frame_views, shifted, params), capture,
+                                                         params))
+        return shifts
+
+
+def silhouettes_ready_task(capture: Capture, params: SilhouetteParams, out_dir: Path,
+                           noise_floors: Mapping[str, float]) -> None:
+    """Worker: build and keep what :func:`silhouettes_task` reads for every chunk (the background models, the rig's
+    floor geometry), while another worker measures the floor test's shifts (:func:`floor_shifts_task`)."""
+    with single_threaded_opencv():
+        background_models(out_dir, capture.rig.names, params, noise_floors)
+        cached_floor_geometry(capture.rig, capture.volume, params)
 
 
 def _checked(masks: list[np.ndarray], capture: Capture, params: SilhouetteParams) -> list[np.ndarray]:

@@ -59,6 +59,7 @@ from pipeline.frame_tasks import (
     occlusion_task,
     reconstruction_task,
     refinement_task,
+    silhouettes_ready_task,
     silhouettes_task,
 )
 from pipeline.io import atomic, frames_io, run_layout
@@ -277,15 +278,16 @@ def run_silhouettes(ctx: StageContext) -> int:
     floors = {} if given else _backgrounds(ctx)
 
     def make_masks() -> int:
-        pending = ctx.pending_frames(outputs_of)
-        if not pending:
+        if not ctx.pending_frames(outputs_of):
             return 0
-        shifts = None if given else floor_shifts_of(ctx.capture, ctx.out_dir, ctx.params, floors, ctx.workers.executor)
+        shifts, first = (None, 0) if given else floor_shifts_of(ctx.capture, ctx.out_dir, ctx.params, floors,
+                                                                ctx.workers.executor, ctx.workers.count)
         task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
                                  noise_floors=floors, floor_shifts=shifts)
+        pending = ctx.pending_frames(outputs_of)
         chunk_size = video_chunk_size(len(pending), ctx.workers.count) if ctx.capture.media == "videos" and not given \
             else None
-        return ctx.map_frames(task, outputs_of, chunk_size=chunk_size)
+        return first + ctx.map_frames(task, outputs_of, chunk_size=chunk_size)
 
     count = make_masks()
     plated = [camera for camera in plated if camera not in floors]  # a plate left out has an estimate instead
@@ -303,19 +305,28 @@ def run_silhouettes(ctx: StageContext) -> int:
 
 
 def floor_shifts_of(capture: Capture, out_dir: Path, params: SilhouetteParams, noise_floors: Mapping[str, float],
-                    executor: cf.Executor) -> np.ndarray | None:
-    """The floor test's shifts between the views (`frame_tasks.floor_shifts_task`, on ``executor``), or None without
-    a floor test. Written to `floor_shifts_path` (image pixels) and named in a line when any is taken: the
-    calibration then maps the floor that far off where the views see it.
+                    executor: cf.Executor, workers: int) -> tuple[np.ndarray | None, int]:
+    """The floor test's shifts between the views (`frame_tasks.floor_shifts_task`, on ``executor`` of ``workers``
+    workers, which makes the masks of the frames it measures them on) and how many frames' masks that made; (None, 0)
+    without a floor test.
+    Written to `floor_shifts_path` (image pixels) and named in a line when any is taken: the calibration then maps
+    the floor that far off where the views see it.
     """
     names = capture.rig.names
     if params.shadows != "floor" or len(names) < 2:
-        return None
-    shifts = executor.submit(floor_shifts_task, capture, params, out_dir, noise_floors).result()
+        return None, 0
+    measured = executor.submit(floor_shifts_task, capture, params, out_dir, noise_floors)
+    # The other workers ready themselves meanwhile (each makes its floor geometry once, tens of ms per camera).
+    readied = [executor.submit(silhouettes_ready_task, capture, params, out_dir, noise_floors)
+               for _ in range(workers - 1)]
+    shifts = measured.result()
+    for ready in readied:
+        ready.result()
+    frames = list(capture.frame_numbers[:FLOOR_SHIFT_FRAMES])
     pixels = shifts * params.downsample
     frames_io.write_json(floor_shifts_path(out_dir), {
         "method": "shadows' darkening compared between the views",
-        "frames": list(capture.frame_numbers[:FLOOR_SHIFT_FRAMES]),
+        "frames": frames,
         "shifts_px": {camera: {other: pixels[index, column].tolist() for column, other in enumerate(names)
                                if column != index} for index, camera in enumerate(names)}})
     lengths = np.linalg.norm(pixels, axis=2)
@@ -325,7 +336,7 @@ def floor_shifts_of(capture: Capture, out_dir: Path, params: SilhouetteParams, n
                  "mapping, by up to %.0f pixels (%s's floor points in %s's view): the calibration is off by about "
                  "that at the floor (shifts: %s)", np.count_nonzero(lengths), len(names) * (len(names) - 1),
                  lengths.max(), names[index], names[other], floor_shifts_path(out_dir))
-    return shifts
+    return shifts, len(frames)
 
 
 #: Frames, spread over the capture, whose silhouettes are searched for parts of the room changed since the plates.

@@ -86,6 +86,7 @@ __all__ = [
     "floor_shifts",
     "measure_evidence",
     "median_background",
+    "settled_silhouettes",
     "shifted_floor",
     "silhouette_from_evidence",
 ]
@@ -123,8 +124,13 @@ def extract_silhouettes(
     if not len(images) == len(backgrounds) == len(floor.working_shapes):
         raise InputError(f"extract_silhouettes: {len(images)} images, {len(backgrounds)} backgrounds and "
                          f"{len(floor.working_shapes)} cameras; expected as many of each")
-    views = [measure_evidence(image, background, params)
-             for image, background in zip(images, backgrounds, strict=True)]
+    return settled_silhouettes([measure_evidence(image, background, params)
+                                for image, background in zip(images, backgrounds, strict=True)], floor, params)
+
+
+def settled_silhouettes(views: Sequence[Evidence], floor: FloorGeometry, params: SilhouetteParams) -> list[np.ndarray]:
+    """The masks of :func:`extract_silhouettes` from every view's :func:`measure_evidence` of one frame (for a caller
+    that reads the evidence for something else as well: :func:`floor_shifts`)."""
     if params.shadows == "floor":
         shadows = floor_shadows(views, floor, params)
     elif params.shadows == "colour":
