@@ -188,15 +188,6 @@ def floor_shifts_task(capture: Capture, params: SilhouetteParams, out_dir: Path,
         return shifts
 
 
-def silhouettes_ready_task(capture: Capture, params: SilhouetteParams, out_dir: Path,
-                           noise_floors: Mapping[str, float]) -> None:
-    """Worker: build and keep what :func:`silhouettes_task` reads for every chunk (the background models, the rig's
-    floor geometry), while another worker measures the floor test's shifts (:func:`floor_shifts_task`)."""
-    with single_threaded_opencv():
-        background_models(out_dir, capture.rig.names, params, noise_floors)
-        cached_floor_geometry(capture.rig, capture.volume, params)
-
-
 def _checked(masks: list[np.ndarray], capture: Capture, params: SilhouetteParams) -> list[np.ndarray]:
     """The masks of one frame without the parts the other views do not confirm (``params.multiview_check``)."""
     if not params.multiview_check:

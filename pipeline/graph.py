@@ -39,7 +39,7 @@ import dataclasses
 import functools
 import logging
 import math
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -48,7 +48,7 @@ from calib.camera import Rig
 from calib.formats import load_rig, save_rig
 from pipeline.compiled_cache import load_cached
 from pipeline.engine.context import StageContext
-from pipeline.engine.executors import usable_cpus
+from pipeline.engine.executors import call_logged, relog, usable_cpus
 from pipeline.engine.stage import Stage
 from pipeline.frame_tasks import (
     FLOOR_SHIFT_FRAMES,
@@ -59,7 +59,6 @@ from pipeline.frame_tasks import (
     occlusion_task,
     reconstruction_task,
     refinement_task,
-    silhouettes_ready_task,
     silhouettes_task,
 )
 from pipeline.io import atomic, frames_io, run_layout
@@ -73,6 +72,7 @@ from pipeline.io.run_layout import (
     JOINTS_FILE,
     QUALITY_FILE,
     RIG_FILE,
+    ahead_masks_path,
     background_path,
     calibration_check_path,
     calibration_refinement_path,
@@ -275,19 +275,26 @@ def run_silhouettes(ctx: StageContext) -> int:
         remove(path for camera in plated for path in (background_path(ctx.out_dir, camera),
                                                       room_change_path(ctx.out_dir, camera)))
         remaking.unlink()
+    ahead = ahead_masks_path(ctx.out_dir)
+    if ahead.exists():  # stopped before the floor shifts were decided: masks made as if none were needed
+        remove(path for frame in frames_io.read_json(ahead)["frames"] for path in outputs_of(frame))
+        ahead.unlink()
     floors = {} if given else _backgrounds(ctx)
 
     def make_masks() -> int:
-        if not ctx.pending_frames(outputs_of):
-            return 0
-        shifts, first = (None, 0) if given else floor_shifts_of(ctx.capture, ctx.out_dir, ctx.params, floors,
-                                                                ctx.workers.executor, ctx.workers.count)
-        task = functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
-                                 noise_floors=floors, floor_shifts=shifts)
-        pending = ctx.pending_frames(outputs_of)
-        chunk_size = video_chunk_size(len(pending), ctx.workers.count) if ctx.capture.media == "videos" and not given \
-            else None
-        return first + ctx.map_frames(task, outputs_of, chunk_size=chunk_size)
+        def task(shifts: np.ndarray | None) -> Callable:
+            return functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
+                                     noise_floors=floors, floor_shifts=shifts)
+
+        def mapped(shifts: np.ndarray | None, frames: Sequence[int] | None = None) -> int:
+            count = len(ctx.pending_frames(outputs_of, frames))
+            chunk_size = video_chunk_size(count, ctx.workers.count) if ctx.capture.media == "videos" and not given \
+                else None
+            return ctx.map_frames(task(shifts), outputs_of, frames=frames, chunk_size=chunk_size)
+
+        if given or ctx.params.shadows != "floor" or len(names) < 2:
+            return mapped(None)
+        return masks_with_floor_shifts(ctx, floors, outputs_of, task, mapped)
 
     count = make_masks()
     plated = [camera for camera in plated if camera not in floors]  # a plate left out has an estimate instead
@@ -304,29 +311,47 @@ def run_silhouettes(ctx: StageContext) -> int:
     return count
 
 
-def floor_shifts_of(capture: Capture, out_dir: Path, params: SilhouetteParams, noise_floors: Mapping[str, float],
-                    executor: cf.Executor, workers: int) -> tuple[np.ndarray | None, int]:
-    """The floor test's shifts between the views (`frame_tasks.floor_shifts_task`, on ``executor`` of ``workers``
-    workers, which makes the masks of the frames it measures them on) and how many frames' masks that made; (None, 0)
-    without a floor test.
-    Written to `floor_shifts_path` (image pixels) and named in a line when any is taken: the calibration then maps
-    the floor that far off where the views see it.
+def masks_with_floor_shifts(ctx: StageContext, noise_floors: Mapping[str, float],
+                            outputs_of: Callable[[int], list[Path]], task: Callable[[np.ndarray | None], Callable],
+                            mapped: Callable[..., int]) -> int:
+    """Make the pending masks with the floor test's shifts between the views (`frame_tasks.floor_shifts_task`, on a
+    worker, which makes the masks of the frames it measures them on); how many frames' masks were made. The shifts
+    are written to `floor_shifts_path` (image pixels), and a line names the largest when any is taken: the
+    calibration then maps the floor that far off where the views see it.
+
+    The other workers do not wait for them: each makes its share of the pending frames at once, as if no shift were
+    needed (so it is with a sound calibration), while the measuring worker goes on with its own share; when a shift
+    is taken, their masks are made again with it. Their frames are listed in `ahead_masks_path` until that is
+    decided: a run stopped before removes them when it starts again (`run_silhouettes`). ``task(shifts)`` is the
+    silhouette stage's per-chunk task, ``mapped(shifts, frames)`` maps it over the pending frames among ``frames``.
     """
+    capture, params, out_dir, workers = ctx.capture, ctx.params, ctx.out_dir, ctx.workers
     names = capture.rig.names
-    if params.shadows != "floor" or len(names) < 2:
-        return None, 0
-    measured = executor.submit(floor_shifts_task, capture, params, out_dir, noise_floors)
-    # The other workers ready themselves meanwhile (each makes its floor geometry once, tens of ms per camera).
-    readied = [executor.submit(silhouettes_ready_task, capture, params, out_dir, noise_floors)
-               for _ in range(workers - 1)]
+    first = list(capture.frame_numbers[:FLOOR_SHIFT_FRAMES])
+    rest = [frame for frame in ctx.pending_frames(outputs_of) if frame not in first]
+    own = len(rest) // workers.count  # the measuring worker's share; with one worker, all of them
+    mine, ahead = rest[:own], rest[own:]
+    frames_io.write_json(ahead_masks_path(out_dir), {"frames": ahead})  # before any of them is made
+    measured = workers.executor.submit(floor_shifts_task, capture, params, out_dir, noise_floors)
+    share = math.ceil(len(ahead) / max(1, workers.count - 1))
+    running = [workers.executor.submit(call_logged, task(None), tuple(ahead[start:start + share]))
+               for start in range(0, len(ahead), share)] if ahead else []
     shifts = measured.result()
-    for ready in readied:
-        ready.result()
-    frames = list(capture.frame_numbers[:FLOOR_SHIFT_FRAMES])
+    made = len(first) + mapped(shifts, mine)
+    for future in running:
+        relog(future.result())
+    if np.any(shifts):
+        for frame in ahead:
+            for path in outputs_of(frame):
+                path.unlink(missing_ok=True)
+        made += mapped(shifts, ahead)
+    else:
+        made += len(ahead)
+    ahead_masks_path(out_dir).unlink()
     pixels = shifts * params.downsample
     frames_io.write_json(floor_shifts_path(out_dir), {
         "method": "shadows' darkening compared between the views",
-        "frames": frames,
+        "frames": first,
         "shifts_px": {camera: {other: pixels[index, column].tolist() for column, other in enumerate(names)
                                if column != index} for index, camera in enumerate(names)}})
     lengths = np.linalg.norm(pixels, axis=2)
@@ -336,7 +361,7 @@ def floor_shifts_of(capture: Capture, out_dir: Path, params: SilhouetteParams, n
                  "mapping, by up to %.0f pixels (%s's floor points in %s's view): the calibration is off by about "
                  "that at the floor (shifts: %s)", np.count_nonzero(lengths), len(names) * (len(names) - 1),
                  lengths.max(), names[index], names[other], floor_shifts_path(out_dir))
-    return shifts, len(frames)
+    return made
 
 
 #: Frames, spread over the capture, whose silhouettes are searched for parts of the room changed since the plates.

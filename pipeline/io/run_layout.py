@@ -103,6 +103,12 @@ def floor_shifts_path(stage_dir: Path) -> Path:
     return stage_dir / "floor_shifts.json"
 
 
+def ahead_masks_path(stage_dir: Path) -> Path:
+    """The frames whose masks are being made before the floor test's shifts are decided (JSON, present only
+    meanwhile: `pipeline.graph.floor_shifts_of`), in the silhouette stage's folder."""
+    return stage_dir / "masks_ahead_of_floor_shifts.json"
+
+
 def calibration_check_path(stage_dir: Path) -> Path:
     """The silhouette stage's check of the calibration (JSON, `pipeline.graph._check_calibration`)."""
     return stage_dir / "calibration_check.json"

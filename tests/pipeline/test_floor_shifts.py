@@ -85,3 +85,47 @@ def test_a_calibration_off_by_centimetres_has_the_floor_test_shifted(studio_view
     monkeypatch.setattr(frame_tasks, "floor_shifts", lambda frames, floor, params: np.zeros((5, 5, 2), int))
     assert main(["run", str(off), "--out", str(tmp_path / "unshifted"), "--to", "silhouettes", "--workers", "1"]) == 0
     assert _held_outside(tmp_path / "unshifted", cameras, rendered) > 0.02
+
+
+def _masks(out: Path) -> dict:
+    return {path.relative_to(out): path.read_bytes() for path in sorted((out / "silhouettes").rglob("*.png"))}
+
+
+def _moved_capture(root: Path, studio_views) -> Path:
+    cameras, plates, rendered = studio_views
+    directions = np.random.default_rng(5).normal(size=(len(cameras), 3))
+    moved = [dataclasses.replace(camera, t=-camera.R @ (camera.centre + 0.1 * d / np.linalg.norm(d)))
+             for camera, d in zip(cameras, directions, strict=True)]
+    return _capture(root, moved, plates, rendered)
+
+
+@pytest.mark.parametrize("calibration", ["sound", "off"])
+def test_masks_made_ahead_of_the_shifts_are_the_masks_made_after_them(studio_views, tmp_path, calibration):
+    # Two workers: the second makes its share of the frames before the shifts are known, as if none were needed,
+    # and makes them again when one is taken. The masks are those one worker makes after the shifts.
+    cameras, plates, rendered = studio_views
+    capture = (_capture(tmp_path / "capture", cameras, plates, rendered) if calibration == "sound"
+               else _moved_capture(tmp_path / "capture", studio_views))
+    for workers in ("1", "2"):
+        assert main(["run", str(capture), "--out", str(tmp_path / workers), "--to", "silhouettes", "-q",
+                     "--workers", workers]) == 0
+    assert _masks(tmp_path / "1") == _masks(tmp_path / "2")
+    assert not (tmp_path / "2" / "silhouettes" / "masks_ahead_of_floor_shifts.json").exists()
+
+
+def test_a_run_stopped_before_the_shifts_were_decided_makes_the_masks_ahead_of_them_again(studio_views, tmp_path):
+    capture = _moved_capture(tmp_path / "capture", studio_views)
+    out = tmp_path / "out"
+    assert main(["run", str(capture), "--out", str(out), "--to", "silhouettes", "-q", "--workers", "1"]) == 0
+    made = _masks(out)
+    # As a stop would leave it: frames 3 and 4 made as if no shift were needed, listed, the stage unfinished.
+    stage = out / "silhouettes"
+    (stage / "manifest.json").unlink()
+    (stage / "masks_ahead_of_floor_shifts.json").write_text(json.dumps({"frames": [3, 4]}))
+    for frame in (3, 4):
+        for camera in studio_views[0]:
+            frames_io.write_mask(silhouette_path(stage, camera.name, frame),
+                                 np.zeros((studio.HEIGHT, studio.WIDTH), np.uint8))
+    assert main(["run", str(capture), "--out", str(out), "--to", "silhouettes", "-q", "--workers", "1"]) == 0
+    assert _masks(out) == made
+    assert not (stage / "masks_ahead_of_floor_shifts.json").exists()
