@@ -142,9 +142,10 @@ def silhouettes_task(chunk: Sequence[int], *, capture: Capture, params: Silhouet
 
     The cameras of a frame are segmented together: whether a darker patch is the person's shadow on the
     floor is settled across the views (:func:`stages.silhouettes.extract_silhouettes`), where ``floor_shifts``
-    says they see the floor (`pipeline.graph.floor_shifts_of`; None: where the calibration says). ``noise_floors``
-    holds the noise floor of each camera whose background was estimated from the frames; their frames' exposure
-    is fitted as one ratio per channel, not as a tone curve (:func:`~stages.silhouettes.background_model`).
+    says they see the floor (`pipeline.graph.masks_with_floor_shifts`; None: where the calibration says).
+    ``noise_floors`` holds the noise floor of each camera whose background was estimated from the frames; their
+    frames' exposure is fitted as one ratio per channel, not as a tone curve
+    (:func:`~stages.silhouettes.background_model`).
     """
     floors = noise_floors or {}
     names = capture.rig.names

@@ -98,14 +98,15 @@ def remaking_path(stage_dir: Path) -> Path:
 
 
 def floor_shifts_path(stage_dir: Path) -> Path:
-    """The floor test's shifts between the views (JSON, `pipeline.graph.floor_shifts_of`) in the silhouette stage's
-    folder: where each camera's floor points are compared in each other camera, off the calibration's mapping."""
+    """The floor test's shifts between the views (JSON, `pipeline.graph.masks_with_floor_shifts`) in the silhouette
+    stage's folder: where each camera's floor points are compared in each other camera, off the calibration's
+    mapping."""
     return stage_dir / "floor_shifts.json"
 
 
 def ahead_masks_path(stage_dir: Path) -> Path:
     """The frames whose masks are being made before the floor test's shifts are decided (JSON, present only
-    meanwhile: `pipeline.graph.floor_shifts_of`), in the silhouette stage's folder."""
+    meanwhile: `pipeline.graph.masks_with_floor_shifts`), in the silhouette stage's folder."""
     return stage_dir / "masks_ahead_of_floor_shifts.json"
 
 

@@ -6,7 +6,7 @@ say they do (:func:`floor_shifts`).
 from __future__ import annotations
 
 import functools
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 
 import cv2
@@ -14,6 +14,7 @@ import numpy as np
 
 from calib.camera import Camera
 from calib.errors import InputError
+from stages.consistency import evenly_spread
 from stages.silhouettes.evidence import Evidence, _working_shape
 from stages.silhouettes.outline import flat_nonzero
 from stages.silhouettes.params import SilhouetteParams
@@ -28,8 +29,8 @@ FLOOR_BLOCK = 2
 # part of the shadow, see less than that.
 SHADOW_AGREEMENT = 0.8
 # The shifts of the floor test (:func:`floor_shifts`): the largest tried, as a share of the working image's width
-# (16 pixels at 390: a camera turned by 0.3° or moved by 2 cm shifts its floor points by up to 9 in the other
-# views), ...
+# (16 pixels at a width of 390: the foreign captures' copies with every camera turned by 0.3° or moved by 2 cm took
+# shifts of up to that), ...
 MAX_FLOOR_SHIFT = 0.04
 # ... the share by which a shift must lower the mean difference of the darkenings compared: with a sound
 # calibration the best shift is the one the calibration gives or a pixel away, within a few hundredths of it
@@ -204,7 +205,9 @@ def floor_shifts(frames: Iterable[Sequence[Evidence]], floor: FloorGeometry, par
         for index, (view, darkening) in enumerate(zip(views, darkenings, strict=True)):
             looks[index].append(_floor_look(view, darkening, params))
             at, blocks = _shadow_like_blocks(view)
-            chosen = np.unique(np.linspace(0, len(at) - 1, min(len(at), FLOOR_SHIFT_SAMPLES)).round().astype(int))
+            if len(at) == 0:
+                continue
+            chosen = evenly_spread(len(at), FLOOR_SHIFT_SAMPLES)
             at, blocks = at[chosen], blocks[chosen]
             for other in range(count):
                 if other == index:
@@ -249,7 +252,7 @@ def _darkening_differences(look: np.ndarray, shape: tuple[int, int], starts: np.
     return np.where(counts > 0, total / np.maximum(counts, 1), np.inf)
 
 
-def _coarse_to_fine(cost, reach: int) -> tuple[np.ndarray | None, float]:
+def _coarse_to_fine(cost: Callable[[np.ndarray], np.ndarray], reach: int) -> tuple[np.ndarray | None, float]:
     """The integer shift within ``reach`` (both ways, both axes) of least ``cost`` (a function of (K, 2) int shifts
     returning (K,) costs) and that cost: a grid of a quarter of ``reach`` apart, then its best's neighbours at
     half the spacing, down to one pixel; (None, inf) when no shift has a finite cost."""

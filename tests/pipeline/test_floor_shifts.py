@@ -1,5 +1,5 @@
 """The silhouette stage's shifts of the floor test, measured on the shadows when the calibration maps the floor off
-where the views see it (`pipeline.graph.floor_shifts_of`)."""
+where the views see it (`pipeline.graph.masks_with_floor_shifts`)."""
 
 from __future__ import annotations
 
