@@ -12,6 +12,7 @@
     <out>/silhouettes/<camera>/<frame>.png   masks
     <out>/silhouettes/background/<camera>.png, noise_floors.json
     <out>/silhouettes/calibration_check.json the calibration checked against the silhouettes (per camera)
+    <out>/silhouettes/floor_shifts.json      where the floor test of shadows compares the views, off the calibration
     <out>/reconstruction/<frame>.ply         points and normals
     <out>/tracking/frames/<frame>.json       estimate and tracker state
     <out>/export/joints.csv, quality.csv, joints.trc, motion.bvh, joints.c3d, angles.csv, overlay_<camera>.webm,
@@ -189,6 +190,10 @@ class RunLayout:
     @property
     def calibration_check(self) -> Path:
         return calibration_check_path(self.silhouettes_dir)
+
+    @property
+    def floor_shifts(self) -> Path:
+        return floor_shifts_path(self.silhouettes_dir)
 
     def observations(self, frame: int) -> Path:
         return observations_path(self.stage_dir("reconstruction"), frame)

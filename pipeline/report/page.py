@@ -201,6 +201,7 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
     cameras = list(stills) or [str(name) for name in run.capture.get("cameras", []) or []]
     layout = RunLayout(run.out_dir)
     check = _record(layout.calibration_check, "disagreement_m")
+    shifts = _record(layout.floor_shifts, "shifts_px")
     decided = _record(layout.calibration_refinement, "turns_deg")
     refinement = decided if decided and decided.get("kept") is True else None
     rows = []
@@ -224,7 +225,8 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
             figures += (f"<figure><video controls muted loop preload='metadata' src='{html.escape(video)}'></video>"
                         f"<figcaption><a href='{html.escape(video)}'>{html.escape(video)}</a></figcaption></figure>")
         if figures:
-            rows.append(f"<h3>{html.escape(camera)}</h3>{_agreement(check, camera)}{_turn(refinement, camera)}"
+            rows.append(f"<h3>{html.escape(camera)}</h3>{_agreement(check, camera)}{_floor_shift(shifts, camera)}"
+                        f"{_turn(refinement, camera)}"
                         f"{_part_note(layout.hidden_part(camera), HIDDEN_NOTE)}"
                         f"{_part_note(layout.room_change(camera), ROOM_NOTE)}"
                         f"<div class='stills'>{figures}</div>")
@@ -242,8 +244,9 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
 
 def _record(path: Path, key: str) -> dict | None:
     """A stage's JSON record holding a mapping under ``key`` (the calibration check,
-    `pipeline.graph._check_calibration`; the calibration refinement, `pipeline.graph.refined_rig`), or None when
-    absent or unreadable (a report never fails on it)."""
+    `pipeline.graph._check_calibration`; the floor test's shifts, `pipeline.graph.masks_with_floor_shifts`; the
+    calibration refinement, `pipeline.graph.refined_rig`), or None when absent or unreadable (a report never fails
+    on it)."""
     try:
         record = frames_io.read_json(path)
     except (OSError, InputError):
@@ -309,6 +312,19 @@ def _agreement(check: dict | None, camera: str) -> str:
                 "sees, in every frame).</p>")
     return (f"<p class='note'>Calibration check: its silhouettes agree with the other cameras' within "
             f"{100 * value:.1f} cm at the subject (epipolar tangency).</p>")
+
+
+def _floor_shift(record: dict | None, camera: str) -> str:
+    """A note on where the floor test of shadows compares the camera's floor points in the other views, when the
+    shadows put them off the calibration's mapping (`silhouettes/floor_shifts.json`); else nothing."""
+    shifted = {other: shift for other, shift in ((record or {}).get("shifts_px", {}).get(camera) or {}).items()
+               if isinstance(shift, list) and any(shift)}
+    if not shifted:
+        return ""
+    views = ", ".join(f"{html.escape(str(other))} {float(np.hypot(*shift)):.0f}" for other, shift in shifted.items())
+    return (f"<p class='note'>Floor test of shadows: the other views see its floor points off where the calibration "
+            f"puts them, by {views} pixels, and the test also looks there (the calibration is off by about that at "
+            "the floor).</p>")
 
 
 def _timings_section(rows: list[dict]) -> str:

@@ -317,3 +317,15 @@ def test_a_part_of_a_view_changed_since_its_plate_is_shown_in_its_camera_section
     assert "Part of its view <strong>changed since its clean plate</strong>" in front
     assert "alt='front changed since the plate, not carved'" in front
     assert "changed since its clean plate" not in text[text.index("<h3>side</h3>"):]
+
+
+def test_the_floor_tests_shifts_are_noted_in_the_cameras_they_concern(full_run):
+    assert "Floor test of shadows" not in build_report(full_run, rig=_rig(), images=_images())
+    frames_io.write_json(full_run / "silhouettes" / "floor_shifts.json", {
+        "method": "shadows' darkening compared between the views", "frames": [0, 1, 2, 3],
+        "shifts_px": {"front": {"side": [6, 8]}, "side": {"front": [0, 0]}}})
+    text = build_report(full_run, rig=_rig(), images=_images())
+    front = text[text.index("<h3>front</h3>"):text.index("<h3>side</h3>")]
+    assert "Floor test of shadows: the other views see its floor points off where the calibration puts them, by " \
+           "side 10 pixels" in front
+    assert "Floor test of shadows" not in text[text.index("<h3>side</h3>"):]
