@@ -282,19 +282,9 @@ def run_silhouettes(ctx: StageContext) -> int:
     floors = {} if given else _backgrounds(ctx)
 
     def make_masks() -> int:
-        def task(shifts: np.ndarray | None) -> Callable:
-            return functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
-                                     noise_floors=floors, floor_shifts=shifts)
-
-        def mapped(shifts: np.ndarray | None, frames: Sequence[int] | None = None) -> int:
-            count = len(ctx.pending_frames(outputs_of, frames))
-            chunk_size = video_chunk_size(count, ctx.workers.count) if ctx.capture.media == "videos" and not given \
-                else None
-            return ctx.map_frames(task(shifts), outputs_of, frames=frames, chunk_size=chunk_size)
-
         if given or ctx.params.shadows != "floor" or len(names) < 2:
-            return mapped(None)
-        return masks_with_floor_shifts(ctx, floors, outputs_of, task, mapped)
+            return _map_masks(ctx, floors, outputs_of, None)
+        return masks_with_floor_shifts(ctx, floors, outputs_of)
 
     count = make_masks()
     plated = [camera for camera in plated if camera not in floors]  # a plate left out has an estimate instead
@@ -311,47 +301,65 @@ def run_silhouettes(ctx: StageContext) -> int:
     return count
 
 
+def _masks_task(ctx: StageContext, noise_floors: Mapping[str, float], shifts: np.ndarray | None) -> Callable:
+    """The silhouette stage's per-chunk task (`frame_tasks.silhouettes_task`) with the floor test's ``shifts``."""
+    return functools.partial(silhouettes_task, capture=ctx.capture, params=ctx.params, out_dir=ctx.out_dir,
+                             noise_floors=noise_floors, floor_shifts=shifts)
+
+
+def _map_masks(ctx: StageContext, noise_floors: Mapping[str, float], outputs_of: Callable[[int], list[Path]],
+               shifts: np.ndarray | None, frames: Sequence[int] | None = None) -> int:
+    """Make the masks of the pending frames among ``frames`` (default: all) on the workers; how many were made."""
+    chunk_size = None
+    if ctx.capture.media == "videos" and not ctx.capture.silhouettes_given:
+        chunk_size = video_chunk_size(len(ctx.pending_frames(outputs_of, frames)), ctx.workers.count)
+    return ctx.map_frames(_masks_task(ctx, noise_floors, shifts), outputs_of, frames=frames, chunk_size=chunk_size)
+
+
 def masks_with_floor_shifts(ctx: StageContext, noise_floors: Mapping[str, float],
-                            outputs_of: Callable[[int], list[Path]], task: Callable[[np.ndarray | None], Callable],
-                            mapped: Callable[..., int]) -> int:
+                            outputs_of: Callable[[int], list[Path]]) -> int:
     """Make the pending masks with the floor test's shifts between the views (`frame_tasks.floor_shifts_task`, on a
     worker, which makes the masks of the frames it measures them on); how many frames' masks were made. The shifts
-    are written to `floor_shifts_path` (image pixels), and a line names the largest when any is taken: the
-    calibration then maps the floor that far off where the views see it.
+    are written down (`_write_floor_shifts`).
 
     The other workers do not wait for them: each makes its share of the pending frames at once, as if no shift were
     needed (so it is with a sound calibration), while the measuring worker goes on with its own share; when a shift
     is taken, their masks are made again with it. Their frames are listed in `ahead_masks_path` until that is
-    decided: a run stopped before removes them when it starts again (`run_silhouettes`). ``task(shifts)`` is the
-    silhouette stage's per-chunk task, ``mapped(shifts, frames)`` maps it over the pending frames among ``frames``.
+    decided: a run stopped before removes them when it starts again (`run_silhouettes`).
     """
-    capture, params, out_dir, workers = ctx.capture, ctx.params, ctx.out_dir, ctx.workers
-    names = capture.rig.names
+    capture, out_dir, workers = ctx.capture, ctx.out_dir, ctx.workers
     first = list(capture.frame_numbers[:FLOOR_SHIFT_FRAMES])
     rest = [frame for frame in ctx.pending_frames(outputs_of) if frame not in first]
     own = len(rest) // workers.count  # the measuring worker's share; with one worker, all of them
     mine, ahead = rest[:own], rest[own:]
     frames_io.write_json(ahead_masks_path(out_dir), {"frames": ahead})  # before any of them is made
-    measured = workers.executor.submit(floor_shifts_task, capture, params, out_dir, noise_floors)
-    share = math.ceil(len(ahead) / max(1, workers.count - 1))
-    running = [workers.executor.submit(call_logged, task(None), tuple(ahead[start:start + share]))
-               for start in range(0, len(ahead), share)] if ahead else []
+    measured = workers.executor.submit(floor_shifts_task, capture, ctx.params, out_dir, noise_floors)
+    share = max(1, math.ceil(len(ahead) / max(1, workers.count - 1)))  # frames per other worker
+    unshifted = _masks_task(ctx, noise_floors, None)
+    running = [workers.executor.submit(call_logged, unshifted, tuple(ahead[start:start + share]))
+               for start in range(0, len(ahead), share)]  # none with one worker, in this process
     shifts = measured.result()
-    made = len(first) + mapped(shifts, mine)
+    made = len(first) + _map_masks(ctx, noise_floors, outputs_of, shifts, mine)
     for future in running:
         relog(future.result())
     if np.any(shifts):
         for frame in ahead:
             for path in outputs_of(frame):
                 path.unlink(missing_ok=True)
-        made += mapped(shifts, ahead)
+        made += _map_masks(ctx, noise_floors, outputs_of, shifts, ahead)
     else:
         made += len(ahead)
     ahead_masks_path(out_dir).unlink()
-    pixels = shifts * params.downsample
+    _write_floor_shifts(out_dir, capture.rig.names, first, shifts * ctx.params.downsample)
+    return made
+
+
+def _write_floor_shifts(out_dir: Path, names: Sequence[str], frames: Sequence[int], pixels: np.ndarray) -> None:
+    """Write the floor test's shifts ``pixels`` (C, C, 2), image pixels, measured on ``frames``, to
+    `floor_shifts_path`, and name the largest in a line when any is taken: the calibration then maps the floor that
+    far off where the views see it."""
     frames_io.write_json(floor_shifts_path(out_dir), {
-        "method": "shadows' darkening compared between the views",
-        "frames": first,
+        "method": "shadows' darkening compared between the views", "frames": list(frames),
         "shifts_px": {camera: {other: pixels[index, column].tolist() for column, other in enumerate(names)
                                if column != index} for index, camera in enumerate(names)}})
     lengths = np.linalg.norm(pixels, axis=2)
@@ -361,7 +369,6 @@ def masks_with_floor_shifts(ctx: StageContext, noise_floors: Mapping[str, float]
                  "mapping, by up to %.0f pixels (%s's floor points in %s's view): the calibration is off by about "
                  "that at the floor (shifts: %s)", np.count_nonzero(lengths), len(names) * (len(names) - 1),
                  lengths.max(), names[index], names[other], floor_shifts_path(out_dir))
-    return made
 
 
 #: Frames, spread over the capture, whose silhouettes are searched for parts of the room changed since the plates.

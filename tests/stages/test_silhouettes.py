@@ -218,7 +218,6 @@ def test_floor_shifts_find_where_the_views_see_the_floor_under_a_calibration_off
     off = floor_geometry(moved, volume, params)
     shifts = floor_shifts(views, off, params)
     assert shifts.shape == (5, 5, 2) and np.count_nonzero(np.abs(shifts).sum(axis=2)) >= 10
-    assert not np.any(shifts[np.arange(5), np.arange(5)])
 
     def mean_iou(floor):
         masks = extract_silhouettes(frames, backgrounds, floor, params)
