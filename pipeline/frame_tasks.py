@@ -48,6 +48,7 @@ from stages.silhouettes import (
     settled_silhouettes,
     shifted_floor,
 )
+from stages.synchrony import SyncCheck, check_synchrony
 from stages.tangency import Refinement, refine_turns, turned
 
 log = logging.getLogger(__name__)
@@ -68,6 +69,10 @@ REFINEMENT_FRAMES = 30
 #: silhouettes than the given ones (`stages.consistency.explained_share`).
 COHERENCE_FRAMES = 10
 COHERENCE_RAYS = 100
+#: Frames where the silhouettes change most, on which the cameras' synchrony is checked (`stages.synchrony`), and
+#: the largest offset tried, in the capture's frames.
+SYNC_FRAMES = 12
+SYNC_MAX_OFFSET = 5
 #: Frames, spread over the capture, whose silhouettes are searched for parts of a view hidden behind something in
 #: front of the subject (`stages.reconstruction.occlusion`): enough for the subject's limbs to sweep what hides them.
 OCCLUSION_FRAMES = 24
@@ -232,6 +237,16 @@ def occlusion_task(capture: Capture, masks_dir: Path, rig: Rig) -> list[np.ndarr
     frames = spread_frames(capture.frame_numbers, OCCLUSION_FRAMES)
     return search_hidden_parts(lambda: (frame_masks(masks_dir, cameras, frame) for frame in frames), cameras,
                                capture.volume)
+
+
+def sync_check_task(capture: Capture, masks_dir: Path, measured: Sequence[int]) -> SyncCheck:
+    """Worker: the cameras ``measured`` (indices into the rig) checked against the others for frame offsets
+    (`stages.synchrony.check_synchrony`) on the silhouette stage's masks; the other cameras' rows are NaN. Workers
+    given the other cameras choose the same frames."""
+    cameras = list(capture.rig)
+    frames = capture.frame_numbers
+    return check_synchrony(lambda index: frame_masks(masks_dir, cameras, frames[index]), cameras, capture.volume,
+                           len(frames), SYNC_FRAMES, SYNC_MAX_OFFSET, tolerated_views(len(cameras)), measured=measured)
 
 
 def camera_samples_task(capture: Capture, camera: str, plate: np.ndarray | None, *, frames: Sequence[int],

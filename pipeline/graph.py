@@ -60,6 +60,7 @@ from pipeline.frame_tasks import (
     reconstruction_task,
     refinement_task,
     silhouettes_task,
+    sync_check_task,
 )
 from pipeline.io import atomic, frames_io, run_layout
 from pipeline.io.backgrounds import spread_frames
@@ -85,6 +86,7 @@ from pipeline.io.run_layout import (
     remaking_path,
     room_change_path,
     silhouette_path,
+    sync_check_path,
 )
 from pipeline.io.tracking_io import read_tracking
 from pipeline.report.page import write_report
@@ -98,6 +100,7 @@ from stages.reconstruction import Observations, ReconstructionParams
 from stages.reconstruction.occlusion import parts_union
 from stages.reconstruction.views import VOLUME_FACES, faces_reached
 from stages.silhouettes import SilhouetteParams
+from stages.synchrony import SyncCheck
 from stages.tangency import (
     camera_disagreement,
     cameras_at_fault,
@@ -672,6 +675,10 @@ def run_export(ctx: StageContext) -> None:
     if params.report and capture.has_images:  # the report's photographs, decoded while the exports are written
         pictured = frames if len(frames) else np.asarray(capture.frame_numbers)
         shown = ctx.workers.executor.submit(frame_images_task, capture, int(pictured[len(pictured) // 2]))
+    # The cameras' synchrony is checked on the workers while this process writes the exports.
+    sync = [ctx.workers.executor.submit(sync_check_task, capture, ctx.input_dir("silhouettes"), part.tolist())
+            for part in np.array_split(np.arange(len(capture.rig)), max(1, ctx.workers.count))
+            if len(part) and params.sync_check]
     if len(frames):
         write_exports(ctx.out_dir, frames, np.stack([estimated[frame] for frame in frames]), capture.fps,
                       params=params, quality=quality)
@@ -684,8 +691,46 @@ def run_export(ctx: StageContext) -> None:
         for camera in rig:
             write_overlay_video(capture.iter_images(camera.name, capture.frame_numbers), camera, estimated,
                                 ctx.out_dir / overlay_video_name(camera.name), capture.fps)
+    _write_sync_check(capture, [part.result() for part in sync], ctx.out_dir)
     if params.report:  # also when no frame was estimated: it says what happened
         write_report(ctx.output_root, rig=rig, images=shown.result() if shown is not None else None)
+
+
+def _write_sync_check(capture: Capture, parts: Sequence[SyncCheck], out_dir: Path) -> None:
+    """Write the cameras' synchrony check (`sync_check_path`; its parts measured by `frame_tasks.sync_check_task`,
+    each for some cameras) and warn about each camera whose silhouettes agree clearly better with the others' at
+    a frame offset, with the ``frame_offsets`` line for capture.yaml that makes up for it."""
+    frames = capture.frame_numbers
+    spacing = set(np.diff(frames).tolist())
+    if not parts or not parts[0].frames or len(spacing) != 1:  # too few frames, or frames not evenly spaced
+        return
+    step = spacing.pop()  # a capture frame is `step` frames of the media
+    agreement = np.nanmax(np.stack([part.agreement for part in parts]), axis=0) if len(parts) > 1 \
+        else parts[0].agreement
+    check = SyncCheck(parts[0].frames, parts[0].offsets, agreement)
+    lags, mean = check.lags(), check.mean_agreement()
+    names = capture.rig.names
+    given = capture.frame_offsets
+    frame_offsets = {name: given.get(name, 0) + int(lag) * step for name, lag in zip(names, lags, strict=True)}
+    frames_io.write_json(sync_check_path(out_dir), {
+        "method": "silhouette coherence across time", "frames": [int(frames[i]) for i in check.frames],
+        "offsets": [int(k) * step for k in check.offsets],
+        "agreement": {name: [_finite_or_none(value) for value in row] for name, row in zip(names, mean, strict=True)},
+        "lag": {name: int(lag) * step for name, lag in zip(names, lags, strict=True)},
+        "frame_offsets": {name: offset for name, offset in frame_offsets.items() if offset}})
+    zero = int(np.flatnonzero(check.offsets == 0)[0])
+    if not lags.any():
+        log.info("sync check: every camera's silhouettes agree best with the other cameras' at the same frame (%d "
+                 "frames where the subject moves)", len(check.frames))
+    for name, lag, row in zip(names, lags, mean, strict=True):
+        if lag:
+            log.warning("cameras not synchronised? %s's silhouettes agree best with the other cameras' %d frame(s) "
+                        "%s (%.1f %% of its silhouette explained by their visual hull, against %.1f %% at the same "
+                        "frame; %d frames where the subject moves): its media seem to run %d frame(s) %s theirs. "
+                        "frame_offsets: {%s} in capture.yaml makes up for it (then run again)", name, abs(lag) * step,
+                        "later" if lag > 0 else "earlier", 100 * row[zero + lag], 100 * row[zero],
+                        len(check.frames), abs(lag) * step, "behind" if lag > 0 else "ahead of",
+                        ", ".join(f"{camera}: {offset}" for camera, offset in frame_offsets.items() if offset))
 
 
 #: Modules every stage runs to write (and read) its files.
@@ -710,9 +755,11 @@ STAGES: tuple[Stage, ...] = (
           code=("stages.tracking", "stages.checks", "stages.joints", "stages.reconstruction", "pipeline.frame_tasks",
                 "pipeline.compiled_cache", "pipeline.io.body_io", "pipeline.io.tracking_io", *FILES_CODE),
           streams=True),
-    Stage("export", run_export, inputs=("calibration", "reconstruction", "tracking"), params_type=ExportParams,
+    Stage("export", run_export, inputs=("calibration", "silhouettes", "reconstruction", "tracking"),
+          params_type=ExportParams,
           capture_parts=("config", "frames", "images"),
-          code=("stages.export", "stages.checks", "stages.joints", "stages.tracking.results", "pipeline.io.export_io",
+          code=("stages.export", "stages.checks", "stages.joints", "stages.tracking.results", "stages.synchrony",
+                "stages.consistency", "stages.rays", "pipeline.io.export_io",
                 "pipeline.io.tracking_io", "pipeline.io.overlay_video", "pipeline.report",
                 "pipeline.engine.run_warnings", "pipeline.evaluate", "pipeline.terminal", "pipeline.io.capture",
                 "pipeline.frame_tasks", "calib", *FILES_CODE)),

@@ -95,15 +95,33 @@ def explained_share(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volu
     volume = np.asarray(volume, dtype=float)
     explained, tested = 0, 0
     for c, (mask, camera) in enumerate(zip(masks, cameras, strict=True)):
-        points = cv2.findNonZero(np.ascontiguousarray(mask, dtype=np.uint8))
-        if points is None:
+        uv = _silhouette_pixels(mask, rays_per_view)
+        if not len(uv):
             continue
-        points = points.reshape(-1, 2)
-        uv = points[evenly_spread(len(points), rays_per_view)].astype(float)
         others = [(other, masks[o]) for o, other in enumerate(cameras) if o != c]
         explained += int(_explained(camera, uv, others, volume, tolerated).sum())
         tested += len(uv)
     return explained / tested if tested else np.nan
+
+
+def explained_rays(camera: Camera, mask: np.ndarray, others: Sequence[tuple[Camera, np.ndarray]], volume: np.ndarray,
+                   *, tolerated: int, rays: int) -> float:
+    """The share of ``rays`` rays through ``camera``'s silhouette ``mask`` (pixels spread evenly in raster order)
+    that meet a point the ``others`` (camera, mask) see inside their silhouettes, as `explained_share` counts them;
+    NaN for an empty mask. The masks need not be of one instant: `stages.synchrony` compares them across time."""
+    uv = _silhouette_pixels(mask, rays)
+    if not len(uv):
+        return np.nan
+    return float(_explained(camera, uv, others, np.asarray(volume, dtype=float), tolerated).mean())
+
+
+def _silhouette_pixels(mask: np.ndarray, count: int) -> np.ndarray:
+    """(n, 2) float (u, v): at most ``count`` pixels of the silhouette ``mask``, evenly spread in raster order."""
+    points = cv2.findNonZero(np.ascontiguousarray(mask, dtype=np.uint8))
+    if points is None:
+        return np.zeros((0, 2))
+    points = points.reshape(-1, 2)
+    return points[evenly_spread(len(points), count)].astype(float)
 
 
 def _cells(mask: np.ndarray, cell: int) -> tuple[np.ndarray, tuple[int, int]]:

@@ -17,6 +17,7 @@
     <out>/tracking/frames/<frame>.json       estimate and tracker state
     <out>/export/joints.csv, quality.csv, joints.trc, motion.bvh, joints.c3d, angles.csv, overlay_<camera>.webm,
                  report.html
+    <out>/export/sync_check.json             the cameras' synchrony checked on the silhouettes (per camera)
     <out>/eval/metrics.json                  ``python -m pipeline eval``
 
 ``<frame>`` is :func:`pipeline.io.frames_io.frame_name`'s six digits. A stage's run function and its worker
@@ -116,6 +117,11 @@ def calibration_check_path(stage_dir: Path) -> Path:
     return stage_dir / "calibration_check.json"
 
 
+def sync_check_path(stage_dir: Path) -> Path:
+    """The export stage's check of the cameras' synchrony (JSON, `pipeline.graph._write_sync_check`)."""
+    return stage_dir / "sync_check.json"
+
+
 def calibration_refinement_path(stage_dir: Path) -> Path:
     """The reconstruction stage's refinement of the cameras' orientations (JSON, `pipeline.graph.refined_rig`)."""
     return stage_dir / "calibration_refinement.json"
@@ -194,6 +200,10 @@ class RunLayout:
     @property
     def floor_shifts(self) -> Path:
         return floor_shifts_path(self.silhouettes_dir)
+
+    @property
+    def sync_check(self) -> Path:
+        return sync_check_path(self.export_dir)
 
     def observations(self, frame: int) -> Path:
         return observations_path(self.stage_dir("reconstruction"), frame)

@@ -202,6 +202,7 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
     layout = RunLayout(run.out_dir)
     check = _record(layout.calibration_check, "disagreement_m")
     shifts = _record(layout.floor_shifts, "shifts_px")
+    sync = _record(layout.sync_check, "lag")
     decided = _record(layout.calibration_refinement, "turns_deg")
     refinement = decided if decided and decided.get("kept") is True else None
     rows = []
@@ -226,6 +227,7 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
                         f"<figcaption><a href='{html.escape(video)}'>{html.escape(video)}</a></figcaption></figure>")
         if figures:
             rows.append(f"<h3>{html.escape(camera)}</h3>{_agreement(check, camera)}{_floor_shift(shifts, camera)}"
+                        f"{_lag(sync, camera)}"
                         f"{_turn(refinement, camera)}"
                         f"{_part_note(layout.hidden_part(camera), HIDDEN_NOTE)}"
                         f"{_part_note(layout.room_change(camera), ROOM_NOTE)}"
@@ -245,8 +247,8 @@ def _cameras_section(run: LoadedRun, rig: Rig | None, images: Mapping[str, tuple
 def _record(path: Path, key: str) -> dict | None:
     """A stage's JSON record holding a mapping under ``key`` (the calibration check,
     `pipeline.graph._check_calibration`; the floor test's shifts, `pipeline.graph.masks_with_floor_shifts`; the
-    calibration refinement, `pipeline.graph.refined_rig`), or None when absent or unreadable (a report never fails
-    on it)."""
+    calibration refinement, `pipeline.graph.refined_rig`; the sync check, `pipeline.graph._write_sync_check`), or None
+    when absent or unreadable (a report never fails on it)."""
     try:
         record = frames_io.read_json(path)
     except (OSError, InputError):
@@ -325,6 +327,19 @@ def _floor_shift(record: dict | None, camera: str) -> str:
     return (f"<p class='note'>Floor test of shadows: the other views see its floor points off where the calibration "
             f"puts them, by {views} pixels, and the test also looks there (the calibration is off by about that at "
             "the floor).</p>")
+
+
+def _lag(record: dict | None, camera: str) -> str:
+    """A note on a camera whose silhouettes agree best with the other cameras' some frames apart
+    (`export/sync_check.json`, ``export.sync_check``); else nothing."""
+    lag = (record or {}).get("lag", {}).get(camera)
+    if not isinstance(lag, int) or not lag:
+        return ""
+    offset = (record.get("frame_offsets") or {}).get(camera, lag)
+    return (f"<p class='note'>Sync check: its silhouettes agree best with the other cameras' {abs(lag)} frame(s) "
+            f"{'later' if lag > 0 else 'earlier'}: its media seem to run {'behind' if lag > 0 else 'ahead of'} "
+            f"theirs (not synchronised?); <code>frame_offsets: {{{html.escape(camera)}: {offset}}}</code> in "
+            "capture.yaml makes up for it.</p>")
 
 
 def _timings_section(rows: list[dict]) -> str:

@@ -47,6 +47,12 @@ class ExportParams:
     trc_names : {"joints", "halpe26"}
         Marker names of ``joints.trc``: joints.csv's, or the HALPE_26 keypoint names of Pose2Sim's
         OpenSim models (``Hip``, ``LHip``, ``LBigToe``...; docs/exports.md says where they differ).
+    sync_check : bool
+        Check whether the cameras filmed the same instants (``stages.synchrony``: each camera's silhouettes
+        against the others' a few frames apart), write ``export/sync_check.json`` and name each camera whose
+        media run frames behind or ahead, with the ``frame_offsets`` for capture.yaml that make up for it. For
+        rigs without hardware synchronisation (webcams, phones); off by default, as it costs about a tenth of a
+        run's CPU. ``--from export --set export.sync_check=true`` checks a finished run.
     """
 
     report: bool = True
@@ -55,9 +61,10 @@ class ExportParams:
     bvh_units: str = "cm"
     bvh_names: str = "joints"
     trc_names: str = "joints"
+    sync_check: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("report", "overlay_videos"):
+        for name in ("report", "overlay_videos", "sync_check"):
             check_bool(f"export.{name}", getattr(self, name))
         if self.filter_cutoff_hz is not None:
             check_number("export.filter_cutoff_hz", self.filter_cutoff_hz, 0.0, above=True)

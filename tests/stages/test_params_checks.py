@@ -67,7 +67,7 @@ BAD = {
         "refine_calibration": [1, "yes", None],
         "find_hidden_parts": [1, "yes", None],
     },
-    ExportParams: {"report": [1, "yes", None], "overlay_videos": [0, "true"],
+    ExportParams: {"report": [1, "yes", None], "overlay_videos": [0, "true"], "sync_check": [1, "no"],
                    "filter_cutoff_hz": [0.0, -6.0, NAN, INF, True, "6"], "bvh_units": ["inch", None],
                    "bvh_names": ["cmu", None], "trc_names": ["openpose", None]},
 }

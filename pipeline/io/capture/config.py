@@ -16,7 +16,7 @@ from stages.joints import SUBJECT_HEIGHT_RANGE_M
 
 CALIBRATION_FORMATS = ("colmap", "opencv", "anipose", "projection", "qualisys")
 
-_TOP_LEVEL_KEYS = ("fps", "calibration", "cameras", "subject", "volume", "frames")
+_TOP_LEVEL_KEYS = ("fps", "calibration", "cameras", "subject", "volume", "frames", "frame_offsets")
 _CALIBRATION_KEYS = ("format", "path", "units", "up")
 
 
@@ -38,6 +38,9 @@ def _read_config(path: Path) -> dict:
     config = {"fps": float(fps), "calibration": calibration, "subject": subject, "volume": volume, "frames": frames}
     if "cameras" in raw:  # only when given: the config's fingerprint (cache keys) stays that of a capture without it
         config["cameras"] = _check_cameras(raw["cameras"], path)
+    offsets = _check_frame_offsets(raw["frame_offsets"], path) if "frame_offsets" in raw else {}
+    if offsets:  # likewise, and zero offsets are none
+        config["frame_offsets"] = offsets
     return config
 
 
@@ -123,6 +126,20 @@ def _check_cameras(cameras: Any, path: Path) -> list[str]:
     if repeated:
         raise InputError(f"{path}: cameras names {repeated[0]!r} twice (expected each camera once)")
     return list(cameras)
+
+
+def _check_frame_offsets(offsets: Any, path: Path) -> dict[str, int]:
+    """The ``frame_offsets:`` mapping: per camera named, the whole number of frames its media run behind the
+    others' (its frame f + offset shows what the others' frame f shows; negative: ahead)."""
+    if (not isinstance(offsets, dict) or not offsets
+            or not all(isinstance(name, str) and name.strip() for name in offsets)):
+        raise InputError(f"{path}: frame_offsets is {offsets!r} (expected a mapping of camera names to whole "
+                         "numbers of frames, such as {cam2: 1})")
+    for name, offset in offsets.items():
+        if not isinstance(offset, int) or isinstance(offset, bool):
+            raise InputError(f"{path}: frame_offsets.{name} is {offset!r} (expected a whole number of frames, "
+                             "positive when the camera's media run behind the others')")
+    return {name: int(offset) for name, offset in offsets.items() if offset != 0}
 
 
 def _is_number(value: Any) -> bool:

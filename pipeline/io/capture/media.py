@@ -188,7 +188,7 @@ def _iter_video(path: Path, frames: Iterable[int], *, reuse: bool = False) -> It
 
 
 def _selected_frames(camera_media: Mapping[str, _CameraMedia], media: str, root: Path, frames: dict,
-                     config_path: Path) -> list[int]:
+                     config_path: Path, offsets: Mapping[str, int] | None = None) -> list[int]:
     """The frames a run processes: capture.yaml's ``frames`` (start, stop, step on frame numbers) applied to the
     cameras' frames, which must be the same for every camera unless ``frames.stop`` keeps the selection within
     the frames they share.
@@ -196,18 +196,25 @@ def _selected_frames(camera_media: Mapping[str, _CameraMedia], media: str, root:
     Real recordings often end a frame or two apart from camera to camera. Using the frames they share without
     being told would hide a camera that dropped frames midway or belongs to another take (its views then
     disagree with the others' on every later frame), so a mismatch is refused, saying how to select the shared
-    frames; a ``frames.stop`` within every camera's frames is that choice made.
+    frames; a ``frames.stop`` within every camera's frames is that choice made. With ``offsets`` (capture.yaml's
+    ``frame_offsets``: camera -> frames its media run behind) the frames are numbered as the cameras without an
+    offset number them, and those that every camera has are used: cameras started at different times end apart.
     """
     per_camera = {}
+    offsets = offsets or {}
     for name, source in camera_media.items():
-        if media == "videos":
-            per_camera[name] = list(range(_video_frame_count(source.path)))
-        else:
-            per_camera[name] = _frame_numbers_in(source)
+        numbers = list(range(_video_frame_count(source.path))) if media == "videos" else _frame_numbers_in(source)
+        per_camera[name] = [number - offsets.get(name, 0) for number in numbers]
     reference_name = min(per_camera)
     reference = per_camera[reference_name]
     if not reference:
         raise InputError(f"{root / media}: the media have no frames (expected at least one)")
+    if offsets:
+        shared = sorted(set.intersection(*(set(frames_of) for frames_of in per_camera.values())))
+        if not shared:
+            raise InputError(f"{config_path}: with frame_offsets {dict(offsets)} the cameras share no frame "
+                             "(expected offsets smaller than the recordings)")
+        return _select_frames(frames, shared, config_path)
     differing = sorted(name for name, frames_of in per_camera.items() if frames_of != reference)
     if not differing:
         return _select_frames(frames, reference, config_path)

@@ -142,10 +142,15 @@ class Capture:
         check_rig_size(rig, units=calibration["units"], where=str(calibration_path))
         check_intrinsics(rig, where=str(calibration_path))
 
-        frame_numbers = _selected_frames(camera_media, media, root, config["frames"], root / "capture.yaml")
+        offsets = config.get("frame_offsets", {})
+        unknown = sorted(set(offsets) - set(rig.names))
+        if unknown:
+            raise InputError(f"{root / 'capture.yaml'}: frame_offsets names camera {unknown[0]!r}, which is not "
+                             f"among the cameras used (expected some of {', '.join(rig.names)})")
+        frame_numbers = _selected_frames(camera_media, media, root, config["frames"], root / "capture.yaml", offsets)
         if media == "videos":
             _warn_other_rates(camera_media, float(config["fps"]), root / "capture.yaml")
-        _check_given_files(frame_numbers, silhouette_media, background_paths, sizes)
+        _check_given_files(frame_numbers, silhouette_media, background_paths, sizes, offsets)
         subject = config["subject"] or {}
         capture = cls(root=root, config=config, fps=float(config["fps"]), rig=rig, volume=np.zeros((2, 3)),
                       volume_source="", height_m=subject.get("height_m"), frame_numbers=tuple(frame_numbers),
@@ -172,6 +177,15 @@ class Capture:
         """Whether precomputed silhouettes come with the capture."""
         return bool(self.silhouette_media)
 
+    @property
+    def frame_offsets(self) -> Mapping[str, int]:
+        """capture.yaml's ``frame_offsets``: per camera listed, how many frames its media run behind the others'."""
+        return self.config.get("frame_offsets", {})
+
+    def media_frame(self, camera: str, frame: int) -> int:
+        """The number, in ``camera``'s own media, of the capture's ``frame`` (`frame_offsets`)."""
+        return frame + self.frame_offsets.get(camera, 0)
+
     def iter_images(self, camera: str, frames: Iterable[int], *,
                     reuse: bool = False) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(frame, image (H, W, 3) uint8 BGR)`` for increasing ``frames`` of ``camera``.
@@ -180,20 +194,23 @@ class Capture:
         only when the next wanted frame is behind or far ahead. Close the generator (or exhaust
         it) to release the decoder. ``reuse``: a video's frames may all be decoded into one array,
         overwritten by the next frame, for a caller done with each frame before it asks for the next.
+        ``frames`` are the capture's; a camera with a frame offset is read at its own (`media_frame`).
         """
         if not self.has_images:
             raise ValueError("iter_images: this capture has silhouettes only (check has_images)")
         source = self.camera_media[camera]
         expected = tuple(self.rig[camera].size)
-        images = (_iter_video(source.path, frames, reuse=reuse) if self.media == "videos"
-                  else ((f, frames_io.read_image(source.frame_path(f))) for f in frames))
+        offset = self.frame_offsets.get(camera, 0)
+        wanted = (f + offset for f in frames)
+        images = (_iter_video(source.path, wanted, reuse=reuse) if self.media == "videos"
+                  else ((f, frames_io.read_image(source.frame_path(f))) for f in wanted))
         for frame, image in images:
             size = (image.shape[1], image.shape[0])
             if size != expected:
                 where = source.path if self.media == "videos" else source.frame_path(frame)
                 raise InputError(f"{where}: frame {frame} is {size[0]}x{size[1]} pixels "
                                  f"(expected {expected[0]}x{expected[1]} like the camera's first frame)")
-            yield frame, image
+            yield frame - offset, image
 
     def background(self, camera: str) -> np.ndarray | None:
         """The camera's clean plate ``(H, W, 3) uint8`` BGR, or ``None`` when not given."""
@@ -202,7 +219,7 @@ class Capture:
 
     def read_silhouette(self, camera: str, frame: int) -> np.ndarray:
         """The given mask ``(H, W) uint8`` in {0, 255} of ``camera`` at ``frame``."""
-        path = self.silhouette_media[camera].frame_path(frame)
+        path = self.silhouette_media[camera].frame_path(self.media_frame(camera, frame))
         mask = frames_io.read_mask(path)
         expected = tuple(self.rig[camera].size)
         if (mask.shape[1], mask.shape[0]) != expected:
@@ -247,7 +264,7 @@ class Capture:
         for name in sorted(media):
             source = media[name]
             if source.suffix:
-                files += [source.frame_path(frame) for frame in self.frame_numbers]
+                files += [source.frame_path(self.media_frame(name, frame)) for frame in self.frame_numbers]
             else:
                 files.append(source.path)
         return files
@@ -294,10 +311,12 @@ def _check_media_cameras(rig: Rig, root: Path, media: str, camera_media: Mapping
 
 
 def _check_given_files(frame_numbers: Sequence[int], silhouette_media: Mapping[str, _CameraMedia],
-                       background_paths: Mapping[str, Path], sizes: Mapping[str, tuple[int, int]]) -> None:
-    """Given silhouettes cover every processed frame; given clean plates have their camera's size."""
-    for source in silhouette_media.values():
-        missing = [f for f in frame_numbers if not source.frame_path(f).is_file()]
+                       background_paths: Mapping[str, Path], sizes: Mapping[str, tuple[int, int]],
+                       offsets: Mapping[str, int]) -> None:
+    """Given silhouettes cover every processed frame (at the cameras' `offsets`); given clean plates have their
+    camera's size."""
+    for name, source in silhouette_media.items():
+        missing = [f for f in frame_numbers if not source.frame_path(f + offsets.get(name, 0)).is_file()]
         if missing:
             raise InputError(f"{source.path}: no silhouette for frame {missing[0]} "
                              f"({len(missing)} missing; expected one mask per processed frame)")

@@ -1,0 +1,104 @@
+"""capture.yaml's frame_offsets: cameras whose media run frames behind or ahead of the others'."""
+
+import logging
+
+import numpy as np
+import pytest
+from conftest import make_capture, write_config
+
+from calib.errors import InputError
+from pipeline.graph import _write_sync_check
+from pipeline.io import frames_io
+from pipeline.io.capture import Capture
+from pipeline.io.run_layout import sync_check_path
+from stages.synchrony import SyncCheck
+
+
+def _grey(image: np.ndarray) -> int:
+    """The circle's grey level, which `tests.conftest.frame_image` makes 60 + 10 * frame."""
+    height, width = image.shape[:2]
+    return int(image[height // 2, width // 2, 0])
+
+
+@pytest.mark.parametrize("media", ["images", "videos"])
+def test_a_camera_behind_is_read_at_its_own_frames(tmp_path, media):
+    root = make_capture(tmp_path / "capture", n_frames=6, media=media)
+    write_config(root, frame_offsets={"cam1": 2})
+    capture = Capture.open(root)
+    assert capture.frame_numbers == (0, 1, 2, 3)  # cam1 has no frame 4 + 2
+    (_, behind), = capture.iter_images("cam1", [1])
+    (frame, other), = capture.iter_images("cam0", [1])
+    assert frame == 1
+    assert abs(_grey(behind) - 90) <= 3 and abs(_grey(other) - 70) <= 3  # cam1's media frame 3, cam0's frame 1
+
+
+def test_a_camera_ahead_loses_the_first_frames(tmp_path):
+    root = make_capture(tmp_path / "capture", n_frames=5, silhouettes=True)
+    write_config(root, frame_offsets={"cam2": -1})
+    capture = Capture.open(root)
+    assert capture.frame_numbers == (1, 2, 3, 4)
+    assert [frame for frame, _ in capture.iter_images("cam2", [1, 2])] == [1, 2]
+    assert _grey(next(capture.iter_images("cam2", [1]))[1]) == 60  # its media frame 0
+    (tmp_path / "capture" / "silhouettes" / "cam2" / "000003.png").unlink()  # its media frame 3, the frame 4
+    with pytest.raises(InputError, match="no silhouette for frame 4"):
+        Capture.open(root)
+
+
+def test_frames_select_among_the_shared_ones(tmp_path):
+    root = make_capture(tmp_path / "capture", n_frames=8)
+    write_config(root, frame_offsets={"cam0": 1, "cam1": -2}, frames={"start": 3, "step": 2})
+    assert Capture.open(root).frame_numbers == (3, 5)
+
+
+@pytest.mark.parametrize("offsets, message", [
+    ({"cam9": 1}, "frame_offsets names camera 'cam9', which is not among the cameras used"),
+    ({"cam1": 1.5}, "frame_offsets.cam1 is 1.5 .expected a whole number of frames"),
+    ({"cam1": True}, "frame_offsets.cam1 is True"),
+    ([1, 2], "frame_offsets is \\[1, 2\\] .expected a mapping"),
+    ({"cam1": 99}, "the cameras share no frame"),
+])
+def test_bad_frame_offsets_are_named(tmp_path, offsets, message):
+    root = make_capture(tmp_path / "capture", n_frames=4)
+    write_config(root, frame_offsets=offsets)
+    with pytest.raises(InputError, match=message):
+        Capture.open(root)
+
+
+def test_the_offsets_are_part_of_the_captures_fingerprint(tmp_path):
+    root = make_capture(tmp_path / "capture", n_frames=6)
+    before = Capture.open(root).fingerprint("config")
+    write_config(root, frame_offsets={"cam1": 0})
+    assert Capture.open(root).fingerprint("config") == before  # a zero offset is no offset
+    write_config(root, frame_offsets={"cam1": 1})
+    assert Capture.open(root).fingerprint("config") != before
+
+
+def test_the_sync_check_names_the_camera_behind_and_its_offset(tmp_path, caplog):
+    root = make_capture(tmp_path / "capture", n_frames=12)
+    write_config(root, frame_offsets={"cam2": 1})
+    capture = Capture.open(root)
+    offsets = np.arange(-2, 3)
+    agreement = np.full((3, 5, 4), 0.8)
+    agreement[:, 2] = 0.95
+    agreement[1, 3] = [0.99, 0.98, 0.99, 0.985]  # cam1 agrees best a frame later, on every frame
+    part = SyncCheck([2, 4, 6, 8], offsets, agreement)
+    with caplog.at_level(logging.INFO):
+        _write_sync_check(capture, [part], tmp_path)
+    record = frames_io.read_json(sync_check_path(tmp_path))
+    assert record["lag"] == {"cam0": 0, "cam1": 1, "cam2": 0}
+    assert record["frame_offsets"] == {"cam1": 1, "cam2": 1}  # the one given is kept
+    assert record["frames"] == [capture.frame_numbers[i] for i in (2, 4, 6, 8)]
+    warning, = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert "cam1's silhouettes agree best with the other cameras' 1 frame(s) later" in warning
+    assert "frame_offsets: {cam1: 1, cam2: 1} in capture.yaml" in warning
+
+
+def test_synchronised_cameras_get_an_info_line(tmp_path, caplog):
+    capture = Capture.open(make_capture(tmp_path / "capture", n_frames=12))
+    agreement = np.full((3, 5, 4), 0.8)
+    agreement[:, 2] = 0.95
+    with caplog.at_level(logging.INFO):
+        _write_sync_check(capture, [SyncCheck([2, 4, 6, 8], np.arange(-2, 3), agreement)], tmp_path)
+    assert frames_io.read_json(sync_check_path(tmp_path))["frame_offsets"] == {}
+    assert any("every camera's silhouettes agree best" in r.getMessage() for r in caplog.records)
+    assert not any(r.levelno == logging.WARNING for r in caplog.records)
