@@ -705,8 +705,9 @@ def _write_sync_check(capture: Capture, parts: Sequence[SyncCheck], out_dir: Pat
     if not parts or not parts[0].frames or len(spacing) != 1:  # too few frames, or frames not evenly spaced
         return
     step = spacing.pop()  # a capture frame is `step` frames of the media
-    agreement = np.nanmax(np.stack([part.agreement for part in parts]), axis=0) if len(parts) > 1 \
-        else parts[0].agreement
+    agreement = parts[0].agreement
+    for part in parts[1:]:  # each camera is measured by one part, NaN in the others
+        agreement = np.where(np.isnan(agreement), part.agreement, agreement)
     check = SyncCheck(parts[0].frames, parts[0].offsets, agreement)
     lags, mean = check.lags(), check.mean_agreement()
     names = capture.rig.names

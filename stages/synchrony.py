@@ -116,42 +116,41 @@ def check_synchrony(masks_at: Callable[[int], Sequence[np.ndarray]], cameras: Se
     zero = max_offset
     if count < 2 * max_offset + 3 or len(cameras) < 3:
         return SyncCheck([], offsets, np.full((len(cameras), len(offsets), 0), np.nan))
-    cache: dict[int, Sequence[np.ndarray]] = {}
-
-    def masks(index: int) -> Sequence[np.ndarray]:
-        if index not in cache:
-            cache[index] = masks_at(index)
-        return cache[index]
-
-    chosen = _moving_frames(masks, count, frames, max_offset)
+    chosen = _moving_frames(masks_at, count, frames, max_offset)
     agreement = np.full((len(cameras), len(offsets), len(chosen)), np.nan)
 
-    def measure(c: int, k: int) -> None:
+    def measure(tried: dict[int, list[int]]) -> None:
+        """Fill ``agreement`` for each camera's offsets ``tried`` (camera -> offsets), frame after frame: a few
+        frames' masks in memory at a time."""
+        wanted = sorted({k for ks in tried.values() for k in ks})
         for j, index in enumerate(chosen):
-            views = masks(index)
-            others = [(camera, views[o]) for o, camera in enumerate(cameras) if o != c]
-            agreement[c, zero + k, j] = explained_rays(cameras[c], masks(index + k)[c], others, volume,
-                                                        tolerated=tolerated, rays=rays)
+            views = masks_at(index)
+            shifted = {k: views if k == 0 else masks_at(index + k) for k in wanted}
+            for c, ks in tried.items():
+                others = [(camera, views[o]) for o, camera in enumerate(cameras) if o != c]
+                for k in ks:
+                    agreement[c, zero + k, j] = explained_rays(cameras[c], shifted[k][c], others, volume,
+                                                                tolerated=tolerated, rays=rays)
 
-    for c in range(len(cameras)) if measured is None else measured:
-        for k in (-1, 0, 1):
-            measure(c, k)
-        curve = SyncCheck(chosen, offsets, agreement[c : c + 1]).mean_agreement()[0]
-        if np.isnan(curve[zero - 1 : zero + 2]).any():
-            continue
-        step = 0 if curve[zero] >= max(curve[zero - 1], curve[zero + 1]) else (1 if curve[zero + 1] > curve[zero - 1]
-                                                                                else -1)
-        k = step
-        while step and abs(k) < max_offset:  # on, while the farther offset agrees better
-            measure(c, k + step)
-            curve = SyncCheck(chosen, offsets, agreement[c : c + 1]).mean_agreement()[0]
-            if not curve[zero + k + step] > curve[zero + k]:
-                break
-            k += step
+    def curve(c: int) -> np.ndarray:
+        return SyncCheck(chosen, offsets, agreement[c : c + 1]).mean_agreement()[0]
+
+    checked = list(range(len(cameras))) if measured is None else list(measured)
+    measure({c: [-1, 0, 1] for c in checked})
+    reached = {}  # camera -> the offset reached so far, for the cameras that agree better one step away
+    for c in checked:
+        near = curve(c)[zero - 1 : zero + 2]
+        if not np.isnan(near).any() and near[1] < near.max():
+            reached[c] = 1 if near[2] > near[0] else -1
+    while reached:  # on, one step at a time, while the farther offset agrees better
+        reached = {c: k for c, k in reached.items() if abs(k) < max_offset}
+        measure({c: [k + int(np.sign(k))] for c, k in reached.items()})
+        reached = {c: k + int(np.sign(k)) for c, k in reached.items()
+                   if curve(c)[zero + k + int(np.sign(k))] > curve(c)[zero + k]}
     return SyncCheck(chosen, offsets, agreement)
 
 
-def _moving_frames(masks: Callable[[int], Sequence[np.ndarray]], count: int, frames: int,
+def _moving_frames(masks_at: Callable[[int], Sequence[np.ndarray]], count: int, frames: int,
                    max_offset: int) -> list[int]:
     """Indices of up to ``frames`` frames, at least ``max_offset`` from either end, where the silhouettes change
     most between the frames before and after (pixels that differ over pixels set, summed over the cameras),
@@ -161,7 +160,7 @@ def _moving_frames(masks: Callable[[int], Sequence[np.ndarray]], count: int, fra
     candidates = np.unique(np.linspace(first, last, wanted).round().astype(int))
     change = []
     for index in candidates:
-        before, now, after = masks(index - 1), masks(index), masks(index + 1)
+        before, now, after = masks_at(index - 1), masks_at(index), masks_at(index + 1)
         differing = sum(np.count_nonzero((b > 0) != (a > 0)) for b, a in zip(before, after, strict=True))
         change.append(differing / max(1, sum(np.count_nonzero(m) for m in now)))
     keep = np.sort(np.argsort(change, kind="stable")[::-1][:frames])

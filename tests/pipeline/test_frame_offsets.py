@@ -102,3 +102,12 @@ def test_synchronised_cameras_get_an_info_line(tmp_path, caplog):
     assert frames_io.read_json(sync_check_path(tmp_path))["frame_offsets"] == {}
     assert any("every camera's silhouettes agree best" in r.getMessage() for r in caplog.records)
     assert not any(r.levelno == logging.WARNING for r in caplog.records)
+
+
+def test_the_report_notes_a_camera_behind():
+    from pipeline.report.page import _lag
+
+    record = {"lag": {"cam0": 0, "cam1": 2}, "frame_offsets": {"cam1": 3}}
+    assert _lag(record, "cam0") == "" and _lag(None, "cam1") == ""
+    note = _lag(record, "cam1")
+    assert "2 frame(s) later" in note and "frame_offsets: {cam1: 3}" in note
