@@ -69,8 +69,8 @@ REFINEMENT_FRAMES = 30
 #: silhouettes than the given ones (`stages.consistency.explained_share`).
 COHERENCE_FRAMES = 10
 COHERENCE_RAYS = 100
-#: Frames where the silhouettes change most, on which the cameras' synchrony is checked (`stages.synchrony`), and
-#: the largest offset tried, in the capture's frames.
+#: Frames where the subject's joints move fastest, on which the cameras' synchrony is checked (`stages.synchrony`),
+#: and the largest offset tried, in the capture's frames.
 SYNC_FRAMES = 12
 SYNC_MAX_OFFSET = 5
 #: Frames, spread over the capture, whose silhouettes are searched for parts of a view hidden behind something in
@@ -239,14 +239,17 @@ def occlusion_task(capture: Capture, masks_dir: Path, rig: Rig) -> list[np.ndarr
                                capture.volume)
 
 
-def sync_check_task(capture: Capture, masks_dir: Path, measured: Sequence[int]) -> SyncCheck:
-    """Worker: the cameras ``measured`` (indices into the rig) checked against the others for frame offsets
-    (`stages.synchrony.check_synchrony`) on the silhouette stage's masks; the other cameras' rows are NaN. Workers
-    given the other cameras choose the same frames."""
+def sync_check_task(capture: Capture, masks_dir: Path, frames: Sequence[int]) -> SyncCheck:
+    """Worker: each camera checked against the others for frame offsets (`stages.synchrony.check_synchrony`) on the
+    silhouette stage's masks of the capture's ``frames`` (indices, at least ``SYNC_MAX_OFFSET + 1`` from either
+    end)."""
     cameras = list(capture.rig)
-    frames = capture.frame_numbers
-    return check_synchrony(lambda index: frame_masks(masks_dir, cameras, frames[index]), cameras, capture.volume,
-                           len(frames), SYNC_FRAMES, SYNC_MAX_OFFSET, tolerated_views(len(cameras)), measured=measured)
+    numbers = capture.frame_numbers
+
+    def mask_at(index: int, camera: int) -> np.ndarray:
+        return frames_io.read_mask(silhouette_path(masks_dir, cameras[camera].name, numbers[index]))
+
+    return check_synchrony(mask_at, cameras, capture.volume, frames, SYNC_MAX_OFFSET, tolerated_views(len(cameras)))
 
 
 def camera_samples_task(capture: Capture, camera: str, plate: np.ndarray | None, *, frames: Sequence[int],

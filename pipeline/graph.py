@@ -52,6 +52,8 @@ from pipeline.engine.executors import call_logged, relog, usable_cpus
 from pipeline.engine.stage import Stage
 from pipeline.frame_tasks import (
     FLOOR_SHIFT_FRAMES,
+    SYNC_FRAMES,
+    SYNC_MAX_OFFSET,
     camera_samples_task,
     floor_shifts_task,
     frame_images_task,
@@ -100,7 +102,7 @@ from stages.reconstruction import Observations, ReconstructionParams
 from stages.reconstruction.occlusion import parts_union
 from stages.reconstruction.views import VOLUME_FACES, faces_reached
 from stages.silhouettes import SilhouetteParams
-from stages.synchrony import SyncCheck
+from stages.synchrony import SyncCheck, fastest_frames
 from stages.tangency import (
     camera_disagreement,
     cameras_at_fault,
@@ -675,10 +677,13 @@ def run_export(ctx: StageContext) -> None:
     if params.report and capture.has_images:  # the report's photographs, decoded while the exports are written
         pictured = frames if len(frames) else np.asarray(capture.frame_numbers)
         shown = ctx.workers.executor.submit(frame_images_task, capture, int(pictured[len(pictured) // 2]))
-    # The cameras' synchrony is checked on the workers while this process writes the exports.
-    sync = [ctx.workers.executor.submit(sync_check_task, capture, ctx.input_dir("silhouettes"), part.tolist())
-            for part in np.array_split(np.arange(len(capture.rig)), max(1, ctx.workers.count))
-            if len(part) and params.sync_check]
+    # The cameras' synchrony is checked on a worker while this process writes the exports, on the core they leave.
+    sync = None
+    if params.sync_check:
+        joints = np.stack([estimated[frame] if frame in estimated else np.full((len(JOINT_NAMES), 3), np.nan)
+                           for frame in capture.frame_numbers])
+        checked = fastest_frames(joints, SYNC_FRAMES, SYNC_MAX_OFFSET + 1)
+        sync = ctx.workers.executor.submit(sync_check_task, capture, ctx.input_dir("silhouettes"), checked)
     if len(frames):
         write_exports(ctx.out_dir, frames, np.stack([estimated[frame] for frame in frames]), capture.fps,
                       params=params, quality=quality)
@@ -691,24 +696,21 @@ def run_export(ctx: StageContext) -> None:
         for camera in rig:
             write_overlay_video(capture.iter_images(camera.name, capture.frame_numbers), camera, estimated,
                                 ctx.out_dir / overlay_video_name(camera.name), capture.fps)
-    _write_sync_check(capture, [part.result() for part in sync], ctx.out_dir)
+    if sync is not None:
+        _write_sync_check(capture, sync.result(), ctx.out_dir)
     if params.report:  # also when no frame was estimated: it says what happened
         write_report(ctx.output_root, rig=rig, images=shown.result() if shown is not None else None)
 
 
-def _write_sync_check(capture: Capture, parts: Sequence[SyncCheck], out_dir: Path) -> None:
-    """Write the cameras' synchrony check (`sync_check_path`; its parts measured by `frame_tasks.sync_check_task`,
-    each for some cameras) and warn about each camera whose silhouettes agree clearly better with the others' at
-    a frame offset, with the ``frame_offsets`` line for capture.yaml that makes up for it."""
+def _write_sync_check(capture: Capture, check: SyncCheck, out_dir: Path) -> None:
+    """Write the cameras' synchrony check (`sync_check_path`, measured by `frame_tasks.sync_check_task`) and warn
+    about each camera whose silhouettes agree clearly better with the others' at a frame offset, with the
+    ``frame_offsets`` line for capture.yaml that makes up for it."""
     frames = capture.frame_numbers
     spacing = set(np.diff(frames).tolist())
-    if not parts or not parts[0].frames or len(spacing) != 1:  # too few frames, or frames not evenly spaced
+    if not check.frames or len(spacing) != 1:  # no frame to check, or frames not evenly spaced
         return
     step = spacing.pop()  # a capture frame is `step` frames of the media
-    agreement = parts[0].agreement
-    for part in parts[1:]:  # each camera is measured by one part, NaN in the others
-        agreement = np.where(np.isnan(agreement), part.agreement, agreement)
-    check = SyncCheck(parts[0].frames, parts[0].offsets, agreement)
     lags, mean = check.lags(), check.mean_agreement()
     names = capture.rig.names
     given = capture.frame_offsets

@@ -95,7 +95,7 @@ def explained_share(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volu
     volume = np.asarray(volume, dtype=float)
     explained, tested = 0, 0
     for c, (mask, camera) in enumerate(zip(masks, cameras, strict=True)):
-        uv = _silhouette_pixels(mask, rays_per_view)
+        uv = silhouette_pixels(mask, rays_per_view)
         if not len(uv):
             continue
         others = [(other, masks[o]) for o, other in enumerate(cameras) if o != c]
@@ -104,18 +104,15 @@ def explained_share(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volu
     return explained / tested if tested else np.nan
 
 
-def explained_rays(camera: Camera, mask: np.ndarray, others: Sequence[tuple[Camera, np.ndarray]], volume: np.ndarray,
-                   *, tolerated: int, rays: int) -> float:
-    """The share of ``rays`` rays through ``camera``'s silhouette ``mask`` (pixels spread evenly in raster order)
-    that meet a point the ``others`` (camera, mask) see inside their silhouettes, as `explained_share` counts them;
-    NaN for an empty mask. The masks need not be of one instant: `stages.synchrony` compares them across time."""
-    uv = _silhouette_pixels(mask, rays)
-    if not len(uv):
-        return np.nan
-    return float(_explained(camera, uv, others, np.asarray(volume, dtype=float), tolerated).mean())
+def explained_pixels(camera: Camera, uv: np.ndarray, others: Sequence[tuple[Camera, np.ndarray]], volume: np.ndarray,
+                     *, tolerated: int) -> np.ndarray:
+    """(n,) bool: which rays of ``camera`` through pixels ``uv`` (n, 2) meet a point the ``others`` (camera, mask)
+    see inside their silhouettes, as `explained_share` counts them. The masks need not be of the instant the pixels
+    are: `stages.synchrony` compares them across time."""
+    return _explained(camera, np.asarray(uv, dtype=float), others, np.asarray(volume, dtype=float), tolerated)
 
 
-def _silhouette_pixels(mask: np.ndarray, count: int) -> np.ndarray:
+def silhouette_pixels(mask: np.ndarray, count: int) -> np.ndarray:
     """(n, 2) float (u, v): at most ``count`` pixels of the silhouette ``mask``, evenly spread in raster order."""
     points = cv2.findNonZero(np.ascontiguousarray(mask, dtype=np.uint8))
     if points is None:

@@ -51,8 +51,9 @@ class ExportParams:
         Check whether the cameras filmed the same instants (``stages.synchrony``: each camera's silhouettes
         against the others' a few frames apart), write ``export/sync_check.json`` and name each camera whose
         media run frames behind or ahead, with the ``frame_offsets`` for capture.yaml that make up for it. For
-        rigs without hardware synchronisation (webcams, phones); off by default, as it costs about a tenth of a
-        run's CPU. ``--from export --set export.sync_check=true`` checks a finished run.
+        rigs without hardware synchronisation (webcams, phones); off by default, as it lengthens the export stage
+        by about a quarter of a second on six cameras. ``--from export --set export.sync_check=true`` checks a
+        finished run.
     """
 
     report: bool = True

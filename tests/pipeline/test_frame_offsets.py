@@ -83,7 +83,7 @@ def test_the_sync_check_names_the_camera_behind_and_its_offset(tmp_path, caplog)
     agreement[1, 3] = [0.99, 0.98, 0.99, 0.985]  # cam1 agrees best a frame later, on every frame
     part = SyncCheck([2, 4, 6, 8], offsets, agreement)
     with caplog.at_level(logging.INFO):
-        _write_sync_check(capture, [part], tmp_path)
+        _write_sync_check(capture, part, tmp_path)
     record = frames_io.read_json(sync_check_path(tmp_path))
     assert record["lag"] == {"cam0": 0, "cam1": 1, "cam2": 0}
     assert record["frame_offsets"] == {"cam1": 1, "cam2": 1}  # the one given is kept
@@ -98,7 +98,7 @@ def test_synchronised_cameras_get_an_info_line(tmp_path, caplog):
     agreement = np.full((3, 5, 4), 0.8)
     agreement[:, 2] = 0.95
     with caplog.at_level(logging.INFO):
-        _write_sync_check(capture, [SyncCheck([2, 4, 6, 8], np.arange(-2, 3), agreement)], tmp_path)
+        _write_sync_check(capture, SyncCheck([2, 4, 6, 8], np.arange(-2, 3), agreement), tmp_path)
     assert frames_io.read_json(sync_check_path(tmp_path))["frame_offsets"] == {}
     assert any("every camera's silhouettes agree best" in r.getMessage() for r in caplog.records)
     assert not any(r.levelno == logging.WARNING for r in caplog.records)
