@@ -42,7 +42,7 @@ def test_copy_folders_change_with_a_parameter_and_are_stable_otherwise(tmp_path)
     folders = {variant.name: robustness.copy_folder(capture, variant, cache) for variant in robustness.VARIANTS}
     assert folders == {variant.name: robustness.copy_folder(capture, variant, cache)
                        for variant in robustness.VARIANTS}  # stable
-    assert len(set(folders.values())) == len(folders)
+    assert len(set(folders.values())) == len(folders) - 1  # the sync check's variant runs the late one's copy
     assert folders["no plates"].parent == cache and folders["no plates"].name.startswith("walk-no-plates-")
     off = _variant("calibration off 0.1°")
     assert robustness.copy_folder(capture, dataclasses.replace(off, calibration_error_deg=0.2), cache) \
@@ -104,8 +104,11 @@ def fake_runs(tmp_path, monkeypatch):
 
     runs = []
 
-    def fake_run(capture, out, *, workers, frames, fresh):
+    def fake_run(capture, out, *, workers, frames, fresh, settings=()):
         runs.append((capture, out))
+        if "export.sync_check=true" in settings and capture.parent.name != "foreign":  # the check names a lag
+            (out / "export").mkdir(parents=True)
+            (out / "export" / "sync_check.json").write_text('{"frame_offsets": {"cam00": 2}}')
         return _measure(1 if out.name.startswith("walk-compression") else 0)
 
     monkeypatch.setattr(robustness, "FOREIGN_ROOT", root)
@@ -121,7 +124,8 @@ def fake_runs(tmp_path, monkeypatch):
 def test_a_failing_run_or_copy_is_an_error_row_and_the_others_still_run(tmp_path, fake_runs):
     section = robustness.run_robustness(tmp_path / "bench", tmp_path / "captures", quick=False, workers=1)
     rows = {(row["capture"], row["variant"]): row for row in section["rows"]}
-    assert len(section["rows"]) == 2 * len(robustness.VARIANTS) and len(fake_runs) == len(rows) - 1
+    # One copy fails; the sync check's variant runs each capture twice.
+    assert len(section["rows"]) == 2 * len(robustness.VARIANTS) and len(fake_runs) == len(rows) - 1 + 2
     failed = rows[("walk", "compression")]
     assert failed["error"] == "the run failed (exit status 1): reconstruction: out of memory"
     assert failed["run"]["returncode"] == 1 and "mpjpe_mm" not in failed
@@ -133,6 +137,21 @@ def test_a_failing_run_or_copy_is_an_error_row_and_the_others_still_run(tmp_path
     assert scored["reinitialised_fraction"] == pytest.approx(0.1)  # frame 4 of 10; the first does not count
     assert fake_runs[0][1] == tmp_path / "bench" / "robustness" / "leaning-compression"
     assert fake_runs[0][0].parent == tmp_path / "captures" / "robustness"
+
+
+def test_a_sync_variant_runs_the_late_copy_again_with_the_offsets_the_check_named(tmp_path, fake_runs):
+    late, checked = _variant("one camera 2 frames late"), _variant("2 frames late, frame_offsets from the sync check")
+    assert late.arguments(CAMERAS)["late"] == {"cam00": 2} and checked.arguments(CAMERAS) == late.arguments(CAMERAS)
+    captures = tmp_path / "captures" / "robustness"
+    walk = tmp_path / "foreign" / "walk"
+    assert robustness.copy_folder(walk, checked, captures) == robustness.copy_folder(walk, late, captures)
+    row = robustness.run_variant(walk, checked, captures, tmp_path / "bench", quick=False, workers=1)
+    assert row["offsets_named"] == {"cam00": 2}
+    (first, first_run), (view, run_dir) = fake_runs
+    assert first_run.name == "walk-2-frames-late-frame-offsets-from-the-sync-check"
+    assert run_dir.name == first_run.name + "-offsets" and view.name == first_run.name + "-offsets-capture"
+    assert "cam00: 2" in (view / "capture.yaml").read_text() and (view / "calibration").is_dir()
+    assert row["mpjpe_mm"] == 20.0 + len(run_dir.name)  # the second run is the one scored
 
 
 def test_a_quick_run_takes_two_variants_on_the_copies_first_frames(tmp_path, fake_runs):

@@ -46,8 +46,8 @@ studio whose cameras do not all frame the whole volume.
 
 With ``--late NAME:FRAMES,...`` those cameras run that many frames behind the others (cameras without a common
 clock: webcams, action cameras): their frame t shows what the others showed at t - FRAMES (the first frame
-repeated before it), and their true masks move alike. The capture format has no time offset per camera, so the
-pipeline takes the frames as simultaneous.
+repeated before it), and their true masks move alike. The pipeline takes the frames as simultaneous unless
+capture.yaml's ``frame_offsets`` says otherwise (``--set export.sync_check=true`` names the offsets).
 
     python -m pipeline.lab.bench.perturb ../shared/foreign/frontkick --change none --late cam02:1 --out runs/late
 

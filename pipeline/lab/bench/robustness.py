@@ -4,7 +4,7 @@ The foreign suite (:mod:`pipeline.lab.bench.foreign`) measures four captures as 
 studio differs from them in ways that each stage meets on its own: a codec that blocks, a noisy sensor, mains
 flicker, an automatic exposure acting before the camera's gamma, no clean plate, fewer cameras, a camera that does
 not frame the whole volume, a calibration slightly off, a camera knocked after its clean plate was taken, something
-standing between a camera and the subject. Each of
+standing between a camera and the subject, a camera that was not synchronised with the others. Each of
 :data:`VARIANTS` makes one such change to every foreign capture with
 :func:`~pipeline.lab.bench.perturb.perturb_capture` (seed 0), so that what it costs is read against the foreign
 suite's figures for the same capture (roughly: every copy's videos are also encoded a second time, which a copy
@@ -19,8 +19,10 @@ copy instead of reusing a stale one (older copies are left for the user to delet
 
 Each copy is run afresh by :func:`~pipeline.lab.bench.runs.run_pipeline` into ``<out>/robustness/<capture>-<variant
 slug>/`` and scored by :func:`pipeline.evaluate.evaluate_run` against the copy's ground truth (the original's, or
-rewritten by the perturbation for the cameras it keeps or zooms). A failed copy, run or scoring is a row with an
-``error``, never an exception that stops the bench.
+rewritten by the perturbation for the cameras it keeps or zooms). A variant with ``sync_offsets`` runs with the
+cameras' sync check, then again, into ``<...>-offsets/``, on a view of the copy with the ``frame_offsets`` the check
+named (:func:`~pipeline.lab.bench.speed.capture_view`), which is the run scored. A failed copy, run or scoring is a
+row with an ``error``, never an exception that stops the bench.
 """
 
 from __future__ import annotations
@@ -36,7 +38,9 @@ from pathlib import Path
 
 from calib.errors import InputError
 from pipeline.evaluate import evaluate_run
+from pipeline.io import frames_io
 from pipeline.io.capture import Capture
+from pipeline.io.run_layout import RunLayout
 from pipeline.lab.bench.foreign import (
     FOREIGN_ROOT,
     QUICK_FRAMES,
@@ -47,7 +51,7 @@ from pipeline.lab.bench.foreign import (
 )
 from pipeline.lab.bench.perturb import capture_videos, perturb_capture
 from pipeline.lab.bench.runs import REPO, run_pipeline
-from pipeline.lab.bench.speed import prefix_view
+from pipeline.lab.bench.speed import capture_view, prefix_view
 
 #: The random draws of every copy (flicker, noise, the calibration's turns): fixed, so that a copy is reproducible.
 SEED = 0
@@ -64,8 +68,11 @@ class Variant:
     The arguments that name cameras cannot be written once for four rigs, so they are given relative to the
     capture's cameras sorted by name: ``first_cameras`` keeps that many of the first (None: all of them),
     ``first_camera_zoom`` zooms the first by that factor (None: no zoom), ``first_plate_shift`` moves the first's
-    clean plate by those (x, y) pixels (None: no shift) and ``first_occluder`` puts that kind of occluder before the
-    first (None: none). :meth:`arguments` spells them out.
+    clean plate by those (x, y) pixels (None: no shift), ``first_occluder`` puts that kind of occluder before the
+    first (None: none) and ``first_late`` makes the first run that many frames behind the others (None: on time).
+    :meth:`arguments` spells them out. ``sync_offsets``: the run checks the cameras' synchrony
+    (``export.sync_check``) and the copy is run again with the ``frame_offsets`` the check names. ``copy_as``: the
+    variant whose copy this one runs (None: its own).
     """
 
     name: str
@@ -79,11 +86,19 @@ class Variant:
     shutter: float = 0.0
     first_occluder: str | None = None
     box: bool = False
+    first_late: int | None = None
+    sync_offsets: bool = False
+    copy_as: str | None = None
 
     @property
     def slug(self) -> str:
         """The name as a folder name: lower case, each run of other characters than letters and digits a "-"."""
-        return re.sub(r"[^a-z0-9]+", "-", self.name.lower()).strip("-")
+        return _slug(self.name)
+
+    @property
+    def copy_slug(self) -> str:
+        """The slug of the variant whose copy this one runs."""
+        return _slug(self.copy_as or self.name)
 
     def arguments(self, cameras: Sequence[str]) -> dict:
         """:func:`perturb_capture`'s keyword arguments for a capture whose cameras are ``cameras`` (sorted); a position
@@ -103,7 +118,13 @@ class Variant:
             arguments["occluder"] = {cameras[0]: self.first_occluder}
         if self.box:
             arguments["box"] = True
+        if self.first_late is not None:
+            arguments["late"] = {cameras[0]: self.first_late}
         return arguments
+
+
+def _slug(name: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")
 
 
 VARIANTS = (
@@ -122,6 +143,9 @@ VARIANTS = (
     Variant("a desk before one camera", first_occluder="desk"),
     Variant("a pillar before one camera", first_occluder="pillar"),
     Variant("a box put down after the plates", box=True),
+    Variant("one camera 2 frames late", first_late=2),
+    Variant("2 frames late, frame_offsets from the sync check", first_late=2, sync_offsets=True,
+            copy_as="one camera 2 frames late"),
 )
 #: The variants of a quick run (a smoke test): one that changes the frames, one that changes the rig and the truth.
 QUICK_VARIANTS = ("compression", "4 cameras")
@@ -151,9 +175,9 @@ def cache_key(arguments: dict, capture_yaml: bytes) -> str:
 
 
 def copy_folder(capture: Path, variant: Variant, cache: Path) -> Path:
-    """Where the ``variant`` copy of ``capture`` is cached: ``<cache>/<capture>-<variant slug>-<key>``."""
+    """Where the ``variant`` copy of ``capture`` is cached: ``<cache>/<capture>-<variant's copy slug>-<key>``."""
     key = cache_key(variant.arguments(camera_names(capture)), (capture / "capture.yaml").read_bytes())
-    return cache / f"{capture.name}-{variant.slug}-{key}"
+    return cache / f"{capture.name}-{variant.copy_slug}-{key}"
 
 
 def ensure_copy(capture: Path, variant: Variant, cache: Path) -> Path:
@@ -186,9 +210,19 @@ def run_variant(capture: Path, variant: Variant, cache: Path, out: Path, *, quic
     try:
         copy = ensure_copy(capture, variant, cache)
         source = prefix_view(copy, out / f"{name}-capture", QUICK_FRAMES) if quick else copy
+        settings = ("export.sync_check=true",) if variant.sync_offsets else ()
+        measure = run_pipeline(source, out / name, workers=workers, frames=len(frame_numbers(source)), fresh=True,
+                               settings=settings)
+        if variant.sync_offsets and measure.ok:
+            offsets = named_offsets(out / name)
+            row["offsets_named"] = offsets
+            if offsets:
+                name += "-offsets"
+                source = capture_view(source, out / f"{name}-capture", frame_offsets=offsets)
+                measure = run_pipeline(source, out / name, workers=workers, frames=len(frame_numbers(source)),
+                                       fresh=True)
         numbers = frame_numbers(source)
         frames = len(numbers)
-        measure = run_pipeline(source, out / name, workers=workers, frames=frames, fresh=True)
     except (InputError, OSError, subprocess.CalledProcessError) as error:
         return row | {"error": str(error)}
     row |= {"copy": str(copy), "frames": frames, "run": measure.to_dict()}
@@ -201,6 +235,13 @@ def run_variant(capture: Path, variant: Variant, cache: Path, out: Path, *, quic
     except (InputError, OSError) as error:
         return row | {"error": str(error)}
     return row | {key: scores[key] for key in SCORES} | {"reinitialised_fraction": reinitialised}
+
+
+def named_offsets(run_dir: Path) -> dict[str, int]:
+    """The ``frame_offsets`` that a run's sync check named (``export/sync_check.json``), {} when it named none or did
+    not write its file."""
+    path = RunLayout(run_dir).sync_check
+    return dict(frames_io.read_json(path).get("frame_offsets") or {}) if path.is_file() else {}
 
 
 def run_robustness(out: Path, captures: Path, *, quick: bool, workers: int) -> dict:

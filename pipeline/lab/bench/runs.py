@@ -19,6 +19,7 @@ import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,10 +71,11 @@ class RunMeasure:
                 "load": self.load, **({} if self.ok else {"log_tail": self.log_tail})}
 
 
-def run_command(capture: Path, out: Path, workers: int) -> list[str]:
-    """The command line that runs the pipeline on ``capture`` into ``out``."""
+def run_command(capture: Path, out: Path, workers: int, settings: Sequence[str] = ()) -> list[str]:
+    """The command line that runs the pipeline on ``capture`` into ``out``, with ``settings`` (``stage.name=value``
+    each, as ``--set`` takes them)."""
     return [sys.executable, "-m", "pipeline", "run", str(capture), "--out", str(out), "--workers", str(workers),
-            "--quiet"]
+            "--quiet", *(argument for setting in settings for argument in ("--set", setting))]
 
 
 def stage_timings(out: Path) -> dict[str, float]:
@@ -87,8 +89,10 @@ def stage_timings(out: Path) -> dict[str, float]:
     return seconds
 
 
-def run_pipeline(capture: Path, out: Path, *, workers: int, frames: int, fresh: bool) -> RunMeasure:
-    """Run the pipeline on ``capture`` into ``out`` and measure it (``fresh``: delete ``out`` first).
+def run_pipeline(capture: Path, out: Path, *, workers: int, frames: int, fresh: bool,
+                 settings: Sequence[str] = ()) -> RunMeasure:
+    """Run the pipeline on ``capture`` into ``out`` with ``settings`` (`run_command`) and measure it (``fresh``: delete
+    ``out`` first).
 
     The run's output goes to ``<out>.log``; a failure is reported in the result, not raised, so one bad
     capture does not stop a benchmark.
@@ -102,7 +106,8 @@ def run_pipeline(capture: Path, out: Path, *, workers: int, frames: int, fresh: 
     report_path.unlink(missing_ok=True)
     load = os.getloadavg()[0]
     with open(log_path, "w") as log:
-        subprocess.run([sys.executable, "-c", LAUNCHER, str(report_path), *run_command(capture, out, workers)],
+        subprocess.run([sys.executable, "-c", LAUNCHER, str(report_path),
+                        *run_command(capture, out, workers, settings)],
                        cwd=REPO, stdout=log, stderr=subprocess.STDOUT, check=True)
     report = json.loads(report_path.read_text())
     tail = "\n".join(log_path.read_text(errors="replace").splitlines()[-LOG_TAIL_LINES:])

@@ -37,10 +37,16 @@ TRACKER_FRAMES = 100
 
 
 def prefix_view(capture: Path, view: Path, stop: int) -> Path:
-    """A capture directory ``view`` showing the first ``stop`` frames of ``capture``: the same media (symlinks),
-    a copy of its calibration (a calibration reached through a link leads outside the capture, which a run
-    refuses), capture.yaml with ``frames.stop`` set. Rebuilt on every call (cheap), so it always follows
-    ``capture``."""
+    """A capture directory ``view`` showing the first ``stop`` frames of ``capture`` (`capture_view` with
+    ``frames.stop`` set)."""
+    frames = yaml.safe_load((Path(capture) / "capture.yaml").read_text()).get("frames") or {}
+    return capture_view(capture, view, frames={**frames, "start": 0, "stop": int(stop), "step": 1})
+
+
+def capture_view(capture: Path, view: Path, **changes) -> Path:
+    """A capture directory ``view`` showing ``capture`` with capture.yaml's top-level keys ``changes`` replaced: the
+    same media (symlinks), a copy of its calibration (a calibration reached through a link leads outside the
+    capture, which a run refuses). Rebuilt on every call (cheap), so it always follows ``capture``."""
     shutil.rmtree(view, ignore_errors=True)
     view.mkdir(parents=True)
     config = yaml.safe_load((Path(capture) / "capture.yaml").read_text())
@@ -50,8 +56,7 @@ def prefix_view(capture: Path, view: Path, stop: int) -> Path:
             (shutil.copytree if entry.is_dir() else shutil.copy2)(entry, view / entry.name)
         elif entry.name != "capture.yaml":
             (view / entry.name).symlink_to(entry.resolve())
-    config["frames"] = {**config.get("frames", {}), "start": 0, "stop": int(stop), "step": 1}
-    (view / "capture.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+    (view / "capture.yaml").write_text(yaml.safe_dump(config | changes, sort_keys=False))
     return view
 
 
