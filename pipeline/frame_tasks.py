@@ -71,7 +71,7 @@ COHERENCE_FRAMES = 10
 COHERENCE_RAYS = 100
 #: Frames where the subject's joints move fastest, on which the cameras' synchrony is checked (`stages.synchrony`),
 #: and the largest offset tried, in the capture's frames.
-SYNC_FRAMES = 12
+SYNC_FRAMES = 24
 SYNC_MAX_OFFSET = 5
 #: Frames, spread over the capture, whose silhouettes are searched for parts of a view hidden behind something in
 #: front of the subject (`stages.reconstruction.occlusion`): enough for the subject's limbs to sweep what hides them.

@@ -29,7 +29,7 @@ from calib.camera import Camera
 from stages.consistency import explained_pixels, silhouette_pixels
 
 #: Rays through the moving part of each camera's silhouette tested per frame and offset: at the right offset most
-#: are explained, a frame away a fifth or more are not.
+#: are explained, a frame away a tenth or more are not.
 SYNC_RAYS = 40
 #: A camera's offset is reported when its silhouettes agree better there than at 0 by this many standard errors
 #: of the per-frame differences: clearly, not by the chance of which rays were drawn.
