@@ -722,7 +722,10 @@ def _write_sync_check(capture: Capture, check: SyncCheck, out_dir: Path) -> None
         "lag": {name: int(lag) * step for name, lag in zip(names, lags, strict=True)},
         "frame_offsets": {name: offset for name, offset in frame_offsets.items() if offset}})
     zero = int(np.flatnonzero(check.offsets == 0)[0])
-    if not lags.any():
+    if np.isnan(mean[:, zero]).all():
+        log.info("sync check: nothing moved in the silhouettes of the %d frames checked, which says nothing about "
+                 "the cameras' synchrony", len(check.frames))
+    elif not lags.any():
         log.info("sync check: every camera's silhouettes agree best with the other cameras' at the same frame (%d "
                  "frames where the subject moves)", len(check.frames))
     for name, lag, row in zip(names, lags, mean, strict=True):

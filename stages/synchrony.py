@@ -135,7 +135,6 @@ def check_synchrony(mask_at: Callable[[int, int], np.ndarray], cameras: Sequence
     zero = max_offset
     frames = [int(index) for index in frames]
     agreement = np.full((len(cameras), len(offsets), len(frames)), np.nan)
-    checked = range(len(cameras))
     if len(cameras) < 3 or not frames:
         return SyncCheck(frames, offsets, agreement)
 
@@ -157,9 +156,9 @@ def check_synchrony(mask_at: Callable[[int, int], np.ndarray], cameras: Sequence
     def curve(c: int) -> np.ndarray:
         return SyncCheck(frames, offsets, agreement[c : c + 1]).mean_agreement()[0]
 
-    measure({c: [-1, 0, 1] for c in checked})
+    measure({c: [-1, 0, 1] for c in range(len(cameras))})
     reached = {}  # camera -> the offset reached so far, for the cameras that agree better one step away
-    for c in checked:
+    for c in range(len(cameras)):
         near = curve(c)[zero - 1 : zero + 2]
         if not np.isnan(near).any() and near[1] < near.max():
             reached[c] = 1 if near[2] > near[0] else -1

@@ -104,6 +104,14 @@ def test_synchronised_cameras_get_an_info_line(tmp_path, caplog):
     assert not any(r.levelno == logging.WARNING for r in caplog.records)
 
 
+def test_a_check_that_measured_nothing_says_so(tmp_path, caplog):
+    capture = Capture.open(make_capture(tmp_path / "capture", n_frames=12))
+    with caplog.at_level(logging.INFO):
+        _write_sync_check(capture, SyncCheck([2, 4], np.arange(-2, 3), np.full((3, 5, 2), np.nan)), tmp_path)
+    assert any("nothing moved in the silhouettes" in r.getMessage() for r in caplog.records)
+    assert frames_io.read_json(sync_check_path(tmp_path))["lag"] == {"cam0": 0, "cam1": 0, "cam2": 0}
+
+
 def test_the_report_notes_a_camera_behind():
     from pipeline.report.page import _lag
 

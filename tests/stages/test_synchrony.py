@@ -51,6 +51,12 @@ def test_a_camera_behind_or_ahead_is_found_with_its_lag(rendered, lag):
     np.testing.assert_array_equal(check.lags(), expected)
 
 
+def test_a_still_subject_says_nothing_about_time(rendered):
+    rig, masks = rendered
+    check = check_synchrony(lambda index, camera: masks[0][camera], list(rig), VOLUME, [5, 10, 15], MAX_OFFSET, 1)
+    assert np.isnan(check.agreement).all() and not check.lags().any()
+
+
 def test_no_frame_no_check(rendered):
     rig, masks = rendered
     check = check_synchrony(lambda index, camera: masks[index][camera], list(rig), VOLUME, [], MAX_OFFSET, 1)
