@@ -227,7 +227,9 @@ def _selected_frames(camera_media: Mapping[str, _CameraMedia], media: str, root:
     where, reference_file = camera_media[name].path, camera_media[reference_name].path.name
     if media == "videos":
         hint = (f"; if they start together and only their ends differ, frames: {{stop: {len(shared)}}} in "
-                f"{config_path.name} uses the {len(shared)} frames every camera has" if shared else "")
+                f"{config_path.name} uses the {len(shared)} frames every camera has; cameras that did not start "
+                "together need frame_offsets as well, which a run with --set export.sync_check=true measures"
+                if shared else "")
         raise InputError(f"{where}: {len(per_camera[name])} frames but {reference_file} has {len(reference)} "
                          f"(expected the same frame count for every camera{hint})")
     extra = sorted(set(per_camera[name]) ^ set(reference))
