@@ -10,6 +10,7 @@ from calib.errors import InputError
 from pipeline.graph import _write_sync_check
 from pipeline.io import frames_io
 from pipeline.io.capture import Capture
+from pipeline.io.digest import canonical_json, text_digest
 from pipeline.io.run_layout import sync_check_path
 from stages.synchrony import SyncCheck
 
@@ -71,6 +72,18 @@ def test_the_offsets_are_part_of_the_captures_fingerprint(tmp_path):
     assert Capture.open(root).fingerprint("config") == before  # a zero offset is no offset
     write_config(root, frame_offsets={"cam1": 1})
     assert Capture.open(root).fingerprint("config") != before
+
+
+def test_another_offset_over_the_same_frames_makes_every_stage_stale(tmp_path):
+    root = make_capture(tmp_path / "capture", n_frames=8)
+    write_config(root, frame_offsets={"cam1": 1}, frames={"stop": 5})
+    first = Capture.open(root)
+    write_config(root, frame_offsets={"cam1": 2})
+    second = Capture.open(root)
+    assert first.frame_numbers == second.frame_numbers
+    assert first.fingerprint("frames") != second.fingerprint("frames")  # the silhouettes' key: masks made again
+    write_config(root, frame_offsets=None)  # without offsets, the key of the frames alone, as before they existed
+    assert Capture.open(root).fingerprint("frames") == text_digest(canonical_json([0, 1, 2, 3, 4]))
 
 
 def test_the_sync_check_names_the_camera_behind_and_its_offset(tmp_path, caplog):

@@ -230,15 +230,18 @@ class Capture:
     def fingerprint(self, part: str) -> str:
         """A short hash of one part of the capture, for cache keys.
 
-        Parts: ``"config"`` (parsed capture.yaml), ``"frames"`` (selected frame numbers),
+        Parts: ``"config"`` (parsed capture.yaml), ``"frames"`` (selected frame numbers, and the cameras'
+        ``frame_offsets``),
         ``"calibration"`` (file contents), ``"image_sizes"``, and the media ``"images"``,
         ``"background"``, ``"silhouettes"`` (path + size + mtime of each file: cheap, and a changed
         file gets a new mtime).
         """
         if part == "config":
             return text_digest(canonical_json(self.config))
-        if part == "frames":
-            return text_digest(canonical_json(list(self.frame_numbers)))
+        if part == "frames":  # which media frame each camera reads too, when frame_offsets says (else as before)
+            frames = list(self.frame_numbers)
+            return text_digest(canonical_json({"frames": frames, "frame_offsets": dict(self.frame_offsets)}
+                                              if self.frame_offsets else frames))
         if part == "image_sizes":
             return text_digest(canonical_json({camera.name: list(camera.size) for camera in self.rig}))
         if part == "calibration":  # named within the calibration itself, which may lie anywhere
