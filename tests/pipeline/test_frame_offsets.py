@@ -45,6 +45,15 @@ def test_a_camera_ahead_loses_the_first_frames(tmp_path):
         Capture.open(root)
 
 
+def test_the_run_records_the_offsets_it_read_with(tmp_path):
+    from pipeline.io.capture import capture_summary
+
+    root = make_capture(tmp_path / "capture", n_frames=6)
+    assert capture_summary(Capture.open(root))["frame_offsets"] == {}
+    write_config(root, frame_offsets={"cam1": 2})
+    assert capture_summary(Capture.open(root))["frame_offsets"] == {"cam1": 2}
+
+
 def test_frames_select_among_the_shared_ones(tmp_path):
     root = make_capture(tmp_path / "capture", n_frames=8)
     write_config(root, frame_offsets={"cam0": 1, "cam1": -2}, frames={"start": 3, "step": 2})

@@ -407,6 +407,7 @@ def capture_summary(capture: Capture) -> dict:
         "cameras": list(capture.rig.names),
         "image_sizes": {camera.name: list(camera.size) for camera in capture.rig},
         "frames": list(capture.frame_numbers),
+        "frame_offsets": dict(capture.frame_offsets),
         "volume": capture.volume.tolist(),
         "volume_source": capture.volume_source,
         "world_transform": {"up": capture.config["calibration"]["up"], **capture.world.to_dict(),
