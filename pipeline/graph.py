@@ -677,13 +677,7 @@ def run_export(ctx: StageContext) -> None:
     if params.report and capture.has_images:  # the report's photographs, decoded while the exports are written
         pictured = frames if len(frames) else np.asarray(capture.frame_numbers)
         shown = ctx.workers.executor.submit(frame_images_task, capture, int(pictured[len(pictured) // 2]))
-    # The cameras' synchrony is checked on a worker while this process writes the exports, on the core they leave.
-    sync = None
-    if params.sync_check:
-        joints = np.stack([estimated[frame] if frame in estimated else np.full((len(JOINT_NAMES), 3), np.nan)
-                           for frame in capture.frame_numbers])
-        checked = fastest_frames(joints, SYNC_FRAMES, SYNC_MAX_OFFSET + 1)
-        sync = ctx.workers.executor.submit(sync_check_task, capture, ctx.input_dir("silhouettes"), checked)
+    sync = _start_sync_check(ctx, estimated) if params.sync_check else None
     if len(frames):
         write_exports(ctx.out_dir, frames, np.stack([estimated[frame] for frame in frames]), capture.fps,
                       params=params, quality=quality)
@@ -702,25 +696,41 @@ def run_export(ctx: StageContext) -> None:
         write_report(ctx.output_root, rig=rig, images=shown.result() if shown is not None else None)
 
 
+def _start_sync_check(ctx: StageContext, estimated: Mapping[int, np.ndarray]) -> cf.Future | None:
+    """The cameras' synchrony check (`frame_tasks.sync_check_task`) started on a worker, to run while this process
+    writes the exports on the core the workers leave; None, with a line saying why, when it cannot tell anything:
+    frames not evenly spaced (offsets are whole steps of the capture's frames), or too few frames with joints."""
+    frames = ctx.capture.frame_numbers
+    if len(set(np.diff(frames).tolist())) > 1:
+        log.info("sync check: not run, the capture's frames are not evenly spaced")
+        return None
+    joints = np.stack([estimated[frame] if frame in estimated else np.full((len(JOINT_NAMES), 3), np.nan)
+                       for frame in frames])
+    checked = fastest_frames(joints, SYNC_FRAMES, SYNC_MAX_OFFSET + 1)
+    if not checked:
+        log.info("sync check: not run, too few frames with estimated joints (%d frames; offsets up to %d are tried)",
+                 len(frames), SYNC_MAX_OFFSET)
+        return None
+    return ctx.workers.executor.submit(sync_check_task, ctx.capture, ctx.input_dir("silhouettes"), checked)
+
+
 def _write_sync_check(capture: Capture, check: SyncCheck, out_dir: Path) -> None:
-    """Write the cameras' synchrony check (`sync_check_path`, measured by `frame_tasks.sync_check_task`) and warn
-    about each camera whose silhouettes agree clearly better with the others' at a frame offset, with the
-    ``frame_offsets`` line for capture.yaml that makes up for it."""
+    """Write the cameras' synchrony check (`sync_check_path`, measured by `frame_tasks.sync_check_task` on evenly
+    spaced frames) and warn about each camera whose silhouettes agree clearly better with the others' at a frame
+    offset, with the ``frame_offsets`` for capture.yaml that make up for it (those given counted in)."""
     frames = capture.frame_numbers
-    spacing = set(np.diff(frames).tolist())
-    if not check.frames or len(spacing) != 1:  # no frame to check, or frames not evenly spaced
-        return
-    step = spacing.pop()  # a capture frame is `step` frames of the media
+    step = int(frames[1] - frames[0])  # a capture frame is `step` frames of the media
     lags, mean = check.lags(), check.mean_agreement()
     names = capture.rig.names
     given = capture.frame_offsets
-    frame_offsets = {name: given.get(name, 0) + int(lag) * step for name, lag in zip(names, lags, strict=True)}
+    totals = {name: given.get(name, 0) + int(lag) * step for name, lag in zip(names, lags, strict=True)}
+    needed = {name: offset for name, offset in totals.items() if offset}  # the given ones may cancel out
     frames_io.write_json(sync_check_path(out_dir), {
         "method": "silhouette coherence across time", "frames": [int(frames[i]) for i in check.frames],
         "offsets": [int(k) * step for k in check.offsets],
         "agreement": {name: [_finite_or_none(value) for value in row] for name, row in zip(names, mean, strict=True)},
         "lag": {name: int(lag) * step for name, lag in zip(names, lags, strict=True)},
-        "frame_offsets": {name: offset for name, offset in frame_offsets.items() if offset}})
+        "frame_offsets": needed})
     zero = int(np.flatnonzero(check.offsets == 0)[0])
     if np.isnan(mean[:, zero]).all():
         log.info("sync check: nothing moved in the silhouettes of the %d frames checked, which says nothing about "
@@ -728,15 +738,16 @@ def _write_sync_check(capture: Capture, check: SyncCheck, out_dir: Path) -> None
     elif not lags.any():
         log.info("sync check: every camera's silhouettes agree best with the other cameras' at the same frame (%d "
                  "frames where the subject moves)", len(check.frames))
+    advice = ("frame_offsets: {" + ", ".join(f"{camera}: {offset}" for camera, offset in needed.items()) + "}"
+              if needed else "no frame_offsets")
     for name, lag, row in zip(names, lags, mean, strict=True):
         if lag:
             log.warning("cameras not synchronised? %s's silhouettes agree best with the other cameras' %d frame(s) "
                         "%s (%.1f %% of its silhouette explained by their visual hull, against %.1f %% at the same "
                         "frame; %d frames where the subject moves): its media seem to run %d frame(s) %s theirs. "
-                        "frame_offsets: {%s} in capture.yaml makes up for it (then run again)", name, abs(lag) * step,
+                        "%s in capture.yaml makes up for it (then run again)", name, abs(lag) * step,
                         "later" if lag > 0 else "earlier", 100 * row[zero + lag], 100 * row[zero],
-                        len(check.frames), abs(lag) * step, "behind" if lag > 0 else "ahead of",
-                        ", ".join(f"{camera}: {offset}" for camera, offset in frame_offsets.items() if offset))
+                        len(check.frames), abs(lag) * step, "behind" if lag > 0 else "ahead of", advice)
 
 
 #: Modules every stage runs to write (and read) its files.

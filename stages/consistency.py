@@ -71,7 +71,7 @@ def consistent_silhouettes(masks: Sequence[np.ndarray], cameras: Sequence[Camera
         stats[:, :2] += corner
         others = [(camera, masks[o]) for o, camera in enumerate(cameras) if o != c]
         pixels = [_spread_pixels(mask, labels, stats[part], corner, part, cell) for part in range(1, count)]
-        explained = _explained(camera, np.concatenate(pixels), others, volume, tolerated)  # (rays,) bool
+        explained = explained_pixels(camera, np.concatenate(pixels), others, volume, tolerated)  # (rays,) bool
         starts = np.cumsum([0] + [len(part) for part in pixels[:-1]])
         shares = np.add.reduceat(explained, starts) / np.array([len(part) for part in pixels])
         dropped = np.flatnonzero(shares < EXPLAINED_SHARE) + 1  # labels of the parts to drop
@@ -99,17 +99,9 @@ def explained_share(masks: Sequence[np.ndarray], cameras: Sequence[Camera], volu
         if not len(uv):
             continue
         others = [(other, masks[o]) for o, other in enumerate(cameras) if o != c]
-        explained += int(_explained(camera, uv, others, volume, tolerated).sum())
+        explained += int(explained_pixels(camera, uv, others, volume, tolerated).sum())
         tested += len(uv)
     return explained / tested if tested else np.nan
-
-
-def explained_pixels(camera: Camera, uv: np.ndarray, others: Sequence[tuple[Camera, np.ndarray]], volume: np.ndarray,
-                     *, tolerated: int) -> np.ndarray:
-    """(n,) bool: which rays of ``camera`` through pixels ``uv`` (n, 2) meet a point the ``others`` (camera, mask)
-    see inside their silhouettes, as `explained_share` counts them. The masks need not be of the instant the pixels
-    are: `stages.synchrony` compares them across time."""
-    return _explained(camera, np.asarray(uv, dtype=float), others, np.asarray(volume, dtype=float), tolerated)
 
 
 def silhouette_pixels(mask: np.ndarray, count: int) -> np.ndarray:
@@ -196,10 +188,11 @@ def _without_parts(mask: np.ndarray, labels: np.ndarray, corner: tuple[int, int]
     return kept
 
 
-def _explained(camera: Camera, uv: np.ndarray, others: Sequence[tuple[Camera, np.ndarray]], volume: np.ndarray,
-               tolerated: int) -> np.ndarray:
+def explained_pixels(camera: Camera, uv: np.ndarray, others: Sequence[tuple[Camera, np.ndarray]],
+                     volume: np.ndarray, tolerated: int) -> np.ndarray:
     """(n,) bool: which rays of ``camera`` through pixels ``uv`` (n, 2) meet a point that the ``others``
-    (camera, mask) see inside their silhouettes (see the module's docstring)."""
+    (camera, mask) see inside their silhouettes (see the module's docstring). The masks need not be of the instant
+    the pixels are: `stages.synchrony` compares them across time."""
     directions = camera.pixel_rays(uv)  # (n, 3)
     enter, leave = box_interval(camera.centre, directions, volume)
     t = enter[:, None] + (leave - enter)[:, None] * (np.arange(POINTS_PER_RAY) + 0.5) / POINTS_PER_RAY  # (n, S)

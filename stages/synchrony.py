@@ -29,7 +29,7 @@ from calib.camera import Camera
 from stages.consistency import explained_pixels, silhouette_pixels
 
 #: Rays through the moving part of each camera's silhouette tested per frame and offset: at the right offset most
-#: are explained, a frame away a tenth or more are not.
+#: of them are explained, a frame away clearly fewer, so a few dozen tell the two apart on each frame.
 SYNC_RAYS = 40
 #: A camera's offset is reported when its silhouettes agree better there than at 0 by this many standard errors
 #: of the per-frame differences: clearly, not by the chance of which rays were drawn.
@@ -58,9 +58,7 @@ class SyncCheck:
 
     def mean_agreement(self) -> np.ndarray:
         """(C, K) each camera's agreement at each offset, averaged over the frames; NaN where not measured."""
-        counted = np.isfinite(self.agreement).sum(axis=2)
-        total = np.nansum(self.agreement, axis=2)
-        return np.where(counted > 0, total / np.maximum(counted, 1), np.nan)
+        return _frame_mean(self.agreement)
 
     def lags(self) -> np.ndarray:
         """(C,) int each camera's offset where its silhouettes agree clearly best (`clearly_better`), else 0."""
@@ -149,17 +147,14 @@ def check_synchrony(mask_at: Callable[[int, int], np.ndarray], cameras: Sequence
                        for k in sorted({k + step for k in ks for step in (-1, 0, 1)})}
                 parts = [silhouette_pixels(_moving_part(own[k], own[k - 1], own[k + 1]), rays) for k in ks]
                 others = [(camera, views[o]) for o, camera in enumerate(cameras) if o != c]
-                explained = explained_pixels(cameras[c], np.concatenate(parts), others, volume, tolerated=tolerated)
+                explained = explained_pixels(cameras[c], np.concatenate(parts), others, volume, tolerated)
                 for k, part in zip(ks, np.split(explained, np.cumsum([len(p) for p in parts])[:-1]), strict=True):
                     agreement[c, zero + k, j] = part.mean() if len(part) else np.nan
-
-    def curve(c: int) -> np.ndarray:
-        return SyncCheck(frames, offsets, agreement[c : c + 1]).mean_agreement()[0]
 
     measure({c: [-1, 0, 1] for c in range(len(cameras))})
     reached = {}  # camera -> the offset reached so far, for the cameras that agree better one step away
     for c in range(len(cameras)):
-        near = curve(c)[zero - 1 : zero + 2]
+        near = _frame_mean(agreement[c])[zero - 1 : zero + 2]
         if not np.isnan(near).any() and near[1] < near.max():
             reached[c] = 1 if near[2] > near[0] else -1
     while reached:  # on, one step at a time, while the farther offset agrees better
@@ -168,8 +163,14 @@ def check_synchrony(mask_at: Callable[[int, int], np.ndarray], cameras: Sequence
             break
         measure({c: [k + int(np.sign(k))] for c, k in reached.items()})
         reached = {c: k + int(np.sign(k)) for c, k in reached.items()
-                   if curve(c)[zero + k + int(np.sign(k))] > curve(c)[zero + k]}
+                   if _frame_mean(agreement[c, zero + k + int(np.sign(k))]) > _frame_mean(agreement[c, zero + k])}
     return SyncCheck(frames, offsets, agreement)
+
+
+def _frame_mean(agreement: np.ndarray) -> np.ndarray:
+    """``agreement`` (..., F) averaged over its last axis, the frames, leaving out NaN; NaN where every frame is."""
+    counted = np.isfinite(agreement).sum(axis=-1)
+    return np.where(counted > 0, np.nansum(agreement, axis=-1) / np.maximum(counted, 1), np.nan)
 
 
 def _moving_part(mask: np.ndarray, before: np.ndarray, after: np.ndarray) -> np.ndarray:

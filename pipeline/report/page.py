@@ -335,11 +335,12 @@ def _lag(record: dict | None, camera: str) -> str:
     lag = (record or {}).get("lag", {}).get(camera)
     if not isinstance(lag, int) or not lag:
         return ""
-    offset = (record.get("frame_offsets") or {}).get(camera, lag)
+    offset = (record.get("frame_offsets") or {}).get(camera, 0)  # 0: the offset given for it cancels out
+    remedy = (f"<code>frame_offsets: {{{html.escape(camera)}: {offset}}}</code> in capture.yaml makes up for it"
+              if offset else "capture.yaml should give it no frame offset")
     return (f"<p class='note'>Sync check: its silhouettes agree best with the other cameras' {abs(lag)} frame(s) "
             f"{'later' if lag > 0 else 'earlier'}: its media seem to run {'behind' if lag > 0 else 'ahead of'} "
-            f"theirs (not synchronised?); <code>frame_offsets: {{{html.escape(camera)}: {offset}}}</code> in "
-            "capture.yaml makes up for it.</p>")
+            f"theirs (not synchronised?); {remedy}.</p>")
 
 
 def _timings_section(rows: list[dict]) -> str:

@@ -52,7 +52,7 @@ class ExportParams:
         against the others' a few frames apart), write ``export/sync_check.json`` and name each camera whose
         media run frames behind or ahead, with the ``frame_offsets`` for capture.yaml that make up for it. For
         rigs without hardware synchronisation (webcams, phones); off by default, as it lengthens the export stage
-        by about 0.7 s on six cameras. ``--from export --set export.sync_check=true`` checks a
+        (docs/results_by_hand.md, "Cameras not synchronised"). ``--from export --set export.sync_check=true`` checks a
         finished run.
     """
 

@@ -115,6 +115,19 @@ def test_the_sync_check_names_the_camera_behind_and_its_offset(tmp_path, caplog)
     assert "frame_offsets: {cam1: 1, cam2: 1} in capture.yaml" in warning
 
 
+def test_an_offset_given_wrongly_is_undone(tmp_path, caplog):
+    root = make_capture(tmp_path / "capture", n_frames=12)
+    write_config(root, frame_offsets={"cam1": 1})
+    agreement = np.full((3, 5, 4), 0.8)
+    agreement[:, 2] = 0.95
+    agreement[1, 1] = 0.99  # cam1, read a frame late, agrees best a frame earlier: it was on time
+    with caplog.at_level(logging.INFO):
+        _write_sync_check(Capture.open(root), SyncCheck([2, 4, 6, 8], np.arange(-2, 3), agreement), tmp_path)
+    assert frames_io.read_json(sync_check_path(tmp_path))["frame_offsets"] == {}
+    warning, = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert "no frame_offsets in capture.yaml makes up for it" in warning
+
+
 def test_synchronised_cameras_get_an_info_line(tmp_path, caplog):
     capture = Capture.open(make_capture(tmp_path / "capture", n_frames=12))
     agreement = np.full((3, 5, 4), 0.8)
@@ -141,3 +154,26 @@ def test_the_report_notes_a_camera_behind():
     assert _lag(record, "cam0") == "" and _lag(None, "cam1") == ""
     note = _lag(record, "cam1")
     assert "2 frame(s) later" in note and "frame_offsets: {cam1: 3}" in note
+    undone = _lag({"lag": {"cam1": -1}, "frame_offsets": {}}, "cam1")  # the offset given cancels out
+    assert "1 frame(s) earlier" in undone and "should give it no frame offset" in undone
+
+
+def test_the_sync_check_is_not_started_where_it_could_not_tell(tmp_path, caplog):
+    from types import SimpleNamespace
+
+    from pipeline.graph import _start_sync_check
+
+    def context(root):
+        return SimpleNamespace(capture=Capture.open(root), workers=None, input_dir=lambda stage: tmp_path / stage)
+
+    short = make_capture(tmp_path / "short", n_frames=12)  # fewer frames than the offsets tried need
+    gaps = make_capture(tmp_path / "gaps", n_frames=40)
+    for camera in ("cam0", "cam1", "cam2"):
+        (gaps / "images" / camera / "000003.png").unlink()
+    joints = {frame: np.zeros((17, 3)) for frame in range(40)}
+    with caplog.at_level(logging.INFO):
+        assert _start_sync_check(context(short), joints) is None
+        assert _start_sync_check(context(gaps), joints) is None
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("too few frames with estimated joints" in m for m in messages)
+    assert any("frames are not evenly spaced" in m for m in messages)

@@ -210,8 +210,9 @@ def run_variant(capture: Path, variant: Variant, cache: Path, out: Path, *, quic
     try:
         copy = ensure_copy(capture, variant, cache)
         source = prefix_view(copy, out / f"{name}-capture", QUICK_FRAMES) if quick else copy
+        numbers = frame_numbers(source)
         settings = ("export.sync_check=true",) if variant.sync_offsets else ()
-        measure = run_pipeline(source, out / name, workers=workers, frames=len(frame_numbers(source)), fresh=True,
+        measure = run_pipeline(source, out / name, workers=workers, frames=len(numbers), fresh=True,
                                settings=settings)
         if variant.sync_offsets and measure.ok:
             offsets = named_offsets(out / name)
@@ -219,9 +220,8 @@ def run_variant(capture: Path, variant: Variant, cache: Path, out: Path, *, quic
             if offsets:
                 name += "-offsets"
                 source = capture_view(source, out / f"{name}-capture", frame_offsets=offsets)
-                measure = run_pipeline(source, out / name, workers=workers, frames=len(frame_numbers(source)),
-                                       fresh=True)
-        numbers = frame_numbers(source)
+                numbers = frame_numbers(source)
+                measure = run_pipeline(source, out / name, workers=workers, frames=len(numbers), fresh=True)
         frames = len(numbers)
     except (InputError, OSError, subprocess.CalledProcessError) as error:
         return row | {"error": str(error)}
